@@ -1,0 +1,5 @@
+"""Lightning callbacks: figures."""
+
+from otgb.callbacks.figures import TrajectoryFigure
+
+__all__ = ["TrajectoryFigure"]

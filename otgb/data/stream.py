@@ -1,0 +1,81 @@
+"""The source stream: fresh draws of (x0, theta) for f_p, under a simulation budget.
+
+Every item is a pure function of (seed, rank, item index) (counter-based seeding), so the
+stream's whole state is the number of items consumed: a resumed run restarts at that
+index and replays nothing. Ranks draw from disjoint keys and split the budget; workers of
+one rank take the items i = start + worker_id, start + worker_id + num_workers, ..., which
+the DataLoader hands back in index order.
+
+One item is one iteration of Algorithm 1: ``batches_per_step`` source batches of
+``batch_size`` inputs (one per map update) and a batch of measured trajectories for the
+critic update. The f_p simulation itself runs on the training device, in the data module.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import torch
+from torch import Tensor
+from torch.utils.data import IterableDataset, get_worker_info
+
+from otgb.data.seeding import generator_for
+from otgb.physics.base import PhysicsModel
+
+
+class SourceStream(IterableDataset):
+    """Yields dicts with ``index``, ``x0`` (K, B, *state), ``theta`` (K, B, P) and ``y`` (B_y, T, *obs).
+
+    Args:
+        physics: f_p, whose priors are sampled.
+        measured: the fixed measured set (N, T, *obs); batches are drawn with replacement.
+        batch_size: B, source inputs per map update. batches_per_step: K (T_max).
+        measured_batch_size: B_y, measured trajectories per critic update.
+        budget: simulations this rank may spend; the stream ends before exceeding it.
+        seed, rank: keys of the random draws. start: first item index (resume).
+    """
+
+    def __init__(
+        self,
+        physics: PhysicsModel,
+        measured: Tensor,
+        batch_size: int,
+        batches_per_step: int,
+        measured_batch_size: int,
+        budget: int,
+        seed: int,
+        rank: int = 0,
+        start: int = 0,
+    ) -> None:
+        super().__init__()
+        self.physics, self.measured = physics, measured
+        self.batch_size, self.batches_per_step = batch_size, batches_per_step
+        self.measured_batch_size, self.budget = measured_batch_size, budget
+        self.seed, self.rank, self.start = seed, rank, start
+
+    @property
+    def simulations_per_item(self) -> int:
+        return self.batch_size * self.batches_per_step
+
+    def __len__(self) -> int:
+        return max(0, self.budget // self.simulations_per_item - self.start)
+
+    def __iter__(self) -> Iterator[dict[str, Tensor | int]]:
+        info = get_worker_info()
+        worker, workers = (info.id, info.num_workers) if info is not None else (0, 1)
+        end = self.budget // self.simulations_per_item
+        for index in range(self.start + worker, end, workers):
+            yield self.item(index)
+
+    def item(self, index: int) -> dict[str, Tensor | int]:
+        g = generator_for(self.seed, "source", self.rank, index)
+        n, k = self.simulations_per_item, self.batches_per_step
+        x0 = self.physics.sample_initial_state(n, g)
+        theta = self.physics.sample_theta(n, g)
+        pick = torch.randint(len(self.measured), (self.measured_batch_size,), generator=g)
+        return {
+            "index": index,
+            "x0": x0.reshape(k, self.batch_size, *x0.shape[1:]),
+            "theta": theta.reshape(k, self.batch_size, -1),
+            "y": self.measured[pick],
+        }

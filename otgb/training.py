@@ -1,0 +1,242 @@
+"""The maximin of kernel weak OT (paper eq. kernel-maximin) trained as in Algorithm 1.
+
+One training step is one iteration of Algorithm 1:
+
+    for i in 1..T_max:                       # map updates, a fresh source batch each
+        x = S_fp(x0, theta);  z ~ eta (|Z| draws per x)
+        L_T = mean_x [ C_hat_{k,gamma}(x, T_x(Z)) - mean_z f(T_x(z)) ]
+        phi <- phi - grad L_T
+    y ~ nu                                   # critic update
+    L_f = mean f(y_hat) - mean f(y) + lambda * GP
+    psi <- psi - grad L_f
+
+Optimisation is manual. ``trainer.global_step`` counts critic updates, i.e. iterations of
+Algorithm 1: the T_max map updates of a step go through the strategy's precision plugin
+without touching Lightning's step counter, so ``max_steps``, ``val_check_interval`` and
+``log_every_n_steps`` all count iterations. Map updates are logged as ``train/map_updates``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import torch
+from lightning import LightningModule
+from lightning.pytorch.cli import LRSchedulerCallable, OptimizerCallable
+from torch import Tensor, nn
+
+from otgb.metrics import abs_err, mmd_rbf, nrmse
+from otgb.ot import critic_loss, distance_kernel_weak_cost
+from otgb.physics.base import PhysicsModel
+
+MapFactory = Callable[[PhysicsModel, int], nn.Module]
+CriticFactory = Callable[[tuple], nn.Module]
+LATENTS = ("normal", "uniform")
+
+
+def _adam(params: Any) -> torch.optim.Optimizer:
+    return torch.optim.Adam(params, lr=1e-4)
+
+
+class KernelWeakOT(LightningModule):
+    """Learns T_phi(x; theta, z) by kernel weak OT against a critic f_psi.
+
+    Args:
+        physics: f_p (linked from the data module by the CLI).
+        transport_map: builds the map from (physics, z_dim), e.g. :class:`otgb.models.GreyBoxODE`.
+        critic: builds the critic from the trajectory shape (T, *obs).
+        z_dim: size of the latent z; 0 for a deterministic map.
+        latent: distribution eta of z: "normal" (N(0, I)) or "uniform" (U(-1, 1)).
+        n_z: |Z|, latent draws per source sample in the cost.
+        gamma: weight of the variance term of the weak cost (0 one-to-one, 1 one-to-many).
+        t_max: map updates per critic update.
+        gp_weight: lambda, weight of the gradient penalty.
+        grad_clip: max gradient norm for both networks (None: no clipping).
+        map_optimizer, critic_optimizer, map_scheduler, critic_scheduler: optimiser and
+            learning-rate schedule factories; schedules step once per training step.
+    """
+
+    def __init__(
+        self,
+        physics: PhysicsModel,
+        transport_map: MapFactory,
+        critic: CriticFactory,
+        z_dim: int = 0,
+        latent: str = "normal",
+        n_z: int = 1,
+        gamma: float = 0.0,
+        t_max: int = 5,
+        gp_weight: float = 1.0,
+        grad_clip: float | None = None,
+        map_optimizer: OptimizerCallable = _adam,
+        critic_optimizer: OptimizerCallable = _adam,
+        map_scheduler: LRSchedulerCallable | None = None,
+        critic_scheduler: LRSchedulerCallable | None = None,
+    ) -> None:
+        super().__init__()
+        self._check_settings(z_dim, latent, n_z, gamma, t_max, gp_weight, grad_clip)
+        self.save_hyperparameters(ignore=["physics", "transport_map", "critic", "map_optimizer", "critic_optimizer", "map_scheduler", "critic_scheduler"])
+        self.automatic_optimization = False
+        self.physics = physics
+        self.transport_map = transport_map(physics, z_dim)
+        self.critic = critic(tuple(physics.trajectory_shape))
+        self.z_dim, self.latent, self.n_z, self.gamma = z_dim, latent, n_z, gamma
+        self.t_max, self.gp_weight, self.grad_clip = t_max, gp_weight, grad_clip
+        self.optimizer_factories = (map_optimizer, critic_optimizer)
+        self.scheduler_factories = (map_scheduler, critic_scheduler)
+        self.map_updates = 0
+        self.elapsed_before = 0.0
+        self._fit_clock: float | None = None
+        self._eval_outputs: list[dict[str, Tensor]] = []
+
+    @staticmethod
+    def _check_settings(z_dim: int, latent: str, n_z: int, gamma: float, t_max: int, gp_weight: float, grad_clip: float | None) -> None:
+        if z_dim < 0 or n_z < 1 or t_max < 1:
+            raise ValueError(f"model: need z_dim >= 0, n_z >= 1, t_max >= 1; got z_dim={z_dim}, n_z={n_z}, t_max={t_max}")
+        if latent not in LATENTS:
+            raise ValueError(f"model.latent={latent!r}: expected one of {LATENTS}")
+        if not 0.0 <= gamma <= 1.0:
+            raise ValueError(f"model.gamma={gamma}: expected a value in [0, 1]")
+        if gamma > 0 and n_z < 2:
+            raise ValueError(f"model.gamma={gamma} > 0 needs n_z >= 2 latent draws per source (got n_z={n_z})")
+        if n_z > 1 and z_dim == 0:
+            raise ValueError(f"model.n_z={n_z} draws of a deterministic map (z_dim=0) are all equal: set z_dim > 0 or n_z = 1")
+        if gp_weight < 0 or (grad_clip is not None and grad_clip <= 0):
+            raise ValueError(f"model: need gp_weight >= 0 and grad_clip > 0 or None; got {gp_weight}, {grad_clip}")
+
+    # --- the map ------------------------------------------------------------------------
+    def sample_z(self, n: int) -> Tensor:
+        shape = (n, self.z_dim)
+        if self.latent == "uniform":
+            return 2 * torch.rand(shape, device=self.device) - 1
+        return torch.randn(shape, device=self.device)
+
+    def generate(self, x: Tensor, x0: Tensor, theta: Tensor, n_draws: int) -> Tensor:
+        """``n_draws`` outputs of the map per input: (B, n_draws, T, *obs)."""
+        batch = x.shape[0]
+        rep = lambda v: v.repeat_interleave(n_draws, dim=0)  # noqa: E731
+        y_hat = self.transport_map(rep(x), rep(x0), rep(theta), self.sample_z(batch * n_draws))
+        return y_hat.reshape(batch, n_draws, *y_hat.shape[1:])
+
+    # --- Algorithm 1 --------------------------------------------------------------------
+    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        map_opt, critic_opt = self.optimizers()
+        if batch["x0"].shape[0] != self.t_max:
+            raise ValueError(f"a training item holds {batch['x0'].shape[0]} source batches, the model expects t_max={self.t_max}")
+        self.toggle_optimizer(map_opt)
+        for k in range(self.t_max):
+            y_hat, parts = self._map_update(map_opt, batch["x"][k], batch["x0"][k], batch["theta"][k])
+        self.untoggle_optimizer(map_opt)
+
+        self.toggle_optimizer(critic_opt)
+        loss, critic_parts = critic_loss(self.critic, batch["y"], y_hat.detach().flatten(0, 1), self.gp_weight)
+        critic_opt.zero_grad(set_to_none=True)
+        self.manual_backward(loss)
+        self._clip(critic_opt)
+        critic_opt.step()
+        self.untoggle_optimizer(critic_opt)
+
+        for scheduler in self._schedulers():
+            scheduler.step()
+        self.log_dict({f"train/{k}": v for k, v in {**parts, **critic_parts, "critic_loss": loss}.items()}, prog_bar=False)
+        self.log("train/wasserstein", critic_parts["critic_gap"], prog_bar=True)
+        self.log("train/map_updates", float(self.map_updates))
+        self.log("train/simulations", float(self.trainer.datamodule.simulations) if self.trainer.datamodule else 0.0, prog_bar=True)
+
+    def _map_update(self, opt: Any, x: Tensor, x0: Tensor, theta: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+        y_hat = self.generate(x, x0, theta, self.n_z)
+        cost = distance_kernel_weak_cost(x, y_hat, self.gamma).mean()
+        potential = self.critic(y_hat.flatten(0, 1)).mean()
+        loss = cost - potential
+        opt.zero_grad(set_to_none=True)
+        self.manual_backward(loss)
+        self._clip(opt)
+        self.trainer.strategy.optimizer_step(opt.optimizer, closure=lambda: None, model=self)
+        self.map_updates += 1
+        return y_hat, {"map_loss": loss.detach(), "transport_cost": cost.detach()}
+
+    def _clip(self, opt: Any) -> None:
+        if self.grad_clip is not None:
+            self.clip_gradients(opt, gradient_clip_val=self.grad_clip, gradient_clip_algorithm="norm")
+
+    def _schedulers(self) -> list[Any]:
+        schedulers = self.lr_schedulers()
+        if schedulers is None:
+            return []
+        return schedulers if isinstance(schedulers, list) else [schedulers]
+
+    def configure_optimizers(self) -> Any:
+        map_factory, critic_factory = self.optimizer_factories
+        optimizers = [map_factory(self.transport_map.parameters()), critic_factory(self.critic.parameters())]
+        schedulers = [f(opt) for f, opt in zip(self.scheduler_factories, optimizers) if f is not None]
+        return (optimizers, schedulers) if schedulers else optimizers
+
+    # --- evaluation on the joint sets ---------------------------------------------------
+    def on_fit_start(self) -> None:
+        self._fit_clock = time.perf_counter()
+
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._collect(batch)
+
+    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._collect(batch)
+
+    def _collect(self, batch: dict[str, Tensor]) -> None:
+        y_hat = self.generate(batch["x"], batch["x0"], batch["theta"], batch["y"].shape[1])
+        self._eval_outputs.append({**{k: v.detach().cpu() for k, v in batch.items()}, "y_hat": y_hat.detach().cpu()})
+
+    def on_validation_epoch_end(self) -> None:
+        self._log_evaluation("val")
+
+    def on_test_epoch_end(self) -> None:
+        self._log_evaluation("test")
+
+    def _log_evaluation(self, stage: str) -> None:
+        if not self._eval_outputs:
+            return
+        data = {k: torch.cat([o[k] for o in self._eval_outputs]) for k in self._eval_outputs[0]}
+        self._eval_outputs.clear()
+        metrics = evaluate(data["y_hat"], data)
+        first_validation = stage == "val" and not getattr(self, "_reference_logged", False)
+        if stage == "test" or first_validation:
+            reference = evaluate(data["x"].unsqueeze(1).expand_as(data["y"]), data)
+            metrics.update({f"fp_{k}": v for k, v in reference.items()})
+            self._reference_logged = True
+        if stage == "val" and self._fit_clock is not None:
+            metrics["wall_time_s"] = torch.tensor(self.elapsed_before + time.perf_counter() - self._fit_clock)
+            metrics["simulations"] = torch.tensor(float(self.trainer.datamodule.simulations))
+        self.log_dict({f"{stage}/{k}": v.float() for k, v in metrics.items()}, sync_dist=True)
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        elapsed = self.elapsed_before + (time.perf_counter() - self._fit_clock if self._fit_clock else 0.0)
+        checkpoint["otgb"] = {"map_updates": self.map_updates, "elapsed_s": elapsed}
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        state = checkpoint.get("otgb", {})
+        self.map_updates = state.get("map_updates", 0)
+        self.elapsed_before = state.get("elapsed_s", 0.0)
+
+
+def evaluate(y_hat: Tensor, data: dict[str, Tensor]) -> dict[str, Tensor]:
+    """Joint-set metrics of generated draws y_hat (N, M, T, *obs) against data["y"] (N, M, T, *obs).
+
+    ABS ERR and N-RMSE pair each input's generation with its measurement (M = 1 only);
+    ``mmd`` compares joint samples (theta, x0, y) of model and DGP, for any M.
+    """
+    y = data["y"]
+    metrics: dict[str, Tensor] = {}
+    if y.shape[1] == 1:
+        value_range = y.max() - y.min()
+        metrics["abs_err"] = abs_err(y_hat[:, 0], y[:, 0]).mean()
+        metrics["nrmse"] = nrmse(y_hat[:, 0], y[:, 0], value_range).mean()
+    metrics["mmd"] = mmd_rbf(joint_samples(data, y_hat), joint_samples(data, y))
+    return metrics
+
+
+def joint_samples(data: dict[str, Tensor], y: Tensor) -> Tensor:
+    """Rows (theta, x0, y_j) for every input and draw: (N * M, P + |state| + |traj|)."""
+    n, m = y.shape[:2]
+    inputs = torch.cat([data["theta"], data["x0"].flatten(1)], dim=1)
+    return torch.cat([inputs.repeat_interleave(m, dim=0), y.reshape(n * m, -1)], dim=1)
