@@ -1,0 +1,105 @@
+"""Real `otgb` runs through LightningCLI on tiny budgets."""
+
+import csv
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from otgb.cli import main
+
+CONFIG = str(Path(__file__).parents[1] / "configs" / "pendulum.yaml")
+
+
+def _args(tmp_path: Path, *extra: str) -> list[str]:
+    logger = (
+        "[{class_path: lightning.pytorch.loggers.TensorBoardLogger, init_args: {save_dir: %s, name: run}},"
+        " {class_path: lightning.pytorch.loggers.CSVLogger, init_args: {save_dir: %s, name: run}}]" % (tmp_path, tmp_path)
+    )
+    return [
+        "--config", CONFIG,
+        f"--trainer.logger={logger}",
+        "--trainer.enable_progress_bar=false",
+        "--trainer.val_check_interval=3",
+        "--data.simulation_budget=3200",
+        "--data.batch_size=16",
+        "--data.n_measured=64",
+        "--data.n_val=24",
+        "--data.n_test=20",
+        f"--data.cache_dir={tmp_path / 'cache'}",
+        *extra,
+    ]
+
+
+def _rows(run_dir: Path) -> list[dict]:
+    with open(run_dir / "metrics.csv") as f:
+        return list(csv.DictReader(f))
+
+
+def _last(rows: list[dict], key: str) -> float:
+    return [float(r[key]) for r in rows if r.get(key)][-1]
+
+
+def test_fit_writes_logs_checkpoints_and_figures(tmp_path):
+    main(["fit", *_args(tmp_path, "--trainer.max_steps=6")])
+    run = tmp_path / "run" / "version_0"
+    assert {"metrics.csv", "config.yaml", "hparams.yaml"} <= {p.name for p in run.iterdir()}
+    assert list(run.glob("events.out.tfevents.*")), "TensorBoard events next to the CSV log"
+    assert (run / "checkpoints" / "last.ckpt").is_file() and list(run.glob("checkpoints/best-*.ckpt"))
+    assert sorted(p.name for p in (run / "figures").iterdir()) == ["val_step0000003.png", "val_step0000006.png"]
+    rows = _rows(run)
+    assert _last(rows, "val/fp_nrmse") > 0.1, "the uncorrected f_p gap is logged"
+    ckpt = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)
+    assert ckpt["global_step"] == 6, "global_step counts Algorithm-1 iterations, not optimizer steps"
+    assert ckpt["otgb"]["map_updates"] == 30
+    assert ckpt["SimulationDataModule"]["items_consumed"] == 6
+
+
+def test_budget_ends_training(tmp_path):
+    main(["fit", *_args(tmp_path, "--data.simulation_budget=480")])  # 480 / (16 * 5) = 6 steps
+    ckpt = torch.load(tmp_path / "run" / "version_0" / "checkpoints" / "last.ckpt", weights_only=False)
+    assert ckpt["global_step"] == 6 and ckpt["SimulationDataModule"]["items_consumed"] == 6
+
+
+def test_resume_continues_the_stream_and_matches_an_uninterrupted_run(tmp_path):
+    main(["fit", *_args(tmp_path / "a", "--trainer.max_steps=6")])
+    main(["fit", *_args(tmp_path / "b", "--trainer.max_steps=3")])
+    last = tmp_path / "b" / "run" / "version_0" / "checkpoints" / "last.ckpt"
+    main(["fit", *_args(tmp_path / "b", "--trainer.max_steps=6"), f"--ckpt_path={last}"])
+    full = torch.load(tmp_path / "a" / "run" / "version_0" / "checkpoints" / "last.ckpt", weights_only=False)
+    resumed = torch.load(tmp_path / "b" / "run" / "version_1" / "checkpoints" / "last.ckpt", weights_only=False)
+    assert resumed["global_step"] == 6 and resumed["SimulationDataModule"]["items_consumed"] == 6
+    assert resumed["otgb"]["map_updates"] == 30
+    for name, value in full["state_dict"].items():
+        assert torch.allclose(value, resumed["state_dict"][name], atol=1e-5), name
+
+
+def test_same_seed_same_numbers(tmp_path):
+    for run in ("a", "b"):
+        main(["fit", *_args(tmp_path / run, "--trainer.max_steps=3")])
+    a, b = (_rows(tmp_path / r / "run" / "version_0") for r in ("a", "b"))
+    assert _last(a, "val/abs_err") == _last(b, "val/abs_err")
+    assert _last(a, "train/critic_loss") == _last(b, "train/critic_loss")
+
+
+def test_test_subcommand_and_overrides(tmp_path):
+    main(["fit", *_args(tmp_path, "--trainer.max_steps=3", "--model.gamma=0.0", "--model.gp_weight=0.5")])
+    run = tmp_path / "run" / "version_0"
+    assert "gp_weight: 0.5" in (run / "config.yaml").read_text()
+    main(["test", *_args(tmp_path), f"--ckpt_path={run / 'checkpoints' / 'last.ckpt'}"])
+    rows = _rows(tmp_path / "run" / "version_1")
+    assert _last(rows, "test/abs_err") > 0 and _last(rows, "test/fp_abs_err") > 0.1
+
+
+def test_bad_config_value_is_named(tmp_path):
+    with pytest.raises(ValueError, match="model.gamma=1.0 > 0 needs n_z >= 2"):
+        main(["fit", *_args(tmp_path, "--model.gamma=1.0")])
+
+
+def test_console_script_print_config():
+    out = subprocess.run([sys.executable, "-m", "otgb.cli", "fit", "--config", CONFIG, "--model.t_max=7", "--print_config"],
+                         capture_output=True, text=True, check=True).stdout
+    assert "t_max: 7" in out and "batches_per_step" not in out.split("data:")[1].split("\n")[0]
+    assert "class_path: otgb.physics.Pendulum" in out

@@ -1,0 +1,61 @@
+from functools import partial
+
+import torch
+
+from otgb.metrics import abs_err, mmd_rbf, nrmse
+from otgb.models import ConditionalMLP, GreyBoxODE, MLPCritic
+
+
+def _greybox(physics, z_dim=0, **kw):
+    return GreyBoxODE(physics, z_dim, partial(ConditionalMLP, **kw))
+
+
+def test_zero_correction_reproduces_fp(pendulum, generator):
+    gb = _greybox(pendulum, output_scale=0.0)
+    x0, theta = pendulum.sample_initial_state(5, generator), pendulum.sample_theta(5, generator)
+    x = pendulum.simulate(x0, theta)
+    assert torch.allclose(gb(x, x0, theta, torch.zeros(5, 0)), x, atol=1e-6)
+
+
+def test_exact_correction_reproduces_the_dgp(pendulum, damped, generator):
+    class Friction(torch.nn.Module):
+        def forward(self, state, cond):
+            return -1.2 * state[:, 1:2]
+
+    gb = GreyBoxODE(pendulum, 0, lambda *shapes: Friction())
+    x0, theta = pendulum.sample_initial_state(5, generator), pendulum.sample_theta(5, generator)
+    y = damped.simulate(x0, theta, torch.full((5, 1), 1.2))
+    assert torch.allclose(gb(None, x0, theta, torch.zeros(5, 0)), y, atol=1e-5)
+    parts = gb.components(x0, theta, torch.zeros(5, 0))
+    assert parts["physics"].shape == (5, 50, 2) and parts["correction"].shape == (5, 50, 1)
+    assert torch.allclose(parts["correction"][..., 0], -1.2 * parts["states"][..., 1])
+    field = damped.vector_field(parts["states"].flatten(0, 1), theta.repeat_interleave(50, 0), torch.full((250, 1), 1.2))
+    total = parts["physics"].clone()
+    total[..., 1] += parts["correction"][..., 0]
+    assert torch.allclose(total.flatten(0, 1), field, atol=1e-6)
+
+
+def test_correction_starts_small_and_uses_z(pendulum, generator):
+    gb = _greybox(pendulum, z_dim=3, output_scale=0.01)
+    state, cond = torch.randn(64, 2), torch.randn(64, 4)
+    assert gb.correction(state, cond).abs().max() < 0.05
+    assert not torch.allclose(gb.correction(state, cond), gb.correction(state, torch.randn(64, 4)))
+
+
+def test_critic_maps_trajectories_to_scalars():
+    critic = MLPCritic((50, 1))
+    assert critic(torch.randn(7, 50, 1)).shape == (7,)
+
+
+def test_errors_by_hand():
+    pred = torch.tensor([[1.0, 2.0, 3.0], [0.0, 0.0, 0.0]])
+    target = torch.tensor([[1.0, 2.0, 5.0], [1.0, -1.0, 1.0]])
+    assert torch.allclose(abs_err(pred, target), torch.tensor([2 / 3, 1.0]))
+    rng = target.max() - target.min()  # 6
+    assert torch.allclose(nrmse(pred, target, rng), torch.tensor([(4 / 3) ** 0.5 / 6, 1 / 6]))
+
+
+def test_mmd_separates_shifted_samples(generator):
+    a, b = torch.randn(300, 3, generator=generator), torch.randn(300, 3, generator=generator)
+    same, shifted, far = mmd_rbf(a, b), mmd_rbf(a, b + 0.5), mmd_rbf(a, b + 2.0)
+    assert same < 0.02 < shifted < far

@@ -1,0 +1,64 @@
+import math
+
+import pytest
+import torch
+from torch import nn
+
+from otgb.ot import critic_loss, distance_kernel_weak_cost, gradient_penalty
+
+
+def test_one_to_one_cost_is_half_the_distance():
+    x = torch.tensor([[0.0, 0.0], [1.0, 1.0]])
+    y = torch.tensor([[[3.0, 4.0]], [[1.0, 1.0]]])
+    assert torch.allclose(distance_kernel_weak_cost(x, y, gamma=0.0), torch.tensor([2.5, 0.0]))
+
+
+def test_weak_cost_matches_the_kernel_estimator_by_hand():
+    x = torch.tensor([[0.0, 0.0]])
+    y = torch.tensor([[[3.0, 4.0], [0.0, 1.0], [0.0, -2.0]]])
+    gamma = 0.7
+    k = lambda a, b: -torch.dist(a, b) / 2  # noqa: E731
+    zs = range(3)
+    expected = (
+        0.5 * k(x[0], x[0])
+        + (1 - gamma) / (2 * 3) * sum(k(y[0, i], y[0, i]) for i in zs)
+        - 1 / 3 * sum(k(x[0], y[0, i]) for i in zs)
+        + gamma / (2 * 3 * 2) * sum(k(y[0, i], y[0, j]) for i in zs for j in zs if i != j)
+    )
+    # distances to x: 5, 1, 2; pairwise: |(3,3)|, |(3,6)|, 3
+    by_hand = (5 + 1 + 2) / 6 - gamma * 2 * (math.sqrt(18) + math.sqrt(45) + 3) / (4 * 6)
+    cost = distance_kernel_weak_cost(x, y, gamma)
+    assert torch.allclose(cost, expected.reshape(1)) and math.isclose(cost.item(), by_hand, rel_tol=1e-6)
+
+
+def test_variance_term_needs_two_draws():
+    with pytest.raises(ValueError, match="at least 2 latent draws"):
+        distance_kernel_weak_cost(torch.zeros(2, 3), torch.zeros(2, 1, 3), gamma=1.0)
+
+
+class Linear(nn.Module):
+    def __init__(self, weight):
+        super().__init__()
+        self.weight = nn.Parameter(weight)
+
+    def forward(self, y):
+        return (y.flatten(1) * self.weight).sum(1)
+
+
+def test_gradient_penalty_uses_one_norm_per_sample_over_all_dims():
+    # f(y) = <w, y> has gradient w everywhere: penalty (||w||_F - 1)^2 with the norm over (T, C).
+    w = torch.tensor([[1.0, 2.0], [2.0, 4.0]])
+    critic = Linear(w.flatten())
+    real, fake = torch.randn(5, 2, 2), torch.randn(5, 2, 2)
+    expected = (w.norm() - 1) ** 2  # = 16; a per-row norm would give ((sqrt5-1)^2 + (sqrt20-1)^2)/2
+    assert torch.allclose(gradient_penalty(critic, real, fake), expected)
+
+
+def test_critic_loss_by_hand():
+    critic = Linear(torch.tensor([0.6, 0.8]))  # unit gradient: no penalty
+    real, fake = torch.tensor([[1.0, 0.0], [0.0, 1.0]]), torch.tensor([[0.0, 0.0], [1.0, 1.0], [2.0, 0.0]])
+    loss, parts = critic_loss(critic, real, fake, gp_weight=10.0)
+    f_real, f_fake = (0.6 + 0.8) / 2, (0 + 1.4 + 1.2) / 3
+    assert torch.allclose(loss, torch.tensor(f_fake - f_real), atol=1e-6)
+    assert torch.allclose(parts["critic_gap"], torch.tensor(f_real - f_fake))
+    assert parts["gradient_penalty"].abs() < 1e-10
