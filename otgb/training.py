@@ -89,6 +89,9 @@ class KernelWeakOT(LightningModule):
         self.map_updates = 0
         self.elapsed_before = 0.0
         self._fit_clock: float | None = None
+        self._generator: torch.Generator | None = None
+        self._generator_state: Tensor | None = None
+        self._generator_state_device = "cpu"
         self._eval_outputs: list[dict[str, Tensor]] = []
 
     @staticmethod
@@ -107,11 +110,26 @@ class KernelWeakOT(LightningModule):
             raise ValueError(f"model: need gp_weight >= 0 and grad_clip > 0 or None; got {gp_weight}, {grad_clip}")
 
     # --- the map ------------------------------------------------------------------------
+    @property
+    def generator(self) -> torch.Generator:
+        """The module's own RNG (latent z, penalty points), on its device and saved in checkpoints.
+
+        Owning it keeps a resumed run on the same draws: the global RNG is also consumed by
+        Lightning's loaders, differently before and after a restart.
+        """
+        if self._generator is None or self._generator.device != self.device:
+            self._generator = torch.Generator(device=self.device)
+            self._generator.manual_seed(torch.initial_seed())
+            if self._generator_state is not None and self.device.type == self._generator_state_device:
+                self._generator.set_state(self._generator_state)
+            self._generator_state = None
+        return self._generator
+
     def sample_z(self, n: int) -> Tensor:
         shape = (n, self.z_dim)
         if self.latent == "uniform":
-            return 2 * torch.rand(shape, device=self.device) - 1
-        return torch.randn(shape, device=self.device)
+            return 2 * torch.rand(shape, device=self.device, generator=self.generator) - 1
+        return torch.randn(shape, device=self.device, generator=self.generator)
 
     def generate(self, x: Tensor, x0: Tensor, theta: Tensor, n_draws: int) -> Tensor:
         """``n_draws`` outputs of the map per input: (B, n_draws, T, *obs)."""
@@ -131,7 +149,7 @@ class KernelWeakOT(LightningModule):
         self.untoggle_optimizer(map_opt)
 
         self.toggle_optimizer(critic_opt)
-        loss, critic_parts = critic_loss(self.critic, batch["y"], y_hat.detach().flatten(0, 1), self.gp_weight)
+        loss, critic_parts = critic_loss(self.critic, batch["y"], y_hat.detach().flatten(0, 1), self.gp_weight, self.generator)
         critic_opt.zero_grad(set_to_none=True)
         self.manual_backward(loss)
         self._clip(critic_opt)
@@ -211,12 +229,21 @@ class KernelWeakOT(LightningModule):
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         elapsed = self.elapsed_before + (time.perf_counter() - self._fit_clock if self._fit_clock else 0.0)
-        checkpoint["otgb"] = {"map_updates": self.map_updates, "elapsed_s": elapsed}
+        rng = {"device": self.generator.device.type, "state": self.generator.get_state()}
+        checkpoint["otgb"] = {"map_updates": self.map_updates, "elapsed_s": elapsed, "rng": rng}
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Restore counters and the module's RNG, so a resumed run continues with the same draws.
+
+        The RNG state only carries over to the same device type; across CPU/GPU it is reseeded.
+        """
         state = checkpoint.get("otgb", {})
         self.map_updates = state.get("map_updates", 0)
         self.elapsed_before = state.get("elapsed_s", 0.0)
+        rng = state.get("rng")
+        self._generator = None
+        if rng is not None:
+            self._generator_state, self._generator_state_device = rng["state"], rng["device"]
 
 
 def evaluate(y_hat: Tensor, data: dict[str, Tensor]) -> dict[str, Tensor]:

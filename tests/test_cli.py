@@ -23,6 +23,7 @@ def _args(tmp_path: Path, *extra: str) -> list[str]:
         f"--trainer.logger={logger}",
         "--trainer.enable_progress_bar=false",
         "--trainer.val_check_interval=3",
+        "--trainer.log_every_n_steps=1",
         "--data.simulation_budget=3200",
         "--data.batch_size=16",
         "--data.n_measured=64",

@@ -6,22 +6,25 @@ import torch
 from torch import Tensor, nn
 
 
-def gradient_penalty(critic: nn.Module, real: Tensor, fake: Tensor) -> Tensor:
+def gradient_penalty(critic: nn.Module, real: Tensor, fake: Tensor, generator: torch.Generator | None = None) -> Tensor:
     """E[(||grad f(y~)||_2 - 1)^2] on y~ = eps y + (1 - eps) y_hat, eps ~ U(0, 1) per sample.
 
     The norm is taken once per sample over all non-batch dimensions (Gulrajani et al. 2017).
-    ``real`` and ``fake`` are paired row by row: both (N, *traj).
+    ``real`` and ``fake`` are paired row by row: both (N, *traj). ``generator`` (on their
+    device) draws eps.
     """
     if real.shape != fake.shape:
         raise ValueError(f"gradient_penalty pairs samples row by row: real {tuple(real.shape)} vs fake {tuple(fake.shape)}")
     eps_shape = (real.shape[0],) + (1,) * (real.dim() - 1)
-    eps = torch.rand(eps_shape, device=real.device, dtype=real.dtype)
+    eps = torch.rand(eps_shape, generator=generator, device=real.device, dtype=real.dtype)
     mixed = (eps * real + (1 - eps) * fake).detach().requires_grad_(True)
     (grad,) = torch.autograd.grad(critic(mixed).sum(), mixed, create_graph=True)
     return ((grad.flatten(1).norm(dim=1) - 1) ** 2).mean()
 
 
-def critic_loss(critic: nn.Module, real: Tensor, fake: Tensor, gp_weight: float) -> tuple[Tensor, dict[str, Tensor]]:
+def critic_loss(
+    critic: nn.Module, real: Tensor, fake: Tensor, gp_weight: float, generator: torch.Generator | None = None
+) -> tuple[Tensor, dict[str, Tensor]]:
     """mean f(y_hat) - mean f(y) + lambda * GP; returns the loss and its parts for logging.
 
     ``fake`` may hold more samples than ``real``: the penalty pairs the first
@@ -29,6 +32,6 @@ def critic_loss(critic: nn.Module, real: Tensor, fake: Tensor, gp_weight: float)
     """
     f_real, f_fake = critic(real).mean(), critic(fake).mean()
     n = min(len(real), len(fake))
-    penalty = gradient_penalty(critic, real[:n], fake[:n]) if gp_weight > 0 else real.new_zeros(())
+    penalty = gradient_penalty(critic, real[:n], fake[:n], generator) if gp_weight > 0 else real.new_zeros(())
     loss = f_fake - f_real + gp_weight * penalty
     return loss, {"critic_gap": f_real - f_fake, "gradient_penalty": penalty}
