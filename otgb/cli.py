@@ -27,6 +27,15 @@ class OTGBCLI(LightningCLI):
         share_logger_version(config.trainer.logger)
 
 
+def logger_override(save_dir: str, name: str) -> str:
+    """A ``--trainer.logger`` argument for TensorBoard + CSV logs in ``<save_dir>/<name>/version_N``."""
+    loggers = [
+        f"{{class_path: lightning.pytorch.loggers.{cls}, init_args: {{save_dir: {save_dir}, name: {name}}}}}"
+        for cls in ("TensorBoardLogger", "CSVLogger")
+    ]
+    return f"--trainer.logger=[{', '.join(loggers)}]"
+
+
 def share_logger_version(loggers: object) -> None:
     """Give every configured logger that writes to the same <save_dir>/<name> one version.
 
@@ -42,7 +51,9 @@ def share_logger_version(loggers: object) -> None:
             continue
         groups.setdefault(Path(args.save_dir) / (getattr(args, "name", None) or "lightning_logs"), []).append(args)
     for root, members in groups.items():
-        taken = [int(p.name.split("_")[1]) for p in root.glob("version_*") if p.name.split("_")[1].isdigit()] if root.is_dir() else []
+        taken = (
+            [int(p.name.split("_")[1]) for p in root.glob("version_*") if p.name.split("_")[1].isdigit()] if root.is_dir() else []
+        )
         version = max(taken, default=-1) + 1
         for args in members:
             args.version = version

@@ -77,7 +77,17 @@ class KernelWeakOT(LightningModule):
     ) -> None:
         super().__init__()
         self._check_settings(z_dim, latent, n_z, gamma, t_max, gp_weight, grad_clip)
-        self.save_hyperparameters(ignore=["physics", "transport_map", "critic", "map_optimizer", "critic_optimizer", "map_scheduler", "critic_scheduler"])
+        self.save_hyperparameters(
+            ignore=[
+                "physics",
+                "transport_map",
+                "critic",
+                "map_optimizer",
+                "critic_optimizer",
+                "map_scheduler",
+                "critic_scheduler",
+            ]
+        )
         self.automatic_optimization = False
         self.physics = physics
         self.transport_map = transport_map(physics, z_dim)
@@ -95,7 +105,9 @@ class KernelWeakOT(LightningModule):
         self._eval_outputs: list[dict[str, Tensor]] = []
 
     @staticmethod
-    def _check_settings(z_dim: int, latent: str, n_z: int, gamma: float, t_max: int, gp_weight: float, grad_clip: float | None) -> None:
+    def _check_settings(
+        z_dim: int, latent: str, n_z: int, gamma: float, t_max: int, gp_weight: float, grad_clip: float | None
+    ) -> None:
         if z_dim < 0 or n_z < 1 or t_max < 1:
             raise ValueError(f"model: need z_dim >= 0, n_z >= 1, t_max >= 1; got z_dim={z_dim}, n_z={n_z}, t_max={t_max}")
         if latent not in LATENTS:
@@ -161,7 +173,9 @@ class KernelWeakOT(LightningModule):
         self.log_dict({f"train/{k}": v for k, v in {**parts, **critic_parts, "critic_loss": loss}.items()}, prog_bar=False)
         self.log("train/wasserstein", critic_parts["critic_gap"], prog_bar=True)
         self.log("train/map_updates", float(self.map_updates))
-        self.log("train/simulations", float(self.trainer.datamodule.simulations) if self.trainer.datamodule else 0.0, prog_bar=True)
+        self.log(
+            "train/simulations", float(self.trainer.datamodule.simulations) if self.trainer.datamodule else 0.0, prog_bar=True
+        )
 
     def _map_update(self, opt: Any, x: Tensor, x0: Tensor, theta: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
         y_hat = self.generate(x, x0, theta, self.n_z)

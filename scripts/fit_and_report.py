@@ -16,12 +16,7 @@ import sys
 import time
 from pathlib import Path
 
-
-def logger_override(save_dir: str, name: str) -> str:
-    return (
-        f"--trainer.logger=[{{class_path: lightning.pytorch.loggers.TensorBoardLogger, init_args: {{save_dir: {save_dir}, name: {name}}}}},"
-        f" {{class_path: lightning.pytorch.loggers.CSVLogger, init_args: {{save_dir: {save_dir}, name: {name}}}}}]"
-    )
+from otgb.cli import logger_override
 
 
 def newest_version(root: Path) -> Path:
@@ -50,7 +45,13 @@ def main() -> None:
     parser.add_argument("overrides", nargs=argparse.REMAINDER)
     args = parser.parse_args()
     overrides = [a for a in args.overrides if a != "--"]
-    common = ["--config", args.config, logger_override(args.save_dir, args.name), "--trainer.enable_progress_bar=false", *overrides]
+    common = [
+        "--config",
+        args.config,
+        logger_override(args.save_dir, args.name),
+        "--trainer.enable_progress_bar=false",
+        *overrides,
+    ]
 
     start = time.perf_counter()
     subprocess.run(["otgb", "fit", *common], check=True)
@@ -63,9 +64,14 @@ def main() -> None:
     test_run = newest_version(Path(args.save_dir) / args.name)
     test = {k: float(v) for r in read_rows(test_run) for k, v in r.items() if k.startswith("test/") and v}
 
-    lines = [f"# {args.name}: `otgb fit --config {args.config} {' '.join(overrides)}`", "",
-             f"fit wall time {fit_seconds:.0f} s (process, including start-up); best checkpoint {best[-1].name}", "",
-             f"| step | simulations | wall time (s) | {args.metric} |", "|---|---|---|---|"]
+    lines = [
+        f"# {args.name}: `otgb fit --config {args.config} {' '.join(overrides)}`",
+        "",
+        f"fit wall time {fit_seconds:.0f} s (process, including start-up); best checkpoint {best[-1].name}",
+        "",
+        f"| step | simulations | wall time (s) | {args.metric} |",
+        "|---|---|---|---|",
+    ]
     lines += [f"| {s} | {n:.0f} | {t:.0f} | {m:.4f} |" for s, n, t, m in curve(read_rows(run), args.metric)]
     lines += ["", "| test metric | value |", "|---|---|"] + [f"| {k} | {v:.4f} |" for k, v in sorted(test.items())]
     report = "\n".join(lines) + "\n"

@@ -8,19 +8,16 @@ from pathlib import Path
 import pytest
 import torch
 
-from otgb.cli import main
+from otgb.cli import logger_override, main
 
 CONFIG = str(Path(__file__).parents[1] / "configs" / "pendulum.yaml")
 
 
 def _args(tmp_path: Path, *extra: str) -> list[str]:
-    logger = (
-        "[{class_path: lightning.pytorch.loggers.TensorBoardLogger, init_args: {save_dir: %s, name: run}},"
-        " {class_path: lightning.pytorch.loggers.CSVLogger, init_args: {save_dir: %s, name: run}}]" % (tmp_path, tmp_path)
-    )
     return [
-        "--config", CONFIG,
-        f"--trainer.logger={logger}",
+        "--config",
+        CONFIG,
+        logger_override(str(tmp_path), "run"),
         "--trainer.enable_progress_bar=false",
         "--trainer.val_check_interval=3",
         "--trainer.log_every_n_steps=1",
@@ -100,7 +97,11 @@ def test_bad_config_value_is_named(tmp_path):
 
 
 def test_console_script_print_config():
-    out = subprocess.run([sys.executable, "-m", "otgb.cli", "fit", "--config", CONFIG, "--model.t_max=7", "--print_config"],
-                         capture_output=True, text=True, check=True).stdout
+    out = subprocess.run(
+        [sys.executable, "-m", "otgb.cli", "fit", "--config", CONFIG, "--model.t_max=7", "--print_config"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
     assert "t_max: 7" in out and "batches_per_step" not in out.split("data:")[1].split("\n")[0]
     assert "class_path: otgb.physics.Pendulum" in out

@@ -8,7 +8,14 @@ from otgb.physics import Constant, Pendulum, Uniform, ViscousFriction
 
 
 def _stream(pendulum, **kw):
-    args = dict(measured=torch.arange(1500.0).reshape(30, 50, 1), batch_size=4, batches_per_step=3, measured_batch_size=5, budget=100, seed=7)
+    args = dict(
+        measured=torch.arange(1500.0).reshape(30, 50, 1),
+        batch_size=4,
+        batches_per_step=3,
+        measured_batch_size=5,
+        budget=100,
+        seed=7,
+    )
     return SourceStream(pendulum, **{**args, **kw})
 
 
@@ -39,8 +46,16 @@ def test_workers_split_the_stream_without_replay(pendulum):
 
 
 def _module(tmp_path, **kw):
-    args = dict(physics=Pendulum(), hidden_effect=[ViscousFriction(Constant(1.2))], n_measured=40, n_val=6, n_test=5,
-                batch_size=8, simulation_budget=800, cache_dir=str(tmp_path / "cache"))
+    args = dict(
+        physics=Pendulum(),
+        hidden_effect=[ViscousFriction(Constant(1.2))],
+        n_measured=40,
+        n_val=6,
+        n_test=5,
+        batch_size=8,
+        simulation_budget=800,
+        cache_dir=str(tmp_path / "cache"),
+    )
     return SimulationDataModule(**{**args, **kw})
 
 

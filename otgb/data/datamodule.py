@@ -75,9 +75,15 @@ class SimulationDataModule(LightningDataModule):
         num_workers: int = 0,
     ) -> None:
         super().__init__()
-        for name, value in [("batch_size", batch_size), ("batches_per_step", batches_per_step), ("n_val", n_val),
-                            ("n_test", n_test), ("draws_per_input", draws_per_input), ("eval_batch_size", eval_batch_size),
-                            ("n_measured", n_measured)]:
+        for name, value in [
+            ("batch_size", batch_size),
+            ("batches_per_step", batches_per_step),
+            ("n_val", n_val),
+            ("n_test", n_test),
+            ("draws_per_input", draws_per_input),
+            ("eval_batch_size", eval_batch_size),
+            ("n_measured", n_measured),
+        ]:
             if value < 1:
                 raise ValueError(f"data.{name} must be >= 1, got {value}")
         if simulation_budget < batch_size * batches_per_step:
@@ -117,24 +123,34 @@ class SimulationDataModule(LightningDataModule):
         if self.measured_path is not None:
             return load_measured(self.measured_path, self.physics.trajectory_shape)
         key = self._key("measured", self.n_measured)
-        return cached(self.cache_dir, "measured", key, lambda: {"y": generate_measured(self.dgp, self.n_measured, self.seed)})["y"]
+        return cached(self.cache_dir, "measured", key, lambda: {"y": generate_measured(self.dgp, self.n_measured, self.seed)})[
+            "y"
+        ]
 
     def _joint_set(self, split: str, n: int) -> dict[str, Tensor]:
         key = self._key(split, n, self.draws_per_input)
-        return cached(self.cache_dir, split, key, lambda: generate_joint(self.physics, self.dgp, n, self.draws_per_input, self.seed, split))
+        return cached(
+            self.cache_dir, split, key, lambda: generate_joint(self.physics, self.dgp, n, self.draws_per_input, self.seed, split)
+        )
 
     # --- loaders ------------------------------------------------------------------------
     def source_stream(self) -> SourceStream:
         world = self.trainer.world_size if self.trainer is not None else 1
         rank = self.trainer.global_rank if self.trainer is not None else 0
         return SourceStream(
-            self.physics, self.measured, self.batch_size, self.batches_per_step, self.measured_batch_size,
-            budget=self.simulation_budget // world, seed=self.stream_seed, rank=rank, start=self.items_consumed,
+            self.physics,
+            self.measured,
+            self.batch_size,
+            self.batches_per_step,
+            self.measured_batch_size,
+            budget=self.simulation_budget // world,
+            seed=self.stream_seed,
+            rank=rank,
+            start=self.items_consumed,
         )
 
     def train_dataloader(self) -> DataLoader:
-        return DataLoader(self.source_stream(), batch_size=None, num_workers=self.num_workers,
-                          persistent_workers=False)
+        return DataLoader(self.source_stream(), batch_size=None, num_workers=self.num_workers, persistent_workers=False)
 
     def val_dataloader(self) -> DataLoader:
         return DataLoader(JointDataset(self.val_set), batch_size=self.eval_batch_size, shuffle=False)

@@ -35,7 +35,9 @@ def check_trajectories(y: Tensor, trajectory_shape: tuple[int, ...], where: str)
         raise ValueError(f"{where}: the measured set is empty, expected {expected} with N >= 1")
     bad = ~torch.isfinite(y.flatten(1)).all(dim=1)
     if bool(bad.any()):
-        raise ValueError(f"{where}: {int(bad.sum())} measured trajectories contain NaN/Inf (first at index {int(bad.nonzero()[0])})")
+        raise ValueError(
+            f"{where}: {int(bad.sum())} measured trajectories contain NaN/Inf (first at index {int(bad.nonzero()[0])})"
+        )
     return y.float()
 
 

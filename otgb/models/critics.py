@@ -17,7 +17,9 @@ class MLPCritic(nn.Module):
         trajectory_shape: (T, *obs_shape) of one trajectory.
     """
 
-    def __init__(self, trajectory_shape: Sequence[int], hidden: Sequence[int] = (250, 100, 100, 50), activation_name: str = "ELU") -> None:
+    def __init__(
+        self, trajectory_shape: Sequence[int], hidden: Sequence[int] = (250, 100, 100, 50), activation_name: str = "ELU"
+    ) -> None:
         super().__init__()
         widths = [math.prod(trajectory_shape), *hidden]
         layers: list[nn.Module] = []

@@ -180,9 +180,15 @@ class PhysicsModel(nn.Module):
         name = type(self).__name__
         batch = initial_state.shape[0]
         if tuple(initial_state.shape[1:]) != tuple(self.state_shape):
-            raise ValueError(f"{name}.simulate: initial state has shape {tuple(initial_state.shape)}, expected (B, {', '.join(map(str, self.state_shape))})")
+            raise ValueError(
+                f"{name}.simulate: initial state has shape {tuple(initial_state.shape)}, "
+                f"expected (B, {', '.join(map(str, self.state_shape))})"
+            )
         if tuple(theta.shape) != (batch, self.theta_dim):
-            raise ValueError(f"{name}.simulate: theta has shape {tuple(theta.shape)}, expected ({batch}, {self.theta_dim}) for {self.theta_names}")
+            raise ValueError(
+                f"{name}.simulate: theta has shape {tuple(theta.shape)}, "
+                f"expected ({batch}, {self.theta_dim}) for {self.theta_names}"
+            )
         needed = self.effect_dim
         if needed and (effect_params is None or tuple(effect_params.shape) != (batch, needed)):
             got = None if effect_params is None else tuple(effect_params.shape)

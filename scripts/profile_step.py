@@ -1,0 +1,85 @@
+"""Where the time of one training step goes: simulation, map solve, critic, backward.
+
+    python scripts/profile_step.py --config configs/pendulum.yaml [--steps 20]
+
+Builds the model and data module from the config (as `otgb fit` would), then times the
+parts of Algorithm 1 on real batches: the f_p simulation of a step's source batches, the
+grey-box forward solves, the map backward passes, and the critic update (forward, penalty,
+backward). Prints mean milliseconds per training step and each part's share.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections import defaultdict
+from contextlib import contextmanager
+
+import torch
+
+from otgb.cli import OTGBCLI
+from otgb.data import SimulationDataModule
+from otgb.ot import critic_loss, distance_kernel_weak_cost
+from otgb.training import KernelWeakOT
+
+
+def build(config: str) -> tuple[KernelWeakOT, SimulationDataModule]:
+    cli = OTGBCLI(KernelWeakOT, SimulationDataModule, run=False, args=["--config", config, "--trainer.logger=false"])
+    return cli.model, cli.datamodule
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--config", required=True)
+    parser.add_argument("--steps", type=int, default=20)
+    args = parser.parse_args()
+    model, dm = build(args.config)
+    dm.setup("fit")
+    map_opt = torch.optim.Adam(model.transport_map.parameters(), lr=1e-4)
+    critic_opt = torch.optim.Adam(model.critic.parameters(), lr=1e-4)
+    stream = iter(dm.train_dataloader())
+    times: dict[str, float] = defaultdict(float)
+
+    @contextmanager
+    def timed(name: str):
+        start = time.perf_counter()
+        yield
+        times[name] += time.perf_counter() - start
+
+    for step in range(args.steps + 2):
+        if step == 2:  # the first steps warm up allocators and caches
+            times.clear()
+        with timed("sample (x0, theta)"):
+            batch = next(stream)
+        with timed("simulate f_p"):
+            batch = dm.on_after_batch_transfer(batch, 0)
+        for k in range(model.t_max):
+            x, x0, theta = batch["x"][k], batch["x0"][k], batch["theta"][k]
+            with timed("map forward (grey-box solve)"):
+                y_hat = model.generate(x, x0, theta, model.n_z)
+            with timed("map loss (cost + critic)"):
+                loss = distance_kernel_weak_cost(x, y_hat, model.gamma).mean() - model.critic(y_hat.flatten(0, 1)).mean()
+            map_opt.zero_grad()
+            with timed("map backward"):
+                loss.backward()
+            with timed("optimizer steps"):
+                map_opt.step()
+        with timed("critic forward + penalty"):
+            loss, _ = critic_loss(model.critic, batch["y"], y_hat.detach().flatten(0, 1), model.gp_weight)
+        critic_opt.zero_grad()
+        with timed("critic backward"):
+            loss.backward()
+        with timed("optimizer steps"):
+            critic_opt.step()
+
+    total = sum(times.values())
+    print(
+        f"{args.config}: {1000 * total / args.steps:.1f} ms per training step (T_max = {model.t_max}, batch {dm.batch_size}, "
+        f"threads {torch.get_num_threads()})"
+    )
+    for name, seconds in sorted(times.items(), key=lambda kv: -kv[1]):
+        print(f"  {name:32s} {1000 * seconds / args.steps:8.1f} ms  {100 * seconds / total:5.1f} %")
+
+
+if __name__ == "__main__":
+    main()
