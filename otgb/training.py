@@ -100,8 +100,8 @@ class KernelWeakOT(LightningModule):
         self.elapsed_before = 0.0
         self._fit_clock: float | None = None
         self._generator: torch.Generator | None = None
-        self._generator_state: Tensor | None = None
-        self._generator_state_device = "cpu"
+        self._restored_rng: dict[str, Any] | None = None
+        self._fp_logged = False
         self._eval_outputs: list[dict[str, Tensor]] = []
 
     @staticmethod
@@ -132,9 +132,9 @@ class KernelWeakOT(LightningModule):
         if self._generator is None or self._generator.device != self.device:
             self._generator = torch.Generator(device=self.device)
             self._generator.manual_seed(torch.initial_seed())
-            if self._generator_state is not None and self.device.type == self._generator_state_device:
-                self._generator.set_state(self._generator_state)
-            self._generator_state = None
+            rng, self._restored_rng = self._restored_rng, None
+            if rng is not None and rng["device"] == self.device.type:
+                self._generator.set_state(rng["state"])
         return self._generator
 
     def sample_z(self, n: int) -> Tensor:
@@ -203,6 +203,9 @@ class KernelWeakOT(LightningModule):
         map_factory, critic_factory = self.optimizer_factories
         optimizers = [map_factory(self.transport_map.parameters()), critic_factory(self.critic.parameters())]
         schedulers = [f(opt) for f, opt in zip(self.scheduler_factories, optimizers) if f is not None]
+        for scheduler in schedulers:
+            if getattr(scheduler, "total_steps", 0) is None:  # a schedule over the whole run
+                scheduler.total_steps = int(self.trainer.estimated_stepping_batches)
         return (optimizers, schedulers) if schedulers else optimizers
 
     # --- evaluation on the joint sets ---------------------------------------------------
@@ -231,11 +234,10 @@ class KernelWeakOT(LightningModule):
         data = {k: torch.cat([o[k] for o in self._eval_outputs]) for k in self._eval_outputs[0]}
         self._eval_outputs.clear()
         metrics = evaluate(data["y_hat"], data)
-        first_validation = stage == "val" and not getattr(self, "_reference_logged", False)
-        if stage == "test" or first_validation:
+        if stage == "test" or not self._fp_logged:
             reference = evaluate(data["x"].unsqueeze(1).expand_as(data["y"]), data)
             metrics.update({f"fp_{k}": v for k, v in reference.items()})
-            self._reference_logged = True
+            self._fp_logged = True
         if stage == "val" and self._fit_clock is not None:
             metrics["wall_time_s"] = torch.tensor(self.elapsed_before + time.perf_counter() - self._fit_clock)
             metrics["simulations"] = torch.tensor(float(self.trainer.datamodule.simulations))
@@ -254,10 +256,7 @@ class KernelWeakOT(LightningModule):
         state = checkpoint.get("otgb", {})
         self.map_updates = state.get("map_updates", 0)
         self.elapsed_before = state.get("elapsed_s", 0.0)
-        rng = state.get("rng")
-        self._generator = None
-        if rng is not None:
-            self._generator_state, self._generator_state_device = rng["state"], rng["device"]
+        self._generator, self._restored_rng = None, state.get("rng")
 
 
 def evaluate(y_hat: Tensor, data: dict[str, Tensor]) -> dict[str, Tensor]:

@@ -1,4 +1,5 @@
 import pytest
+from lightning import Callback
 import torch
 
 from otgb.physics import Constant, Pendulum, ViscousFriction
@@ -17,3 +18,14 @@ def damped(pendulum: Pendulum) -> Pendulum:
 @pytest.fixture
 def generator() -> torch.Generator:
     return torch.Generator().manual_seed(0)
+
+
+class StopAt(Callback):
+    """Stops training after ``step`` training steps, like an interrupted run."""
+
+    def __init__(self, step: int) -> None:
+        self.step = step
+
+    def on_train_batch_end(self, trainer, *args) -> None:
+        if trainer.global_step >= self.step:
+            trainer.should_stop = True

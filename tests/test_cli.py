@@ -13,10 +13,10 @@ from otgb.cli import logger_override, main
 CONFIG = str(Path(__file__).parents[1] / "configs" / "pendulum.yaml")
 
 
-def _args(tmp_path: Path, *extra: str) -> list[str]:
+def _args(tmp_path: Path, *extra: str, config: str = CONFIG) -> list[str]:
     return [
         "--config",
-        CONFIG,
+        config,
         logger_override(str(tmp_path), "run"),
         "--trainer.enable_progress_bar=false",
         "--trainer.val_check_interval=3",
@@ -41,7 +41,7 @@ def _last(rows: list[dict], key: str) -> float:
 
 
 def test_fit_writes_logs_checkpoints_and_figures(tmp_path):
-    main(["fit", *_args(tmp_path, "--trainer.max_steps=6")])
+    main(["fit", *_args(tmp_path, "--trainer.max_steps=6", "--model.t_max=5")])
     run = tmp_path / "run" / "version_0"
     assert {"metrics.csv", "config.yaml", "hparams.yaml"} <= {p.name for p in run.iterdir()}
     assert list(run.glob("events.out.tfevents.*")), "TensorBoard events next to the CSV log"
@@ -55,17 +55,22 @@ def test_fit_writes_logs_checkpoints_and_figures(tmp_path):
     assert ckpt["SimulationDataModule"]["items_consumed"] == 6
 
 
-def test_budget_ends_training(tmp_path):
-    main(["fit", *_args(tmp_path, "--data.simulation_budget=480")])  # 480 / (16 * 5) = 6 steps
+def test_budget_ends_training_and_sets_the_schedule_length(tmp_path):
+    schedule = ["--model.map_scheduler=otgb.schedules.CosineOverRun", "--model.map_scheduler.final_factor=0.1"]
+    main(["fit", *_args(tmp_path, "--data.simulation_budget=480", "--model.t_max=5", *schedule)])  # 480 / (16 * 5) = 6 steps
     ckpt = torch.load(tmp_path / "run" / "version_0" / "checkpoints" / "last.ckpt", weights_only=False)
     assert ckpt["global_step"] == 6 and ckpt["SimulationDataModule"]["items_consumed"] == 6
+    scheduler = ckpt["lr_schedulers"][0]
+    assert scheduler["total_steps"] == 6 and scheduler["last_epoch"] == 6
+    assert scheduler["_last_lr"][0] == pytest.approx(0.1 * scheduler["base_lrs"][0])
 
 
 def test_resume_continues_the_stream_and_matches_an_uninterrupted_run(tmp_path):
-    main(["fit", *_args(tmp_path / "a", "--trainer.max_steps=6")])
-    main(["fit", *_args(tmp_path / "b", "--trainer.max_steps=3")])
+    main(["fit", *_args(tmp_path / "a", "--trainer.max_steps=6", "--model.t_max=5")])
+    stop = '--trainer.callbacks+={"class_path": "conftest.StopAt", "init_args": {"step": 3}}'
+    main(["fit", *_args(tmp_path / "b", "--trainer.max_steps=6", "--model.t_max=5"), stop])
     last = tmp_path / "b" / "run" / "version_0" / "checkpoints" / "last.ckpt"
-    main(["fit", *_args(tmp_path / "b", "--trainer.max_steps=6"), f"--ckpt_path={last}"])
+    main(["fit", *_args(tmp_path / "b", "--trainer.max_steps=6", "--model.t_max=5"), f"--ckpt_path={last}"])
     full = torch.load(tmp_path / "a" / "run" / "version_0" / "checkpoints" / "last.ckpt", weights_only=False)
     resumed = torch.load(tmp_path / "b" / "run" / "version_1" / "checkpoints" / "last.ckpt", weights_only=False)
     assert resumed["global_step"] == 6 and resumed["SimulationDataModule"]["items_consumed"] == 6
@@ -105,3 +110,15 @@ def test_console_script_print_config():
     ).stdout
     assert "t_max: 7" in out and "batches_per_step" not in out.split("data:")[1].split("\n")[0]
     assert "class_path: otgb.physics.Pendulum" in out
+
+
+def test_one_to_many_config_selects_on_joint_mmd(tmp_path):
+    config = str(Path(CONFIG).with_name("pendulum_mm.yaml"))
+    main(["fit", *_args(tmp_path, "--trainer.max_steps=3", config=config)])
+    run = tmp_path / "run" / "version_0"
+    rows = _rows(run)
+    assert _last(rows, "val/mmd") >= 0 and _last(rows, "val/fp_mmd") > 0.01, "f_p alone is far from the DGP"
+    assert not any(r.get("val/abs_err") for r in rows), "pointwise errors are meaningless for one-to-many"
+    assert list(run.glob("checkpoints/best-*.ckpt"))
+    ckpt = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)
+    assert ckpt["hyper_parameters"]["gamma"] == 1.0 and ckpt["hyper_parameters"]["n_z"] == 10
