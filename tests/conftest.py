@@ -1,6 +1,6 @@
 import pytest
-from lightning import Callback
 import torch
+from lightning import Callback
 
 from otgb.physics import Constant, Pendulum, ViscousFriction
 
