@@ -26,9 +26,10 @@ import torch
 from lightning import LightningModule
 from lightning.pytorch.cli import LRSchedulerCallable, OptimizerCallable
 from torch import Tensor, nn
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from otgb.metrics import abs_err, mmd_rbf, nrmse
-from otgb.ot import critic_loss, distance_kernel_weak_cost
+from otgb.ot import KERNELS, critic_loss, kernel_weak_cost
 from otgb.physics.base import PhysicsModel
 
 MapFactory = Callable[[PhysicsModel, int], nn.Module]
@@ -51,9 +52,13 @@ class KernelWeakOT(LightningModule):
         latent: distribution eta of z: "normal" (N(0, I)) or "uniform" (U(-1, 1)).
         n_z: |Z|, latent draws per source sample in the cost.
         gamma: weight of the variance term of the weak cost (0 one-to-one, 1 one-to-many).
+        kernel: kernel of the weak cost, "distance" (-||a - b|| / 2, the paper's) or "linear"
+            (<a, b> / D: the weak quadratic cost, half the mean squared error one-to-one).
         t_max: map updates per critic update.
         gp_weight: lambda, weight of the gradient penalty.
         grad_clip: max gradient norm for both networks (None: no clipping).
+        ema_decay: if set, validation, test and figures use an exponential moving average
+            of the map's weights with this decay per map update (None: the map itself).
         map_optimizer, critic_optimizer, map_scheduler, critic_scheduler: optimiser and
             learning-rate schedule factories; schedules step once per training step.
     """
@@ -67,9 +72,11 @@ class KernelWeakOT(LightningModule):
         latent: str = "normal",
         n_z: int = 1,
         gamma: float = 0.0,
+        kernel: str = "distance",
         t_max: int = 5,
         gp_weight: float = 1.0,
         grad_clip: float | None = None,
+        ema_decay: float | None = None,
         map_optimizer: OptimizerCallable = _adam,
         critic_optimizer: OptimizerCallable = _adam,
         map_scheduler: LRSchedulerCallable | None = None,
@@ -77,6 +84,8 @@ class KernelWeakOT(LightningModule):
     ) -> None:
         super().__init__()
         self._check_settings(z_dim, latent, n_z, gamma, t_max, gp_weight, grad_clip)
+        if kernel not in KERNELS:
+            raise ValueError(f"model.kernel={kernel!r}: expected one of {sorted(KERNELS)}")
         self.save_hyperparameters(
             ignore=[
                 "physics",
@@ -92,7 +101,12 @@ class KernelWeakOT(LightningModule):
         self.physics = physics
         self.transport_map = transport_map(physics, z_dim)
         self.critic = critic(tuple(physics.trajectory_shape))
-        self.z_dim, self.latent, self.n_z, self.gamma = z_dim, latent, n_z, gamma
+        if ema_decay is not None and not 0.0 < ema_decay < 1.0:
+            raise ValueError(f"model.ema_decay={ema_decay}: expected a value in (0, 1) or None")
+        self.map_average = (
+            AveragedModel(self.transport_map, multi_avg_fn=get_ema_multi_avg_fn(ema_decay)) if ema_decay is not None else None
+        )
+        self.z_dim, self.latent, self.n_z, self.gamma, self.kernel = z_dim, latent, n_z, gamma, KERNELS[kernel]
         self.t_max, self.gp_weight, self.grad_clip = t_max, gp_weight, grad_clip
         self.optimizer_factories = (map_optimizer, critic_optimizer)
         self.scheduler_factories = (map_scheduler, critic_scheduler)
@@ -143,11 +157,16 @@ class KernelWeakOT(LightningModule):
             return 2 * torch.rand(shape, device=self.device, generator=self.generator) - 1
         return torch.randn(shape, device=self.device, generator=self.generator)
 
-    def generate(self, x: Tensor, x0: Tensor, theta: Tensor, n_draws: int) -> Tensor:
-        """``n_draws`` outputs of the map per input: (B, n_draws, T, *obs)."""
+    def generate(self, x: Tensor, x0: Tensor, theta: Tensor, n_draws: int, averaged: bool = True) -> Tensor:
+        """``n_draws`` outputs of the map per input: (B, n_draws, T, *obs).
+
+        ``averaged`` selects the moving average of the map's weights when there is one (for
+        evaluation); training passes False.
+        """
         batch = x.shape[0]
         rep = lambda v: v.repeat_interleave(n_draws, dim=0)  # noqa: E731
-        y_hat = self.transport_map(rep(x), rep(x0), rep(theta), self.sample_z(batch * n_draws))
+        transport_map = self.map_average.module if averaged and self.map_average is not None else self.transport_map
+        y_hat = transport_map(rep(x), rep(x0), rep(theta), self.sample_z(batch * n_draws))
         return y_hat.reshape(batch, n_draws, *y_hat.shape[1:])
 
     # --- Algorithm 1 --------------------------------------------------------------------
@@ -178,8 +197,8 @@ class KernelWeakOT(LightningModule):
         )
 
     def _map_update(self, opt: Any, x: Tensor, x0: Tensor, theta: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
-        y_hat = self.generate(x, x0, theta, self.n_z)
-        cost = distance_kernel_weak_cost(x, y_hat, self.gamma).mean()
+        y_hat = self.generate(x, x0, theta, self.n_z, averaged=False)
+        cost = kernel_weak_cost(x, y_hat, self.gamma, self.kernel).mean()
         potential = self.critic(y_hat.flatten(0, 1)).mean()
         loss = cost - potential
         opt.zero_grad(set_to_none=True)
@@ -187,6 +206,8 @@ class KernelWeakOT(LightningModule):
         self._clip(opt)
         self.trainer.strategy.optimizer_step(opt.optimizer, closure=lambda: None, model=self)
         self.map_updates += 1
+        if self.map_average is not None:
+            self.map_average.update_parameters(self.transport_map)
         return y_hat, {"map_loss": loss.detach(), "transport_cost": cost.detach()}
 
     def _clip(self, opt: Any) -> None:

@@ -19,7 +19,7 @@ import torch
 
 from otgb.cli import OTGBCLI
 from otgb.data import SimulationDataModule
-from otgb.ot import critic_loss, distance_kernel_weak_cost
+from otgb.ot import critic_loss, kernel_weak_cost
 from otgb.training import KernelWeakOT
 
 
@@ -58,7 +58,7 @@ def main() -> None:
             with timed("map forward (grey-box solve)"):
                 y_hat = model.generate(x, x0, theta, model.n_z)
             with timed("map loss (cost + critic)"):
-                loss = distance_kernel_weak_cost(x, y_hat, model.gamma).mean() - model.critic(y_hat.flatten(0, 1)).mean()
+                loss = kernel_weak_cost(x, y_hat, model.gamma, model.kernel).mean() - model.critic(y_hat.flatten(0, 1)).mean()
             map_opt.zero_grad()
             with timed("map backward"):
                 loss.backward()

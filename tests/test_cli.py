@@ -41,7 +41,7 @@ def _last(rows: list[dict], key: str) -> float:
 
 
 def test_fit_writes_logs_checkpoints_and_figures(tmp_path):
-    main(["fit", *_args(tmp_path, "--trainer.max_steps=6", "--model.t_max=5")])
+    main(["fit", *_args(tmp_path, "--trainer.max_steps=6", "--model.t_max=5", "--model.ema_decay=0.9")])
     run = tmp_path / "run" / "version_0"
     assert {"metrics.csv", "config.yaml", "hparams.yaml"} <= {p.name for p in run.iterdir()}
     assert list(run.glob("events.out.tfevents.*")), "TensorBoard events next to the CSV log"
@@ -53,6 +53,10 @@ def test_fit_writes_logs_checkpoints_and_figures(tmp_path):
     assert ckpt["global_step"] == 6, "global_step counts Algorithm-1 iterations, not optimizer steps"
     assert ckpt["otgb"]["map_updates"] == 30
     assert ckpt["SimulationDataModule"]["items_consumed"] == 6
+    weights = ckpt["state_dict"]
+    assert weights["map_average.n_averaged"] == 30, "the moving average follows every map update"
+    name = "transport_map.correction.out.weight"
+    assert not torch.equal(weights[name], weights[f"map_average.module.{name.split('.', 1)[1]}"])
 
 
 def test_budget_ends_training_and_sets_the_schedule_length(tmp_path):
@@ -94,6 +98,8 @@ def test_test_subcommand_and_overrides(tmp_path):
     main(["test", *_args(tmp_path), f"--ckpt_path={run / 'checkpoints' / 'last.ckpt'}"])
     rows = _rows(tmp_path / "run" / "version_1")
     assert _last(rows, "test/abs_err") > 0 and _last(rows, "test/fp_abs_err") > 0.1
+    main(["validate", *_args(tmp_path), f"--ckpt_path={run / 'checkpoints' / 'last.ckpt'}"])
+    assert _last(_rows(tmp_path / "run" / "version_2"), "val/abs_err") == _last(_rows(run), "val/abs_err")
 
 
 def test_bad_config_value_is_named(tmp_path):

@@ -1,9 +1,11 @@
 from functools import partial
 
+import pytest
 import torch
 
 from otgb.metrics import abs_err, mmd_rbf, nrmse
 from otgb.models import ConditionalMLP, GreyBoxODE, MLPCritic
+from otgb.physics import SimulationDiverged
 
 
 def _greybox(physics, z_dim=0, **kw):
@@ -59,3 +61,14 @@ def test_mmd_separates_shifted_samples(generator):
     a, b = torch.randn(300, 3, generator=generator), torch.randn(300, 3, generator=generator)
     same, shifted, far = mmd_rbf(a, b), mmd_rbf(a, b + 0.5), mmd_rbf(a, b + 2.0)
     assert same < 0.02 < shifted < far
+
+
+def test_diverging_greybox_solve_is_named(pendulum, generator):
+    class Exploding(torch.nn.Module):
+        def forward(self, state, cond):
+            return torch.exp(50 * state[:, 1:2].abs())
+
+    gb = GreyBoxODE(pendulum, 0, lambda *shapes: Exploding())
+    x0, theta = pendulum.sample_initial_state(3, generator), pendulum.sample_theta(3, generator)
+    with pytest.raises(SimulationDiverged, match="GreyBoxODE: the solve produced NaN/Inf"):
+        gb(None, x0, theta, torch.zeros(3, 0))

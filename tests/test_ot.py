@@ -4,13 +4,13 @@ import pytest
 import torch
 from torch import nn
 
-from otgb.ot import critic_loss, distance_kernel_weak_cost, gradient_penalty
+from otgb.ot import critic_loss, gradient_penalty, kernel_weak_cost, linear_kernel
 
 
 def test_one_to_one_cost_is_half_the_distance():
     x = torch.tensor([[0.0, 0.0], [1.0, 1.0]])
     y = torch.tensor([[[3.0, 4.0]], [[1.0, 1.0]]])
-    assert torch.allclose(distance_kernel_weak_cost(x, y, gamma=0.0), torch.tensor([2.5, 0.0]))
+    assert torch.allclose(kernel_weak_cost(x, y, gamma=0.0), torch.tensor([2.5, 0.0]))
 
 
 def test_weak_cost_matches_the_kernel_estimator_by_hand():
@@ -27,13 +27,13 @@ def test_weak_cost_matches_the_kernel_estimator_by_hand():
     )
     # distances to x: 5, 1, 2; pairwise: |(3,3)|, |(3,6)|, 3
     by_hand = (5 + 1 + 2) / 6 - gamma * 2 * (math.sqrt(18) + math.sqrt(45) + 3) / (4 * 6)
-    cost = distance_kernel_weak_cost(x, y, gamma)
+    cost = kernel_weak_cost(x, y, gamma)
     assert torch.allclose(cost, expected.reshape(1)) and math.isclose(cost.item(), by_hand, rel_tol=1e-6)
 
 
 def test_variance_term_needs_two_draws():
     with pytest.raises(ValueError, match="at least 2 latent draws"):
-        distance_kernel_weak_cost(torch.zeros(2, 3), torch.zeros(2, 1, 3), gamma=1.0)
+        kernel_weak_cost(torch.zeros(2, 3), torch.zeros(2, 1, 3), gamma=1.0)
 
 
 class Linear(nn.Module):
@@ -62,3 +62,15 @@ def test_critic_loss_by_hand():
     assert torch.allclose(loss, torch.tensor(f_fake - f_real), atol=1e-6)
     assert torch.allclose(parts["critic_gap"], torch.tensor(f_real - f_fake))
     assert parts["gradient_penalty"].abs() < 1e-10
+
+
+def test_linear_kernel_gives_the_weak_quadratic_cost():
+    x, y = torch.randn(4, 5, 2), torch.randn(4, 3, 5, 2)
+    one = kernel_weak_cost(x, y[:, :1], gamma=0.0, kernel=linear_kernel)
+    assert torch.allclose(one, ((x - y[:, 0]) ** 2).flatten(1).mean(1) / 2, atol=1e-6)
+    # eq. weak-ot-2 per dimension: mean_z ||x - y_z||^2 / (2D) - gamma/2 * Var_z(y) / D, with the unbiased variance
+    gamma = 0.6
+    d = 10
+    spread = ((y - y.mean(1, keepdim=True)) ** 2).flatten(2).sum(-1).sum(1) / (3 - 1)
+    expected = ((x.unsqueeze(1) - y) ** 2).flatten(2).sum(-1).mean(1) / (2 * d) - gamma * spread / (2 * d)
+    assert torch.allclose(kernel_weak_cost(x, y, gamma, linear_kernel), expected, atol=1e-5)

@@ -1,6 +1,6 @@
 """Transport costs and critic objectives."""
 
-from otgb.ot.costs import distance_kernel_weak_cost, pairwise_distance
+from otgb.ot.costs import KERNELS, distance_kernel, kernel_weak_cost, linear_kernel
 from otgb.ot.penalty import critic_loss, gradient_penalty
 
-__all__ = ["critic_loss", "distance_kernel_weak_cost", "gradient_penalty", "pairwise_distance"]
+__all__ = ["KERNELS", "critic_loss", "distance_kernel", "gradient_penalty", "kernel_weak_cost", "linear_kernel"]
