@@ -119,6 +119,8 @@ def test_bad_config_values(tmp_path):
         _module(tmp_path, simulation_budget=5)
     with pytest.raises(ValueError, match="data.batch_size must be >= 1"):
         _module(tmp_path, batch_size=0)
+    with pytest.raises(ValueError, match="data.measured_batch_size must be >= 1, got 0"):
+        _module(tmp_path, measured_batch_size=0)
 
 
 def test_state_dict_restores_the_stream_position(tmp_path):

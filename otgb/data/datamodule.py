@@ -75,8 +75,10 @@ class SimulationDataModule(LightningDataModule):
         num_workers: int = 0,
     ) -> None:
         super().__init__()
+        measured_batch_size = batch_size if measured_batch_size is None else measured_batch_size
         for name, value in [
             ("batch_size", batch_size),
+            ("measured_batch_size", measured_batch_size),
             ("batches_per_step", batches_per_step),
             ("n_val", n_val),
             ("n_test", n_test),
@@ -94,7 +96,7 @@ class SimulationDataModule(LightningDataModule):
         self.physics = physics
         self.dgp = physics.with_hidden_effect(hidden_effect, step_size=measured_step_size)
         self.batch_size, self.batches_per_step = batch_size, batches_per_step
-        self.measured_batch_size = measured_batch_size or batch_size
+        self.measured_batch_size = measured_batch_size
         self.simulation_budget = simulation_budget
         self.n_measured, self.measured_path = n_measured, measured_path
         self.n_val, self.n_test, self.draws_per_input = n_val, n_test, draws_per_input
@@ -150,7 +152,7 @@ class SimulationDataModule(LightningDataModule):
         )
 
     def train_dataloader(self) -> DataLoader:
-        return DataLoader(self.source_stream(), batch_size=None, num_workers=self.num_workers, persistent_workers=False)
+        return DataLoader(self.source_stream(), batch_size=None, num_workers=self.num_workers)
 
     def val_dataloader(self) -> DataLoader:
         return DataLoader(JointDataset(self.val_set), batch_size=self.eval_batch_size, shuffle=False)
