@@ -4,7 +4,10 @@
     otgb validate|test --config configs/pendulum.yaml --ckpt_path runs/.../best.ckpt
 
 The data module's f_p is handed to the model at instantiation, and the model's T_max sets
-how many source batches each training item holds.
+how many source batches each training item holds. The joint evaluation callback
+(:class:`otgb.callbacks.JointEvaluation`) is always present; its settings are the config's
+``evaluation:`` section (e.g. ``--evaluation.tests_every 2``). ``otgb test`` writes
+``metrics.json`` and ``metrics.md`` into its run directory.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from pathlib import Path
 
 from lightning.pytorch.cli import LightningCLI
 
+from otgb.callbacks import JointEvaluation
 from otgb.data import SimulationDataModule
 from otgb.training import KernelWeakOT
 
@@ -21,6 +25,7 @@ class OTGBCLI(LightningCLI):
     def add_arguments_to_parser(self, parser) -> None:
         parser.link_arguments("model.t_max", "data.batches_per_step")
         parser.link_arguments("data.physics", "model.physics", apply_on="instantiate")
+        parser.add_lightning_class_args(JointEvaluation, "evaluation")
 
     def before_instantiate_classes(self) -> None:
         config = self.config[self.subcommand] if self.subcommand else self.config

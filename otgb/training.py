@@ -28,7 +28,6 @@ from lightning.pytorch.cli import LRSchedulerCallable, OptimizerCallable
 from torch import Tensor, nn
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
-from otgb.metrics import abs_err, mmd_rbf, nrmse
 from otgb.ot import KERNELS, critic_loss, kernel_weak_cost
 from otgb.physics.base import PhysicsModel
 
@@ -112,11 +111,10 @@ class KernelWeakOT(LightningModule):
         self.scheduler_factories = (map_scheduler, critic_scheduler)
         self.map_updates = 0
         self.elapsed_before = 0.0
+        self.restored_step: int | None = None  # global step of the checkpoint this module was loaded from
         self._fit_clock: float | None = None
         self._generator: torch.Generator | None = None
         self._restored_rng: dict[str, Any] | None = None
-        self._fp_logged = False
-        self._eval_outputs: list[dict[str, Tensor]] = []
 
     @staticmethod
     def _check_settings(
@@ -233,36 +231,18 @@ class KernelWeakOT(LightningModule):
     def on_fit_start(self) -> None:
         self._fit_clock = time.perf_counter()
 
-    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._collect(batch)
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> dict[str, Tensor]:
+        return {"y_hat": self.generate(batch["x"], batch["x0"], batch["theta"], batch["y"].shape[1])}
 
-    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._collect(batch)
-
-    def _collect(self, batch: dict[str, Tensor]) -> None:
-        y_hat = self.generate(batch["x"], batch["x0"], batch["theta"], batch["y"].shape[1])
-        self._eval_outputs.append({**{k: v.detach().cpu() for k, v in batch.items()}, "y_hat": y_hat.detach().cpu()})
+    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> dict[str, Tensor]:
+        return {"y_hat": self.generate(batch["x"], batch["x0"], batch["theta"], batch["y"].shape[1])}
 
     def on_validation_epoch_end(self) -> None:
-        self._log_evaluation("val")
-
-    def on_test_epoch_end(self) -> None:
-        self._log_evaluation("test")
-
-    def _log_evaluation(self, stage: str) -> None:
-        if not self._eval_outputs:
-            return
-        data = {k: torch.cat([o[k] for o in self._eval_outputs]) for k in self._eval_outputs[0]}
-        self._eval_outputs.clear()
-        metrics = evaluate(data["y_hat"], data)
-        if stage == "test" or not self._fp_logged:
-            reference = evaluate(data["x"].unsqueeze(1).expand_as(data["y"]), data)
-            metrics.update({f"fp_{k}": v for k, v in reference.items()})
-            self._fp_logged = True
-        if stage == "val" and self._fit_clock is not None:
-            metrics["wall_time_s"] = torch.tensor(self.elapsed_before + time.perf_counter() - self._fit_clock)
-            metrics["simulations"] = torch.tensor(float(self.trainer.datamodule.simulations))
-        self.log_dict({f"{stage}/{k}": v.float() for k, v in metrics.items()}, sync_dist=True)
+        """Log training progress next to the metrics (those come from :class:`otgb.callbacks.JointEvaluation`)."""
+        if self._fit_clock is not None and not self.trainer.sanity_checking:
+            elapsed = self.elapsed_before + time.perf_counter() - self._fit_clock
+            self.log("val/wall_time_s", elapsed)
+            self.log("val/simulations", float(self.trainer.datamodule.simulations))
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         elapsed = self.elapsed_before + (time.perf_counter() - self._fit_clock if self._fit_clock else 0.0)
@@ -274,30 +254,8 @@ class KernelWeakOT(LightningModule):
 
         The RNG state only carries over to the same device type; across CPU/GPU it is reseeded.
         """
+        self.restored_step = checkpoint.get("global_step")
         state = checkpoint.get("otgb", {})
         self.map_updates = state.get("map_updates", 0)
         self.elapsed_before = state.get("elapsed_s", 0.0)
         self._generator, self._restored_rng = None, state.get("rng")
-
-
-def evaluate(y_hat: Tensor, data: dict[str, Tensor]) -> dict[str, Tensor]:
-    """Joint-set metrics of generated draws y_hat (N, M, T, *obs) against data["y"] (N, M, T, *obs).
-
-    ABS ERR and N-RMSE pair each input's generation with its measurement (M = 1 only);
-    ``mmd`` compares joint samples (theta, x0, y) of model and DGP, for any M.
-    """
-    y = data["y"]
-    metrics: dict[str, Tensor] = {}
-    if y.shape[1] == 1:
-        value_range = y.max() - y.min()
-        metrics["abs_err"] = abs_err(y_hat[:, 0], y[:, 0]).mean()
-        metrics["nrmse"] = nrmse(y_hat[:, 0], y[:, 0], value_range).mean()
-    metrics["mmd"] = mmd_rbf(joint_samples(data, y_hat), joint_samples(data, y))
-    return metrics
-
-
-def joint_samples(data: dict[str, Tensor], y: Tensor) -> Tensor:
-    """Rows (theta, x0, y_j) for every input and draw: (N * M, P + |state| + |traj|)."""
-    n, m = y.shape[:2]
-    inputs = torch.cat([data["theta"], data["x0"].flatten(1)], dim=1)
-    return torch.cat([inputs.repeat_interleave(m, dim=0), y.reshape(n * m, -1)], dim=1)

@@ -1,6 +1,7 @@
 """Real `otgb` runs through LightningCLI on tiny budgets."""
 
 import csv
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -119,14 +120,31 @@ def test_console_script_print_config():
     assert "class_path: otgb.physics.Pendulum" in out
 
 
-def test_one_to_many_config_selects_on_joint_mmd(tmp_path):
+def test_one_to_many_config_selects_on_joint_mmd_and_tests_at_intervals(tmp_path):
     config = str(Path(CONFIG).with_name("pendulum_mm.yaml"))
-    main(["fit", *_args(tmp_path, "--trainer.max_steps=3", config=config)])
+    evaluation = ["--evaluation.tests_every=2", "--evaluation.reference_repeats=2", "--evaluation.mmdagg_permutations=200"]
+    main(["fit", *_args(tmp_path, "--trainer.max_steps=6", *evaluation, config=config)])
     run = tmp_path / "run" / "version_0"
     rows = _rows(run)
-    assert len([r for r in rows if r.get("val/mmd")]) == 1, "the selection metric is logged at each validation"
-    assert _last(rows, "val/fp_mmd") > 0.01, "f_p alone is far from the DGP"
+    assert len([r for r in rows if r.get("val/mmd")]) == 2, "the selection metric is logged at each validation"
+    assert len([r for r in rows if r.get("val/c2st")]) == 1 and len([r for r in rows if r.get("val/mmdagg_pvalue")]) == 1
+    assert _last(rows, "val/fp_mmd") > 10 * _last(rows, "val/ref_mmd"), "f_p alone is far above the noise floor"
+    assert _last(rows, "val/fp_c2st") > 0.8 and _last(rows, "val/fp_mmdagg_reject") == 1.0
     assert not any(r.get("val/abs_err") for r in rows), "pointwise errors are meaningless for one-to-many"
     assert list(run.glob("checkpoints/best-*.ckpt"))
     ckpt = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)
     assert ckpt["hyper_parameters"]["gamma"] == 1.0 and ckpt["hyper_parameters"]["n_z"] == 10
+
+
+def test_test_writes_metrics_json_and_table(tmp_path):
+    main(["fit", *_args(tmp_path, "--trainer.max_steps=3")])
+    ckpt = tmp_path / "run" / "version_0" / "checkpoints" / "last.ckpt"
+    main(["test", *_args(tmp_path, "--evaluation.reference_repeats=2"), f"--ckpt_path={ckpt}"])
+    report = json.loads((tmp_path / "run" / "version_1" / "metrics.json").read_text())
+    assert report["run"]["ckpt_path"] == str(ckpt) and report["run"]["global_step"] == 3 and report["run"]["n_inputs"] == 20
+    assert report["reference"]["abs_err"] == {"mean": 0.0, "std": 0.0}, "a one-to-one DGP has no noise floor"
+    assert report["fp"]["abs_err"]["mean"] > 0.1 and report["model"]["abs_err"]["std"] > 0
+    assert report["reference"]["c2st"]["mean"] == 0.5, "identical DGP draws cannot be told apart"
+    assert report["fp"]["c2st"]["mean"] > 0.7 and report["fp"]["mmdagg_reject"]["mean"] == 1.0
+    table = (tmp_path / "run" / "version_1" / "metrics.md").read_text()
+    assert "| ABS ERR |" in table and "| C2ST accuracy |" in table and "Reference" in table

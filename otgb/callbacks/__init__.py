@@ -1,5 +1,6 @@
-"""Lightning callbacks: figures."""
+"""Lightning callbacks: the joint evaluation and figures."""
 
+from otgb.callbacks.evaluation import JointEvaluation
 from otgb.callbacks.figures import TrajectoryFigure
 
-__all__ = ["TrajectoryFigure"]
+__all__ = ["JointEvaluation", "TrajectoryFigure"]

@@ -14,11 +14,11 @@ from otgb.data.measured import cache_key, cached, generate_joint, generate_measu
 from otgb.data.stream import SourceStream
 from otgb.physics.base import PhysicsModel, Term
 
-CACHE_FORMAT = 1
+CACHE_FORMAT = 2  # 2: joint sets hold y_ref
 
 
 class JointDataset(Dataset):
-    """Rows of a joint set: dicts of x0, theta, x and y (M draws)."""
+    """Rows of a joint set: dicts of x0, theta, x, y (M draws) and y_ref (M more DGP draws)."""
 
     def __init__(self, tensors: dict[str, Tensor]) -> None:
         self.tensors = tensors

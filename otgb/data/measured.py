@@ -77,18 +77,20 @@ def generate_measured(dgp: PhysicsModel, n: int, seed: int) -> Tensor:
 def generate_joint(physics: PhysicsModel, dgp: PhysicsModel, n: int, draws: int, seed: int, split: str) -> dict[str, Tensor]:
     """Joint samples (x0, theta, x, {y_j}): the same (x0, theta) through f_p and ``draws`` times through the DGP.
 
-    Returns x0 (n, *state), theta (n, P), x (n, T, *obs), y (n, draws, T, *obs).
+    Returns x0 (n, *state), theta (n, P), x (n, T, *obs), y (n, draws, T, *obs) and y_ref, another
+    ``draws`` independent DGP draws per input (the Reference of the evaluation: DGP against DGP).
     """
     g = generator_for(seed, split)
     x0, theta = physics.sample_initial_state(n, g), physics.sample_theta(n, g)
     effect = dgp.sample_effect_params(n * draws, g).reshape(n, draws, -1)
-    x, y = [], []
+    effect_ref = dgp.sample_effect_params(n * draws, g).reshape(n, draws, -1)
+    x, y, y_ref = [], [], []
     for i in range(0, n, CHUNK):
         s = slice(i, i + CHUNK)
         x.append(physics.simulate(x0[s], theta[s]))
-        draws_y = [dgp.simulate(x0[s], theta[s], effect[s, j]) for j in range(draws)]
-        y.append(torch.stack(draws_y, dim=1))
-    return {"x0": x0, "theta": theta, "x": torch.cat(x), "y": torch.cat(y)}
+        y.append(torch.stack([dgp.simulate(x0[s], theta[s], effect[s, j]) for j in range(draws)], dim=1))
+        y_ref.append(torch.stack([dgp.simulate(x0[s], theta[s], effect_ref[s, j]) for j in range(draws)], dim=1))
+    return {"x0": x0, "theta": theta, "x": torch.cat(x), "y": torch.cat(y), "y_ref": torch.cat(y_ref)}
 
 
 def cache_key(*parts: object) -> str:

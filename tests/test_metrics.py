@@ -1,0 +1,203 @@
+"""Known-answer tests of the evaluation metrics (ABS ERR, N-RMSE, MMD, MMDAgg, C2ST, joint evaluation)."""
+
+import math
+
+import pytest
+import torch
+
+from otgb.data import generate_joint
+from otgb.metrics import C2ST, MMD, NRMSE, AbsErr, MMDAgg, abs_err, c2st, joint_samples, mmd2, mmdagg, nrmse
+from otgb.metrics.joint import JointEvaluator, reference_scores
+from otgb.metrics.mmd import PAPER_MULTIPLIERS, mmd_median, mmd_multiscale, standardise
+from otgb.metrics.mmdagg import _memberships, _permuted_mmd2
+from otgb.physics import Uniform, ViscousFriction
+
+
+def test_errors_by_hand():
+    pred = torch.tensor([[1.0, 2.0, 3.0], [0.0, 0.0, 0.0]])
+    target = torch.tensor([[1.0, 2.0, 5.0], [1.0, -1.0, 1.0]])
+    assert torch.allclose(abs_err(pred, target), torch.tensor([2 / 3, 1.0]))
+    assert torch.allclose(nrmse(pred, target), torch.tensor([(4 / 3) ** 0.5 / 6, 1 / 6]))  # range 5 - (-1)
+
+
+def test_error_metrics_accumulate_with_the_global_range(generator):
+    pred, target = torch.randn(50, 7, generator=generator), torch.randn(50, 7, generator=generator)
+    metric_abs, metric_nrmse = AbsErr(), NRMSE()
+    for chunk in range(0, 50, 16):  # the range differs per batch; the metric uses the whole set's
+        metric_abs.update(pred[chunk : chunk + 16], target[chunk : chunk + 16])
+        metric_nrmse.update(pred[chunk : chunk + 16], target[chunk : chunk + 16])
+    expected = nrmse(pred, target)
+    out = metric_nrmse.compute()
+    assert torch.isclose(out["nrmse"], expected.mean()) and torch.isclose(out["nrmse_std"], expected.std(), rtol=1e-5)
+    assert torch.isclose(metric_abs.compute()["abs_err"], abs_err(pred, target).mean())
+    with pytest.raises(ValueError, match="expected equal shapes"):
+        metric_abs.update(pred, target[:, :3])
+
+
+def _direct_mmd2(p, q, sq_bandwidth, unbiased):
+    """MMD^2 by explicit double loops over all pairs."""
+    k = lambda a, b: math.exp(-float(((a - b) ** 2).sum()) / sq_bandwidth)  # noqa: E731
+    n, m = len(p), len(q)
+    skip = 1 if unbiased else 0
+    kpp = sum(k(p[i], p[j]) for i in range(n) for j in range(n) if not (unbiased and i == j)) / (n * (n - skip))
+    kqq = sum(k(q[i], q[j]) for i in range(m) for j in range(m) if not (unbiased and i == j)) / (m * (m - skip))
+    kpq = sum(k(p[i], q[j]) for i in range(n) for j in range(m)) / (n * m)
+    return kpp + kqq - 2 * kpq
+
+
+@pytest.mark.parametrize("unbiased", [True, False])
+def test_mmd_equals_a_direct_computation(generator, unbiased):
+    p, q = torch.randn(9, 3, generator=generator).double(), torch.randn(7, 3, generator=generator).double() + 0.3
+    bandwidths = torch.tensor([0.5, 2.0], dtype=torch.float64)
+    chunked = mmd2(p, q, bandwidths, unbiased=unbiased, chunk=4)  # several row blocks
+    direct = [_direct_mmd2(p, q, float(b), unbiased) for b in bandwidths]
+    assert torch.allclose(chunked, torch.tensor(direct, dtype=torch.float64), atol=1e-12)
+
+
+def test_paper_code_mmd_is_the_biased_sum_of_six_kernels(generator):
+    p, q = torch.randn(8, 2, generator=generator).double(), torch.randn(8, 2, generator=generator).double()
+    zp, zq = standardise(p, q)
+    pooled = torch.cat([zp, zq])
+    h = float(torch.pdist(pooled).pow(2).mean())
+    direct = sum(_direct_mmd2(zp, zq, h * mult, unbiased=False) for mult in PAPER_MULTIPLIERS)
+    assert math.isclose(float(mmd_multiscale(p, q)), direct, rel_tol=1e-10)
+
+
+def test_mmd_of_equal_distributions_is_within_permutation_noise_of_zero(generator):
+    p, q = torch.randn(300, 4, generator=generator), torch.randn(300, 4, generator=generator)
+    zp, zq = standardise(p, q)
+    pooled = torch.cat([zp, zq])
+    sigma2 = float(torch.pdist(pooled).median()) ** 2
+    null = _permuted_mmd2(
+        pooled, _memberships(300, 300, 200, 0, p.device, paired=False).float(), 300, torch.tensor([sigma2]), 256
+    )
+    observed = mmd_median(p, q)
+    assert abs(float(observed)) < 3 * float(null[0, 1:].std())
+
+
+def test_mmd_grows_with_the_shift(generator):
+    p, q = torch.randn(400, 3, generator=generator), torch.randn(400, 3, generator=generator)
+    shifts = [0.0, 0.25, 0.5, 1.0, 2.0]
+    paper = [float(mmd_multiscale(p, q + s)) for s in shifts]
+    median = [float(mmd_median(p, q + s)) for s in shifts]
+    assert paper == sorted(paper) and median == sorted(median)
+    assert median[-1] > 100 * abs(median[0])
+
+
+def test_mmd_metric_accumulates_batches(generator):
+    p, q = torch.randn(60, 3, generator=generator), torch.randn(60, 3, generator=generator) + 0.4
+    metric = MMD(chunk=16)
+    metric.update(p[:25], q[:25])
+    metric.update(p[25:], q[25:])
+    out = metric.compute()
+    assert torch.isclose(out["mmd"], mmd_multiscale(p.double(), q.double()).float())
+    assert torch.isclose(out["mmd2_median"], mmd_median(p.double(), q.double()).float())
+    with pytest.raises(ValueError, match="NaN/Inf"):
+        metric.update(p, torch.full_like(q, float("nan")))
+
+
+@pytest.mark.parametrize("paired", [False, True])
+def test_mmdagg_keeps_its_level_and_has_power(paired):
+    g = torch.Generator().manual_seed(1)
+    options = dict(n_permutations=500, n_level=500, paired=paired)
+    rejections_null, rejections_alt = 0, 0
+    for seed in range(60):
+        inputs = torch.randn(40, 2, generator=g)  # paired rows share their inputs, like joint samples do
+        p = torch.cat([inputs, torch.randn(40, 3, generator=g)], dim=1)
+        q = torch.cat([inputs, torch.randn(40, 3, generator=g)], dim=1)
+        rejections_null += int(mmdagg(p, q, seed=seed, **options)["mmdagg_reject"])
+        if seed < 20:
+            q_alt = q + torch.tensor([0.0, 0.0, 1.5, 0.0, 0.0])
+            rejections_alt += int(mmdagg(p, q_alt, seed=seed, **options)["mmdagg_reject"])
+    # level 0.05 + 3 binomial standard errors over 60 null draws
+    assert rejections_null / 60 <= 0.05 + 3 * math.sqrt(0.05 * 0.95 / 60)
+    assert rejections_alt >= 19
+
+
+def test_mmdagg_metric_and_bad_settings(generator):
+    p, q = torch.randn(50, 2, generator=generator), torch.randn(50, 2, generator=generator) + 2.0
+    metric = MMDAgg(n_permutations=200, n_level=50)
+    metric.update(p, q)
+    out = metric.compute()
+    assert out["mmdagg_reject"] == 1.0 and out["mmdagg_pvalue"] <= 0.05 and out["mmdagg_mmd2"] > 0.1
+    with pytest.raises(ValueError, match="alpha"):
+        mmdagg(p, q, alpha=1.5)
+    with pytest.raises(ValueError, match="cannot resolve level 0.05 over 5 bandwidths"):
+        mmdagg(p, q, n_permutations=100)
+    with pytest.raises(ValueError, match="paired samples need equal sizes"):
+        mmdagg(p, q[:40], paired=True)
+
+
+def test_c2st_is_chance_for_equal_and_one_for_separated_samples(generator):
+    p, q = torch.randn(500, 4, generator=generator), torch.randn(500, 4, generator=generator)
+    same = c2st(p, q)["c2st"]
+    assert abs(float(same) - 0.5) <= 3 * 0.5 / math.sqrt(1000)
+    assert c2st(p, q + 4.0)["c2st"] > 0.97
+    with pytest.raises(ValueError, match="expected one of"):
+        c2st(p, q, classifier="forest")
+
+
+def test_c2st_groups_rows_by_shared_inputs(generator):
+    """Both classes hold rows for the same inputs; ungrouped folds push the accuracy below 0.5."""
+    n, draws = 150, 4
+    theta, x0 = torch.rand(n, 1, generator=generator), torch.rand(n, 2, generator=generator)
+    base = torch.randn(n, 1, 20, 1, generator=generator)
+    y = base + 0.3 * torch.randn(n, draws, 20, 1, generator=generator)
+    y_other = base + 0.3 * torch.randn(n, draws, 20, 1, generator=generator)
+    p, q = joint_samples(theta, x0, y), joint_samples(theta, x0, y_other)
+    grouped = float(c2st(p, q, trajectory_shape=(20, 1))["c2st"])
+    assert abs(grouped - 0.5) <= 3 * 0.5 / math.sqrt(2 * n * draws)
+
+
+def test_conv_classifier_separates_fields(generator):
+    """The conv C2ST on (theta, trajectory (T, C, X)) rows: a shifted field is found, equal fields are not."""
+    n, shape = 200, (6, 2, 8)
+    theta = torch.rand(n, 1, generator=generator)
+    fields = torch.randn(n, 1, *shape, generator=generator)
+    other = torch.randn(n, 1, *shape, generator=generator)
+    p = joint_samples(theta, theta, fields)[:, 1:]  # inputs = theta only
+    shifted = joint_samples(theta, theta, other + 0.5)[:, 1:]
+    assert c2st(p, shifted, classifier="conv", trajectory_shape=shape)["c2st"] > 0.9
+    metric = C2ST(classifier="conv", trajectory_shape=shape, folds=3)
+    metric.update(p, joint_samples(theta, theta, other)[:, 1:])
+    assert abs(float(metric.compute()["c2st"]) - 0.5) <= 3 * 0.5 / math.sqrt(2 * n)
+
+
+def test_c2st_permutation_pvalue(generator):
+    p, q = torch.randn(100, 2, generator=generator), torch.randn(100, 2, generator=generator) + 3.0
+    out = c2st(p, q, folds=3, n_permutations=5, classifier="mlp")
+    assert out["c2st_pvalue"] == pytest.approx(1 / 6)
+
+
+@pytest.fixture(scope="module")
+def one_to_many_set(tmp_path_factory):
+    from otgb.physics import Pendulum
+
+    physics = Pendulum()
+    dgp = physics.with_hidden_effect([ViscousFriction(Uniform(0.6, 1.5))])
+    return generate_joint(physics, dgp, n=120, draws=4, seed=3, split="test")
+
+
+def test_joint_evaluation_sees_a_wrong_conditional(one_to_many_set):
+    """Draws with the right marginal of y but given to the wrong inputs must score badly."""
+    data = one_to_many_set
+    evaluator = JointEvaluator((50, 1), mmdagg_permutations=200)
+    right = evaluator.evaluate(data["y_ref"], data, tests=True)  # independent DGP draws for the right inputs
+    shuffled = data["y_ref"][torch.randperm(len(data["y_ref"]), generator=torch.Generator().manual_seed(0))]
+    wrong = evaluator.evaluate(shuffled, data, tests=True)  # same draws, theta/x0 shuffled away from them
+    noise = 3 * 0.5 / math.sqrt(2 * 120 * 4)
+    assert abs(float(right["c2st"]) - 0.5) <= noise and right["mmdagg_reject"] == 0.0
+    assert wrong["c2st"] > 0.5 + 2 * noise and wrong["mmdagg_reject"] == 1.0
+    assert wrong["mmd"] > 3 * right["mmd"] and wrong["mmdagg_pvalue"] <= 0.05 < right["mmdagg_pvalue"]
+
+
+def test_reference_scores_are_the_noise_floor(one_to_many_set):
+    data = one_to_many_set
+    evaluator = JointEvaluator((50, 1), mmdagg_permutations=200)
+    reference = reference_scores(evaluator, data, tests=False, repeats=3)
+    assert set(reference) == {"mmd", "mmd_std", "mmd2_median", "mmd2_median_std"}
+    fp = evaluator.evaluate(data["x"].unsqueeze(1).expand_as(data["y"]), data, tests=False)
+    assert 0 < reference["mmd_std"] and reference["mmd"] < fp["mmd"] / 10
+    one_draw = {**data, "y": data["y"][:, :1], "y_ref": data["y"][:, :1]}  # a deterministic DGP: both draws equal
+    exact = reference_scores(evaluator, one_draw, tests=True, repeats=2)
+    assert exact["abs_err"] == 0 and exact["nrmse"] == 0 and exact["c2st"] == 0.5

@@ -1,0 +1,43 @@
+"""metrics.json / metrics.md and the cross-seed table of scripts/gather_metrics.py."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from otgb.reports import write_report
+
+SCRIPT = Path(__file__).parents[1] / "scripts" / "gather_metrics.py"
+
+
+def _write(run_dir: Path, name: str, c2st: float) -> None:
+    results = {"mmd": 0.01, "c2st": c2st, "c2st_std": 0.02, "fp_c2st": 0.99, "fp_c2st_std": 0.0}
+    results |= {"ref_c2st": 0.5, "ref_c2st_std": 0.01, "eval_seconds": 3.0}
+    write_report(run_dir, {"name": name, "ckpt_path": "x.ckpt", "global_step": 7}, results)
+
+
+def test_report_files(tmp_path):
+    _write(tmp_path, "pendulum_mm", 0.7)
+    content = json.loads((tmp_path / "metrics.json").read_text())
+    assert content["model"]["c2st"] == {"mean": 0.7, "std": 0.02} and content["model"]["mmd"] == {"mean": 0.01, "std": None}
+    assert content["reference"]["c2st"] == {"mean": 0.5, "std": 0.01} and "mmd" not in content["fp"]
+    assert content["seconds"]["model"] == 3.0
+    assert "| C2ST accuracy | 0.7 ± 0.02 | 0.99 ± 0 | 0.5 ± 0.01 |" in (tmp_path / "metrics.md").read_text()
+
+
+def test_gather_groups_seeds(tmp_path):
+    for seed, c2st in enumerate([0.7, 0.8]):
+        _write(tmp_path / f"s{seed}", f"pendulum_mm_seed{seed}", c2st)
+    _write(tmp_path / "other", "pendulum_2m", 0.6)
+    files = sorted(str(p) for p in tmp_path.glob("*/metrics.json"))
+    out = subprocess.run(
+        [sys.executable, str(SCRIPT), *files, "--metrics", "c2st", "--out", str(tmp_path / "table.md")],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    assert "| pendulum_mm | 2 | 0.75 ± 0.071 | 0.99 ± 0 | 0.5 ± 0 |" in out
+    assert "| pendulum_2m | 1 | 0.6 | 0.99 | 0.5 |" in out
+    assert (tmp_path / "table.md").read_text() == out
+    bad = subprocess.run([sys.executable, str(SCRIPT), str(tmp_path / "missing.json")], capture_output=True, text=True)
+    assert bad.returncode != 0 and "missing.json: cannot read" in bad.stderr
