@@ -4,7 +4,8 @@
 
 Everything after ``--`` goes to ``otgb fit`` unchanged (e.g. ``--data.simulation_budget 100000``).
 Logs go to ``runs/<name>/version_N``; the curve (simulations, wall time, validation error) and
-the test metrics are printed and written to ``report.md`` in that run directory.
+the test table (``metrics.md`` of the `otgb test` run, whose ``metrics.json`` holds the same) are
+printed and written to ``report.md`` in the fit's run directory.
 """
 
 from __future__ import annotations
@@ -62,7 +63,6 @@ def main() -> None:
         sys.exit(f"no best checkpoint in {run / 'checkpoints'}")
     subprocess.run(["otgb", "test", *common, f"--ckpt_path={best[-1]}"], check=True)
     test_run = newest_version(Path(args.save_dir) / args.name)
-    test = {k: float(v) for r in read_rows(test_run) for k, v in r.items() if k.startswith("test/") and v}
 
     lines = [
         f"# {args.name}: `otgb fit --config {args.config} {' '.join(overrides)}`",
@@ -73,7 +73,7 @@ def main() -> None:
         "|---|---|---|---|",
     ]
     lines += [f"| {s} | {n:.0f} | {t:.0f} | {m:.4f} |" for s, n, t, m in curve(read_rows(run), args.metric)]
-    lines += ["", "| test metric | value |", "|---|---|"] + [f"| {k} | {v:.4f} |" for k, v in sorted(test.items())]
+    lines += ["", (test_run / "metrics.md").read_text()]
     report = "\n".join(lines) + "\n"
     (run / "report.md").write_text(report)
     print(report)
