@@ -6,7 +6,7 @@
 The data module's f_p is handed to the model at instantiation, and the model's T_max sets
 how many source batches each training item holds. The joint evaluation callback
 (:class:`otgb.callbacks.JointEvaluation`) is always present; its settings are the config's
-``evaluation:`` section (e.g. ``--evaluation.tests_every 2``). ``otgb test`` writes
+``evaluation:`` section (e.g. ``--evaluation.reference_repeats 10``). ``otgb test`` writes
 ``metrics.json`` and ``metrics.md`` into its run directory.
 """
 

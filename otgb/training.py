@@ -230,6 +230,7 @@ class KernelWeakOT(LightningModule):
     # --- evaluation on the joint sets ---------------------------------------------------
     def on_fit_start(self) -> None:
         self._fit_clock = time.perf_counter()
+        self.restored_step = None  # training moves on from the loaded checkpoint
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> dict[str, Tensor]:
         return {"y_hat": self.generate(batch["x"], batch["x0"], batch["theta"], batch["y"].shape[1])}

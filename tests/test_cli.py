@@ -156,3 +156,9 @@ def test_test_writes_metrics_json_and_table(tmp_path):
     assert report["fp"]["c2st"]["mean"] > 0.7 and report["fp"]["mmdagg_reject"]["mean"] == 1.0
     table = (tmp_path / "run" / "version_1" / "metrics.md").read_text()
     assert "| ABS ERR |" in table and "| C2ST accuracy |" in table and "Reference" in table
+
+
+def test_checkpoint_on_a_test_metric_needs_tests_at_every_validation(tmp_path):
+    config = str(Path(CONFIG).with_name("pendulum_2m.yaml"))
+    with pytest.raises(ValueError, match="monitor='val/c2st'.*evaluation.tests_every=2"):
+        main(["fit", *_args(tmp_path, "--trainer.max_steps=3", "--evaluation.tests_every=2", config=config)])

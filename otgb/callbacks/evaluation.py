@@ -60,13 +60,28 @@ class JointEvaluation(Callback):
             c2st_folds=c2st_folds, c2st_classifier=c2st_classifier, mmdagg_permutations=mmdagg_permutations, seed=seed
         )
         self.evaluator: JointEvaluator | None = None
+        self.baseline_evaluator: JointEvaluator | None = None
         self.validations = 0
         self.baselines_logged = False
         self.last_results: dict[str, Any] = {}
 
     def setup(self, trainer: Trainer, pl_module: LightningModule, stage: str) -> None:
+        self._check_monitors(trainer)
         shape = tuple(pl_module.physics.trajectory_shape)
         self.evaluator = JointEvaluator(shape, device=pl_module.device, **self.options)
+        # f_p and the Reference are scored on the whole set on every rank: no cross-process sync
+        self.baseline_evaluator = JointEvaluator(shape, device=pl_module.device, sync=False, **self.options)
+
+    def _check_monitors(self, trainer: Trainer) -> None:
+        """A checkpoint monitoring a test metric needs that metric at every validation."""
+        for checkpoint in trainer.checkpoint_callbacks:
+            monitor = getattr(checkpoint, "monitor", None) or ""
+            if monitor.startswith(("val/c2st", "val/mmdagg")) and self.tests_every != 1:
+                raise ValueError(
+                    f"ModelCheckpoint(monitor={monitor!r}) needs that metric at every validation, but "
+                    f"evaluation.tests_every={self.tests_every} computes it only every {self.tests_every} validations "
+                    "(0: only at test): set evaluation.tests_every=1 or monitor val/mmd"
+                )
 
     # --- accumulate -----------------------------------------------------------------------
     def on_validation_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0) -> None:
@@ -79,7 +94,7 @@ class JointEvaluation(Callback):
     def _update(self, outputs: Any, batch: dict[str, Tensor], pl_module: LightningModule) -> None:
         if not isinstance(outputs, dict) or "y_hat" not in outputs:
             raise TypeError("JointEvaluation: the model's validation/test step must return {'y_hat': (B, M, T, *obs)}")
-        if self.evaluator.device != pl_module.device:
+        if self.evaluator.device != pl_module.device:  # the module moved to its device after setup
             self.setup(pl_module.trainer, pl_module, "")
         self.evaluator.update(outputs["y_hat"], batch["y"], batch["theta"], batch["x0"])
 
@@ -105,7 +120,7 @@ class JointEvaluation(Callback):
                 "log_dir": str(trainer.log_dir),
                 "name": Path(trainer.log_dir).parent.name,
                 "ckpt_path": str(trainer.ckpt_path) if trainer.ckpt_path else None,
-                "global_step": getattr(pl_module, "restored_step", None) or trainer.global_step,
+                "global_step": trainer.global_step if pl_module.restored_step is None else pl_module.restored_step,
                 "seed": torch.initial_seed(),
                 "n_inputs": len(data["y"]),
                 "draws_per_input": data["y"].shape[1],
@@ -124,10 +139,10 @@ class JointEvaluation(Callback):
         results = {}
         start = time.perf_counter()
         fp_draws = data["x"].unsqueeze(1).expand_as(data["y"])
-        results.update({f"fp_{k}": v for k, v in self.evaluator.evaluate(fp_draws, data, tests).items()})
+        results.update({f"fp_{k}": v for k, v in self.baseline_evaluator.evaluate(fp_draws, data, tests).items()})
         results["fp_eval_seconds"] = torch.tensor(time.perf_counter() - start)
         start = time.perf_counter()
-        reference = reference_scores(self.evaluator, data, tests, self.reference_repeats, self.seed)
+        reference = reference_scores(self.baseline_evaluator, data, tests, self.reference_repeats, self.seed)
         results.update({f"ref_{k}": v for k, v in reference.items()})
         results["ref_eval_seconds"] = torch.tensor(time.perf_counter() - start)
         return results

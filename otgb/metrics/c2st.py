@@ -40,7 +40,7 @@ from torch import Tensor
 from otgb.metrics.classifiers import ConvClassifier
 from otgb.metrics.samples import TwoSampleMetric
 
-AUTO_MLP_MAX_FEATURES = 1000
+AUTO_MLP_MAX_FEATURES = 200  # an MLP of width 10 d is slow on a CPU well before d = 1000
 CLASSIFIERS = ("auto", "mlp", "conv")
 
 

@@ -114,6 +114,8 @@ class ConvClassifier(ClassifierMixin, BaseEstimator):
                 waited += 1
                 if waited >= self.patience:
                     break
+        if best_state is None:
+            raise ValueError("ConvClassifier: the held-out loss was never finite (NaN/Inf in the features?)")
         net.load_state_dict(best_state)
         self.net_ = net.eval()
         return self

@@ -34,6 +34,8 @@ class JointEvaluator:
         mmdagg_permutations: B1 = B2 of the MMDAgg test.
         seed: seed of the C2ST folds/classifier and of the MMDAgg permutations.
         device: where the accumulated states and the computations live.
+        sync: gather the states of all processes when computing (False for data every
+            process already holds whole, such as the f_p and Reference baselines).
 
     The two-sample metrics share one copy of the accumulated samples (a torchmetrics
     compute group), and everything syncs across processes when computed. Rows of the two
@@ -48,13 +50,15 @@ class JointEvaluator:
         mmdagg_permutations: int = 500,
         seed: int = 0,
         device: torch.device | str = "cpu",
+        sync: bool = True,
     ) -> None:
-        self.errors = MetricCollection({"abs_err": AbsErr(), "nrmse": NRMSE()}, compute_groups=False).to(device)
+        kw = {"sync_on_compute": sync}
+        self.errors = MetricCollection({"abs_err": AbsErr(**kw), "nrmse": NRMSE(**kw)}, compute_groups=False).to(device)
         self.two_sample = MetricCollection(
             {
-                "mmd": MMD(),
-                "mmdagg": MMDAgg(n_permutations=mmdagg_permutations, n_level=mmdagg_permutations, seed=seed, paired=True),
-                "c2st": C2ST(folds=c2st_folds, seed=seed, classifier=c2st_classifier, trajectory_shape=trajectory_shape),
+                "mmd": MMD(**kw),
+                "mmdagg": MMDAgg(n_permutations=mmdagg_permutations, n_level=mmdagg_permutations, seed=seed, paired=True, **kw),
+                "c2st": C2ST(folds=c2st_folds, seed=seed, classifier=c2st_classifier, trajectory_shape=trajectory_shape, **kw),
             },
             compute_groups=True,
         ).to(device)
@@ -82,7 +86,8 @@ class JointEvaluator:
             for metric in self.errors.values():
                 results.update(metric.compute())
         for name in ("mmd", "mmdagg", "c2st") if tests else ("mmd",):
-            results.update(self.two_sample[name].compute())
+            # copy_state=False: the group's members read the shared samples instead of copying them
+            results.update(self.two_sample.__getitem__(name, copy_state=False).compute())
         return {k: v.detach().float().cpu() for k, v in results.items()}
 
     def reset(self) -> None:
