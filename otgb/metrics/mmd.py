@@ -82,7 +82,8 @@ def kernel_sum(a: Tensor, b: Tensor, sq_bandwidths: Tensor, chunk: int = 1024) -
     """sum_{i,j} exp(-||a_i - b_j||^2 / sigma_l^2) for each sigma_l^2 in ``sq_bandwidths`` -> (L,)."""
     total = torch.zeros(len(sq_bandwidths), dtype=a.dtype, device=a.device)
     for _, d2 in sq_distance_blocks(a, b, chunk):
-        total += torch.exp(-d2[None] / sq_bandwidths[:, None, None]).sum(dim=(1, 2))
+        for index, sq_bandwidth in enumerate(sq_bandwidths):  # one (chunk, m) block in memory at a time
+            total[index] += torch.exp(-d2 / sq_bandwidth).sum()
     return total
 
 
