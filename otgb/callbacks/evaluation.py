@@ -14,8 +14,6 @@ from otgb.metrics.joint import JointEvaluator, reference_scores
 from otgb.metrics.mmdagg import PAPER_EXPONENTS, check_options
 from otgb.reports import write_report
 
-STAGES = ("val", "test")
-
 
 class JointEvaluation(Callback):
     """Scores the map's draws on the joint validation/test sets (:mod:`otgb.metrics.joint`).
@@ -63,7 +61,6 @@ class JointEvaluation(Callback):
         self.baseline_evaluator: JointEvaluator | None = None
         self.validations = 0
         self.baselines_logged = False
-        self.last_results: dict[str, Any] = {}
 
     def setup(self, trainer: Trainer, pl_module: LightningModule, stage: str) -> None:
         self._check_monitors(trainer)
@@ -106,13 +103,13 @@ class JointEvaluation(Callback):
         tests = self.tests_every > 0 and self.validations % self.tests_every == 0
         results = self._model_results(tests)
         if not self.baselines_logged:
-            results.update(self._baselines(trainer.datamodule.val_set, tests=True))
+            results.update(self._baselines(trainer.datamodule.val_set))
             self.baselines_logged = True
         self._log(pl_module, "val", results)
 
     def on_test_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
         results = self._model_results(tests=True)
-        results.update(self._baselines(trainer.datamodule.test_set, tests=True))
+        results.update(self._baselines(trainer.datamodule.test_set))
         self._log(pl_module, "test", results)
         if trainer.is_global_zero and trainer.log_dir is not None:
             data = trainer.datamodule.test_set
@@ -134,19 +131,18 @@ class JointEvaluation(Callback):
         results["eval_seconds"] = torch.tensor(time.perf_counter() - start)
         return results
 
-    def _baselines(self, data: dict[str, Tensor], tests: bool) -> dict[str, Tensor]:
-        """f_p alone and the Reference on a whole joint set: ``fp_<name>``, ``ref_<name>``."""
+    def _baselines(self, data: dict[str, Tensor]) -> dict[str, Tensor]:
+        """f_p alone and the Reference on a whole joint set, all metrics: ``fp_<name>``, ``ref_<name>``."""
         results = {}
         start = time.perf_counter()
         fp_draws = data["x"].unsqueeze(1).expand_as(data["y"])
-        results.update({f"fp_{k}": v for k, v in self.baseline_evaluator.evaluate(fp_draws, data, tests).items()})
+        results.update({f"fp_{k}": v for k, v in self.baseline_evaluator.evaluate(fp_draws, data, tests=True).items()})
         results["fp_eval_seconds"] = torch.tensor(time.perf_counter() - start)
         start = time.perf_counter()
-        reference = reference_scores(self.baseline_evaluator, data, tests, self.reference_repeats, self.seed)
+        reference = reference_scores(self.baseline_evaluator, data, True, self.reference_repeats, self.seed)
         results.update({f"ref_{k}": v for k, v in reference.items()})
         results["ref_eval_seconds"] = torch.tensor(time.perf_counter() - start)
         return results
 
     def _log(self, pl_module: LightningModule, stage: str, results: dict[str, Tensor]) -> None:
-        self.last_results = {k: float(v) for k, v in results.items()}
         pl_module.log_dict({f"{stage}/{k}": v.float() for k, v in results.items()})
