@@ -52,7 +52,7 @@ def test_fit_writes_logs_checkpoints_and_figures(tmp_path):
     assert {"metrics.csv", "config.yaml", "hparams.yaml"} <= {p.name for p in run.iterdir()}
     assert list(run.glob("events.out.tfevents.*")), "TensorBoard events next to the CSV log"
     assert (run / "checkpoints" / "last.ckpt").is_file() and list(run.glob("checkpoints/best-*.ckpt"))
-    assert sorted(p.name for p in (run / "figures").iterdir()) == ["val_step0000003.png", "val_step0000006.png"]
+    assert sorted(p.name for p in (run / "figures").iterdir()) == ["trajectories_step0000003.png", "trajectories_step0000006.png"]
     rows = _rows(run)
     assert _last(rows, "val/fp_nrmse") > 0.1, "the uncorrected f_p gap is logged"
     assert len([r for r in rows if r.get("val/abs_err")]) == 2, "cheap metrics at every validation"
@@ -162,3 +162,32 @@ def test_checkpoint_on_a_test_metric_needs_tests_at_every_validation(tmp_path):
     config = str(Path(CONFIG).with_name("pendulum_2m.yaml"))
     with pytest.raises(ValueError, match="monitor='val/c2st'.*evaluation.tests_every=2"):
         main(["fit", *_args(tmp_path, "--trainer.max_steps=3", "--evaluation.tests_every=2", config=config)])
+
+
+PDE_RUNS = {  # config: (selection metric, trajectory shape, tiny-run overrides)
+    "advdiff": ("val/abs_err", (50, 1, 20), []),
+    "advdiff_mm": ("val/mmd", (50, 1, 20), ["--data.draws_per_input=3", "--evaluation.mmdagg_permutations=200"]),
+    "reactdiff": ("val/abs_err", (15, 2, 32, 32), ["--data.measured_step_size=0.01"]),
+    "reactdiff_k": ("val/abs_err", (15, 2, 32, 32), ["--data.measured_step_size=0.01"]),
+}
+
+
+@pytest.mark.parametrize("name", sorted(PDE_RUNS))
+def test_pde_config_fits_and_tests(tmp_path, name):
+    """Each PDE config trains through the CLI, logs its fields figure and writes a test report."""
+    monitor, shape, extra = PDE_RUNS[name]
+    tiny = ["--trainer.max_steps=4", "--trainer.val_check_interval=2", "--data.batch_size=4", "--data.n_measured=24"]
+    tiny += ["--data.n_val=12", "--data.n_test=12", "--evaluation.reference_repeats=1", "--evaluation.c2st_folds=2"]
+    config = str(Path(CONFIG).with_name(f"{name}.yaml"))
+    main(["fit", *_args(tmp_path, *tiny, *extra, config=config)])
+    run = tmp_path / "run" / "version_0"
+    rows = _rows(run)
+    assert len([r for r in rows if r.get(monitor)]) == 2 and _last(rows, "val/fp_mmd") > 0
+    assert sorted(p.name for p in (run / "figures").iterdir()) == ["fields_step0000002.png", "fields_step0000004.png"]
+    ckpt = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)
+    assert ckpt["global_step"] == 4
+    main(["test", *_args(tmp_path, *tiny, *extra, config=config), f"--ckpt_path={run / 'checkpoints' / 'last.ckpt'}"])
+    report = json.loads((tmp_path / "run" / "version_1" / "metrics.json").read_text())
+    assert report["run"]["n_inputs"] == 12 and report["model"]["c2st"]["mean"] >= 0
+    data = torch.load(next((tmp_path / "cache").glob("test-*.pt")), weights_only=True)
+    assert data["y"].shape[2:] == shape and data["x"].shape[1:] == shape

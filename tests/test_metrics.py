@@ -158,6 +158,8 @@ def test_conv_classifier_separates_fields(generator):
     p = joint_samples(theta, theta, fields)[:, 1:]  # inputs = theta only
     shifted = joint_samples(theta, theta, other + 0.5)[:, 1:]
     assert c2st(p, shifted, classifier="conv", trajectory_shape=shape)["c2st"] > 0.9
+    with torch.inference_mode():  # as inside Lightning's validation loop
+        assert c2st(p, shifted, classifier="conv", trajectory_shape=shape, folds=2)["c2st"] > 0.9
     metric = C2ST(classifier="conv", trajectory_shape=shape, folds=3)
     metric.update(p, joint_samples(theta, theta, other)[:, 1:])
     assert abs(float(metric.compute()["c2st"]) - 0.5) <= 3 * 0.5 / math.sqrt(2 * n)

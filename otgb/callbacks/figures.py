@@ -1,7 +1,13 @@
-"""Figures logged at each validation: generated vs measured trajectories for fixed inputs."""
+"""Figures logged at each validation: generated vs measured vs f_p for fixed validation inputs.
+
+- :class:`TrajectoryFigure`: curves over time of one observed component (ODE systems).
+- :class:`FieldFigure`: fields over space (PDE systems): the space-time image of a 1-D field,
+  or a 2-D field at a few frames.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import matplotlib
@@ -12,17 +18,22 @@ import torch  # noqa: E402
 from lightning import Callback, LightningModule, Trainer  # noqa: E402
 from lightning.pytorch.loggers import TensorBoardLogger  # noqa: E402
 
+from otgb.physics.base import PhysicsModel  # noqa: E402
 
-class TrajectoryFigure(Callback):
-    """Plots, for the first ``n_inputs`` validation inputs, the measured draws, the map's
-    draws and the f_p simulation of the first observed component over time.
 
-    The figure goes to TensorBoard (tag ``val/trajectories``) and to
-    ``<log_dir>/figures/val_step<global_step>.png``.
+class ValidationFigure(Callback):
+    """Draws the first ``n_inputs`` validation inputs after each validation (rank 0 only).
+
+    The figure goes to TensorBoard (tag ``val/<tag>``) and to
+    ``<log_dir>/figures/<tag>_step<global_step>.png``. Subclasses define :meth:`draw`.
     """
 
-    def __init__(self, n_inputs: int = 6, component: int = 0) -> None:
-        self.n_inputs, self.component = n_inputs, component
+    tag = "figure"
+
+    def __init__(self, n_inputs: int) -> None:
+        if n_inputs < 1:
+            raise ValueError(f"{type(self).__name__}: n_inputs={n_inputs}, expected >= 1")
+        self.n_inputs = n_inputs
 
     @torch.no_grad()
     def on_validation_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
@@ -30,17 +41,36 @@ class TrajectoryFigure(Callback):
             return
         data = {k: v[: self.n_inputs].to(pl_module.device) for k, v in trainer.datamodule.val_set.items()}
         y_hat = pl_module.generate(data["x"], data["x0"], data["theta"], data["y"].shape[1]).cpu()
+        data = {k: v.cpu() for k, v in data.items()}
         figure = self.draw(data, y_hat, trainer.datamodule.physics)
         for logger in trainer.loggers:
             if isinstance(logger, TensorBoardLogger):
-                logger.experiment.add_figure("val/trajectories", figure, global_step=trainer.global_step, close=False)
+                logger.experiment.add_figure(f"val/{self.tag}", figure, global_step=trainer.global_step, close=False)
         if trainer.log_dir is not None:
             out = Path(trainer.log_dir) / "figures"
             out.mkdir(parents=True, exist_ok=True)
-            figure.savefig(out / f"val_step{trainer.global_step:07d}.png", dpi=80)
+            figure.savefig(out / f"{self.tag}_step{trainer.global_step:07d}.png", dpi=80)
         plt.close(figure)
 
-    def draw(self, data: dict, y_hat: torch.Tensor, physics) -> plt.Figure:
+    def draw(self, data: dict[str, torch.Tensor], y_hat: torch.Tensor, physics: PhysicsModel) -> plt.Figure:
+        """data: the joint set's rows (x (N, T, *obs), y (N, M, T, *obs), theta, x0); y_hat (N, M, T, *obs)."""
+        raise NotImplementedError
+
+
+def _theta_label(physics: PhysicsModel, theta: torch.Tensor) -> str:
+    return ", ".join(f"{name}={v:.3g}" for name, v in zip(physics.theta_names, theta.tolist()))
+
+
+class TrajectoryFigure(ValidationFigure):
+    """Measured draws, the map's draws and the f_p simulation of one observed component over time."""
+
+    tag = "trajectories"
+
+    def __init__(self, n_inputs: int = 6, component: int = 0) -> None:
+        super().__init__(n_inputs)
+        self.component = component
+
+    def draw(self, data: dict[str, torch.Tensor], y_hat: torch.Tensor, physics: PhysicsModel) -> plt.Figure:
         n = len(y_hat)
         cols = min(n, 3)
         rows = -(-n // cols)
@@ -51,13 +81,84 @@ class TrajectoryFigure(Callback):
             if i >= n:
                 ax.axis("off")
                 continue
-            y, x = data["y"][i].cpu(), data["x"][i].cpu()
+            y, x = data["y"][i], data["x"][i]
             ax.plot(t, x[:, c].flatten(), color="grey", ls="--", lw=1, label="f_p")
             for j in range(y.shape[0]):
                 ax.plot(t, y[j, :, c].flatten(), color="black", lw=1, alpha=0.6, label="measured" if j == 0 else None)
                 ax.plot(t, y_hat[i, j, :, c].flatten(), color="tab:green", lw=1, alpha=0.8, label="generated" if j == 0 else None)
-            theta = ", ".join(f"{name}={v:.2f}" for name, v in zip(physics.theta_names, data["theta"][i].tolist()))
-            ax.set_title(theta, fontsize=8)
+            ax.set_title(_theta_label(physics, data["theta"][i]), fontsize=8)
         axes.flat[0].legend(fontsize=7)
+        figure.tight_layout()
+        return figure
+
+
+class FieldFigure(ValidationFigure):
+    """Measured, generated (first draw) and f_p fields of one channel, on one colour scale per input.
+
+    A 1-D field (obs (C, X)) is shown as a space-time image per source, with the generated
+    minus measured difference beside it; a 2-D field (obs (C, X, Y)) at the observed
+    ``frames`` (indices into the trajectory), one row per source.
+
+    Args:
+        n_inputs: validation inputs drawn. channel: the field shown (e.g. 0 = u).
+        frames: frame indices for 2-D fields (default: four spread over the trajectory).
+    """
+
+    tag = "fields"
+    SOURCES = ("measured", "generated", "f_p")
+
+    def __init__(self, n_inputs: int = 2, channel: int = 0, frames: Sequence[int] | None = None) -> None:
+        super().__init__(n_inputs)
+        self.channel, self.frames = channel, None if frames is None else list(frames)
+
+    def draw(self, data: dict[str, torch.Tensor], y_hat: torch.Tensor, physics: PhysicsModel) -> plt.Figure:
+        fields = {"measured": data["y"][:, 0], "generated": y_hat[:, 0], "f_p": data["x"]}
+        fields = {k: v[:, :, self.channel] for k, v in fields.items()}  # (N, T, *space)
+        space_dims = fields["measured"].dim() - 2
+        if space_dims == 1:
+            return self._space_time(fields, data["theta"], physics)
+        if space_dims == 2:
+            return self._frames(fields, data["theta"], physics)
+        raise ValueError(f"FieldFigure draws 1-D or 2-D fields, got {space_dims} spatial dimensions")
+
+    def _space_time(self, fields: dict, theta: torch.Tensor, physics: PhysicsModel) -> plt.Figure:
+        n = len(theta)
+        figure, axes = plt.subplots(n, 4, figsize=(13, 2.6 * n), squeeze=False)
+        extent = (0.0, float(physics.times()[-1]), 0.0, 1.0)  # time across, space (grid index / size) up
+        for i in range(n):
+            low = min(float(f[i].min()) for f in fields.values())
+            high = max(float(f[i].max()) for f in fields.values())
+            panels = [(name, fields[name][i], "viridis", low, high) for name in self.SOURCES]
+            diff = fields["generated"][i] - fields["measured"][i]
+            scale = float(diff.abs().max()) or 1.0
+            panels.append(("generated - measured", diff, "RdBu_r", -scale, scale))
+            for ax, (name, field, cmap, vmin, vmax) in zip(axes[i], panels):
+                image = ax.imshow(field.T, aspect="auto", origin="lower", cmap=cmap, vmin=vmin, vmax=vmax, extent=extent)
+                ax.set_title(f"{name} ({_theta_label(physics, theta[i])})", fontsize=7)
+                ax.set_xlabel("t", fontsize=7)
+                ax.set_yticks([])
+                figure.colorbar(image, ax=ax)
+        figure.tight_layout()
+        return figure
+
+    def _frames(self, fields: dict, theta: torch.Tensor, physics: PhysicsModel) -> plt.Figure:
+        steps = fields["measured"].shape[1]
+        frames = self.frames if self.frames is not None else sorted({0, steps // 3, 2 * steps // 3, steps - 1})
+        if any(not 0 <= f < steps for f in frames):
+            raise ValueError(f"FieldFigure.frames={frames}: expected indices in [0, {steps})")
+        times = physics.times()[-physics.n_obs :]
+        n = len(theta)
+        figure, axes = plt.subplots(3 * n, len(frames), figsize=(2.2 * len(frames), 2.2 * 3 * n), squeeze=False)
+        for i in range(n):
+            low = min(float(f[i].min()) for f in fields.values())
+            high = max(float(f[i].max()) for f in fields.values())
+            for r, name in enumerate(self.SOURCES):
+                for c, frame in enumerate(frames):
+                    ax = axes[3 * i + r, c]
+                    ax.imshow(fields[name][i, frame], cmap="viridis", vmin=low, vmax=high)
+                    ax.set_xticks([])
+                    ax.set_yticks([])
+                    ax.set_title(f"{name}, t={float(times[frame]):.2g}", fontsize=7)
+            axes[3 * i, 0].set_ylabel(_theta_label(physics, theta[i]), fontsize=6)
         figure.tight_layout()
         return figure

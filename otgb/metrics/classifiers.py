@@ -85,9 +85,15 @@ class ConvClassifier(ClassifierMixin, BaseEstimator):
         self.validation_fraction, self.random_state, self.device = validation_fraction, random_state, device
 
     def fit(self, features: np.ndarray, labels: np.ndarray) -> ConvClassifier:
+        """Train with early stopping; works inside Lightning's validation (under inference mode) too."""
         self.classes_ = np.unique(labels)
         if not np.array_equal(self.classes_, [0, 1]):
             raise ValueError(f"ConvClassifier: expected labels 0 and 1, got {self.classes_.tolist()}")
+        with torch.inference_mode(False), torch.enable_grad():
+            self.net_ = self._train(features, labels).eval()
+        return self
+
+    def _train(self, features: np.ndarray, labels: np.ndarray) -> nn.Module:
         g = torch.Generator().manual_seed(self.random_state)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(self.random_state)
@@ -117,8 +123,7 @@ class ConvClassifier(ClassifierMixin, BaseEstimator):
         if best_state is None:
             raise ValueError("ConvClassifier: the held-out loss was never finite (NaN/Inf in the features?)")
         net.load_state_dict(best_state)
-        self.net_ = net.eval()
-        return self
+        return net
 
     @torch.no_grad()
     def _loss(self, net: nn.Module, x: Tensor, y: Tensor) -> float:

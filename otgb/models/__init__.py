@@ -1,7 +1,7 @@
 """Maps (grey-box) and critics."""
 
-from otgb.models.critics import MLPCritic
+from otgb.models.critics import ConvCritic, MLPCritic
 from otgb.models.greybox import GreyBoxODE
-from otgb.models.layers import ConditionalMLP
+from otgb.models.layers import ConditionalConvNet, ConditionalMLP
 
-__all__ = ["ConditionalMLP", "GreyBoxODE", "MLPCritic"]
+__all__ = ["ConditionalConvNet", "ConditionalMLP", "ConvCritic", "GreyBoxODE", "MLPCritic"]

@@ -7,7 +7,7 @@ from collections.abc import Sequence
 
 from torch import Tensor, nn
 
-from otgb.models.layers import activation
+from otgb.models.layers import activation, convolution
 
 
 class MLPCritic(nn.Module):
@@ -30,3 +30,57 @@ class MLPCritic(nn.Module):
     def forward(self, y: Tensor) -> Tensor:
         """y (N, T, *obs) -> (N,)."""
         return self.net(y.flatten(1)).squeeze(1)
+
+
+class ResidualBlock(nn.Module):
+    """act -> conv(stride) -> act -> conv, plus a strided 1x1 projection of the input."""
+
+    def __init__(self, conv: type[nn.Module], c_in: int, c_out: int, stride: int, activation_name: str) -> None:
+        super().__init__()
+        self.act = activation(activation_name)
+        self.conv1 = conv(c_in, c_out, 3, stride=stride, padding=1)
+        self.conv2 = conv(c_out, c_out, 3, padding=1)
+        self.skip = conv(c_in, c_out, 1, stride=stride)
+
+    def forward(self, h: Tensor) -> Tensor:
+        return self.skip(h) + self.conv2(self.act(self.conv1(self.act(h))))
+
+
+class ConvCritic(nn.Module):
+    """A convolutional residual critic on trajectories (N, T, C, *space).
+
+    With ``time_as_channels`` the T frames of each of the C fields are stacked as channels
+    and the convolutions run over space only (a 1-D residual network for advection-diffusion);
+    otherwise they run over (time, *space) with C channels (a 3-D network for
+    reaction-diffusion). Each block halves the resolution; the features are averaged over
+    the remaining positions and mapped to one score. No normalisation layers, so the
+    per-sample gradient penalty stays well defined.
+
+    Args:
+        trajectory_shape: (T, C, *space) of one trajectory.
+        channels: widths of the stem and of each residual block.
+    """
+
+    def __init__(
+        self,
+        trajectory_shape: Sequence[int],
+        channels: Sequence[int] = (32, 64, 128),
+        time_as_channels: bool = False,
+        activation_name: str = "LeakyReLU",
+    ) -> None:
+        super().__init__()
+        steps, fields, *space = trajectory_shape
+        self.time_as_channels = time_as_channels
+        conv = convolution(len(space) + (0 if time_as_channels else 1))
+        self.stem = conv(steps * fields if time_as_channels else fields, channels[0], 3, padding=1)
+        self.blocks = nn.Sequential(
+            *(ResidualBlock(conv, c_in, c_out, 2, activation_name) for c_in, c_out in zip(channels[:-1], channels[1:]))
+        )
+        self.act = activation(activation_name)
+        self.head = nn.Linear(channels[-1], 1)
+
+    def forward(self, y: Tensor) -> Tensor:
+        """y (N, T, C, *space) -> (N,)."""
+        h = y.flatten(1, 2) if self.time_as_channels else y.movedim(1, 2)
+        h = self.act(self.blocks(self.stem(h)))
+        return self.head(h.flatten(2).mean(dim=2)).squeeze(1)

@@ -62,3 +62,70 @@ class ConditionalMLP(nn.Module):
             h = self.act(layer(h if code is None else torch.cat([h, code], dim=1)))
         h = h if code is None else torch.cat([h, code], dim=1)
         return self.out(h).reshape(-1, *self.out_shape)
+
+
+CONVOLUTIONS = {1: nn.Conv1d, 2: nn.Conv2d, 3: nn.Conv3d}
+
+
+def convolution(dims: int) -> type[nn.Module]:
+    """nn.Conv1d/2d/3d for ``dims`` spatial dimensions."""
+    if dims not in CONVOLUTIONS:
+        raise ValueError(f"convolutions over {dims} dimensions are not supported (expected 1, 2 or 3)")
+    return CONVOLUTIONS[dims]
+
+
+class ConditionalConvNet(nn.Module):
+    """A fully convolutional f(u, c) on a field u (B, C, *space) with a condition c (B, cond_dim).
+
+    The condition (theta, then z) is encoded once; its code is broadcast over space and
+    concatenated as extra channels to the input of every layer, the convolutional form of
+    :class:`ConditionalMLP`'s per-layer conditioning (paper, App. E; the official code injects
+    (a, b) per layer). Being convolutional, the net learns a local, translation-invariant
+    correction, as the missing terms of PDEs are. ``padding_mode`` should match the grid's
+    boundary: "zeros" for Dirichlet, "circular" for periodic. The output layer starts scaled
+    by ``output_scale`` so that a grey-box starts close to f_p.
+
+    Args:
+        in_shape: (C, *space) of u. out_shape: (C_out, *space) of the output.
+        cond_dim: size of c. channels: widths of the hidden convolutions (one layer each,
+            plus the output layer).
+    """
+
+    def __init__(
+        self,
+        in_shape: Sequence[int],
+        out_shape: Sequence[int],
+        cond_dim: int,
+        channels: Sequence[int] = (16, 16),
+        kernel_size: int = 3,
+        padding_mode: str = "zeros",
+        cond_features: int = 8,
+        activation_name: str = "ELU",
+        output_scale: float = 0.01,
+    ) -> None:
+        super().__init__()
+        if tuple(in_shape[1:]) != tuple(out_shape[1:]):
+            raise ValueError(f"ConditionalConvNet: input {tuple(in_shape)} and output {tuple(out_shape)} need the same grid")
+        conv = convolution(len(in_shape) - 1)
+        code = cond_features if cond_dim > 0 else 0
+        self.encoder = nn.Sequential(nn.Linear(cond_dim, code), activation(activation_name)) if code else None
+        widths = [in_shape[0], *channels, out_shape[0]]
+        self.layers = nn.ModuleList(
+            conv(w + code, w_next, kernel_size, padding=kernel_size // 2, padding_mode=padding_mode)
+            for w, w_next in zip(widths[:-1], widths[1:])
+        )
+        self.act = activation(activation_name)
+        with torch.no_grad():
+            self.layers[-1].weight.mul_(output_scale)
+            self.layers[-1].bias.zero_()
+
+    def forward(self, u: Tensor, cond: Tensor) -> Tensor:
+        code = None
+        if self.encoder is not None:
+            code = self.encoder(cond).reshape(*cond.shape[:1], -1, *([1] * (u.dim() - 2))).expand(-1, -1, *u.shape[2:])
+        h = u
+        for i, layer in enumerate(self.layers):
+            h = layer(h if code is None else torch.cat([h, code], dim=1))
+            if i < len(self.layers) - 1:
+                h = self.act(h)
+        return h

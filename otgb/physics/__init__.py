@@ -1,11 +1,18 @@
 """Simulators: the incomplete physics f_p and the data-generating process built from it."""
 
+from otgb.physics.advection_diffusion import AdvectionDiffusion
 from otgb.physics.base import PhysicsModel, SimulationDiverged, Term
 from otgb.physics.pendulum import Pendulum
 from otgb.physics.priors import Choice, Constant, Prior, Uniform
-from otgb.physics.terms import ViscousFriction
+from otgb.physics.reaction_diffusion import ReactionDiffusion
+from otgb.physics.terms import Advection, ConstantDrain, FitzHughNagumoReaction, ViscousFriction
 
 __all__ = [
+    "Advection",
+    "AdvectionDiffusion",
+    "ConstantDrain",
+    "FitzHughNagumoReaction",
+    "ReactionDiffusion",
     "Choice",
     "Constant",
     "Pendulum",

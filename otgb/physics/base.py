@@ -32,8 +32,9 @@ class Term(nn.Module):
     """A named additive term of a vector field with its own latent parameters.
 
     ``priors`` maps each parameter name to the prior it is drawn from, once per trajectory.
-    ``forward(state, params)`` returns the term's contribution to d(state)/dt, with params of
-    shape (B, len(priors)) in the order of ``priors``.
+    ``forward(state, params, model)`` returns the term's contribution to d(state)/dt, with params
+    of shape (B, len(priors)) in the order of ``priors``; ``model`` is the physics model the term
+    is part of (spatial terms read its grid: ``dx``, ``boundary``).
     """
 
     def __init__(self, priors: dict[str, Prior]) -> None:
@@ -157,7 +158,7 @@ class PhysicsModel(nn.Module):
         dstate = self.field(state, theta)
         offset = 0
         for term in self.terms:
-            dstate = dstate + term(state, effect_params[:, offset : offset + term.n_params])
+            dstate = dstate + term(state, effect_params[:, offset : offset + term.n_params], self)
             offset += term.n_params
         return dstate
 

@@ -5,8 +5,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from otgb.physics.base import Term
+from otgb.physics.base import PhysicsModel, Term
 from otgb.physics.priors import Prior
+from otgb.physics.stencils import central_difference
 
 
 class ViscousFriction(Term):
@@ -21,7 +22,69 @@ class ViscousFriction(Term):
         super().__init__({"xi": xi})
         self.position_index, self.velocity_index = position_index, velocity_index
 
-    def forward(self, state: Tensor, params: Tensor) -> Tensor:
+    def forward(self, state: Tensor, params: Tensor, model: PhysicsModel) -> Tensor:
         out = torch.zeros_like(state)
         out[:, self.velocity_index] = -params[:, 0] * state[:, self.velocity_index]
         return out
+
+
+def _column(params: Tensor, state: Tensor) -> Tensor:
+    """The first parameter as (B, 1, ..., 1), broadcastable against ``state``."""
+    return params[:, 0].reshape(-1, *([1] * (state.dim() - 1)))
+
+
+class Advection(Term):
+    """Advection -beta dT/ds along the last axis, by central differences on the model's grid.
+
+    Args:
+        beta: prior of the advection speed, drawn once per trajectory.
+    """
+
+    def __init__(self, beta: Prior) -> None:
+        super().__init__({"beta": beta})
+
+    def forward(self, state: Tensor, params: Tensor, model: PhysicsModel) -> Tensor:
+        return -_column(params, state) * central_difference(state, _grid_step(model, self), model.boundary)
+
+
+class FitzHughNagumoReaction(Term):
+    """The u-reaction of FitzHugh-Nagumo, u - u^3 - v - k, on channel 0 of a (u, v) state.
+
+    Args:
+        k: prior of the threshold k, drawn once per trajectory.
+    """
+
+    def __init__(self, k: Prior) -> None:
+        super().__init__({"k": k})
+
+    def forward(self, state: Tensor, params: Tensor, model: PhysicsModel) -> Tensor:
+        u, v = state[:, 0], state[:, 1]
+        reaction = u - u**3 - v - _column(params, u)
+        return torch.stack([reaction, torch.zeros_like(v)], dim=1)
+
+
+class ConstantDrain(Term):
+    """A constant sink -k on one channel of the state (FitzHugh-Nagumo's threshold k alone).
+
+    Args:
+        k: prior of the drain rate, drawn once per trajectory.
+        channel: the state channel it acts on.
+    """
+
+    def __init__(self, k: Prior, channel: int = 0) -> None:
+        super().__init__({"k": k})
+        self.channel = channel
+
+    def forward(self, state: Tensor, params: Tensor, model: PhysicsModel) -> Tensor:
+        out = torch.zeros_like(state)
+        out[:, self.channel] = -_column(params, state[:, self.channel])
+        return out
+
+
+def _grid_step(model: PhysicsModel, term: Term) -> float:
+    dx = getattr(model, "dx", None)
+    if dx is None:
+        raise TypeError(
+            f"{type(term).__name__} needs a model with a spatial grid (dx, boundary); {type(model).__name__} has none"
+        )
+    return dx

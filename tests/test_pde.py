@@ -1,0 +1,120 @@
+"""The PDE systems: advection-diffusion and FitzHugh-Nagumo reaction-diffusion."""
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from otgb.physics import (
+    Advection,
+    AdvectionDiffusion,
+    Constant,
+    ConstantDrain,
+    FitzHughNagumoReaction,
+    Pendulum,
+    ReactionDiffusion,
+)
+
+
+def test_advection_diffusion_shapes_and_initial_profile(generator):
+    model = AdvectionDiffusion()
+    x0, theta = model.sample_initial_state(6, generator), model.sample_theta(6, generator)
+    x = model.simulate(x0, theta)
+    assert x.shape == (6, 50, 1, 20) == (6, *model.trajectory_shape)
+    assert torch.allclose(model.grid[[0, -1]], torch.tensor([0.1, 2.0]))
+    amplitude = x0[:, 0, 9] / math.sin(math.pi * 1.0 / 2)
+    assert torch.allclose(x0[:, 0], amplitude[:, None] * torch.sin(math.pi * model.grid / 2), atol=1e-6)
+    assert ((amplitude >= 0.5) & (amplitude <= 1.5)).all() and torch.equal(x[:, 0], x0)
+    assert torch.allclose(model.times()[[1, -1]], torch.tensor([0.02, 0.98]))
+
+
+def test_pure_diffusion_decays_like_the_heat_equations_sine_mode():
+    """On [0, L] with zero ends, sin(pi s / L) decays as exp(-alpha (pi / L)^2 t)."""
+    model = AdvectionDiffusion(n_grid=49, dx=0.04, dt=0.1, n_obs=11, step_size=0.01)
+    length = (model.n_grid + 1) * model.dx
+    alpha = 0.05
+    x0 = torch.sin(math.pi * model.grid / length).reshape(1, 1, -1).double()
+    x = model.solve(lambda t, s: model.field(s, torch.tensor([[alpha]], dtype=torch.float64)), x0)
+    amplitude = (x[0, :, 0] * x0[0, 0]).sum(-1) / (x0[0, 0] ** 2).sum()
+    expected = torch.exp(-alpha * (math.pi / length) ** 2 * model.times().double())
+    assert torch.allclose(amplitude, expected, rtol=2e-3)
+    shape_kept = x[0, -1, 0] / amplitude[-1]
+    assert torch.allclose(shape_kept, x0[0, 0], atol=1e-6), "a sine mode keeps its shape"
+
+
+def test_advection_moves_the_profile_at_speed_beta():
+    model = AdvectionDiffusion(n_grid=199, dx=0.01, dt=0.1, n_obs=6, step_size=0.005)
+    beta = 0.6
+    dgp = model.with_hidden_effect([Advection(Constant(beta))])
+    s = model.grid
+    x0 = torch.exp(-(((s - 0.6) / 0.08) ** 2)).reshape(1, 1, -1)
+    y = dgp.simulate(x0, torch.zeros(1, 1), torch.full((1, 1), beta))[0, :, 0]
+    centre = (y * s).sum(-1) / y.sum(-1)
+    assert torch.allclose(centre - centre[0], beta * model.times(), atol=2e-3)
+    assert torch.allclose(y.sum(-1), y[0].sum(), rtol=1e-4), "mass is conserved away from the ends"
+
+
+def test_advection_needs_a_grid(generator):
+    dgp = Pendulum().with_hidden_effect([Advection(Constant(0.1))])
+    with pytest.raises(TypeError, match="Advection needs a model with a spatial grid"):
+        dgp.simulate(torch.zeros(2, 2), torch.ones(2, 1), torch.full((2, 1), 0.1))
+
+
+def _periodic_laplacian(u, dx):
+    kernel = torch.tensor([[0.0, 1.0, 0.0], [1.0, -4.0, 1.0], [0.0, 1.0, 0.0]]).reshape(1, 1, 3, 3) / dx**2
+    flat = u.reshape(-1, 1, *u.shape[-2:])
+    return F.conv2d(F.pad(flat, (1, 1, 1, 1), mode="circular"), kernel).reshape(u.shape)
+
+
+@pytest.mark.parametrize("u_reaction", [False, True])
+def test_reaction_diffusion_field_matches_a_direct_evaluation(u_reaction, generator):
+    model = ReactionDiffusion(u_reaction=u_reaction, n_grid=16)
+    state, theta = torch.randn(3, 2, 16, 16, generator=generator), model.sample_theta(3, generator)
+    u, v = state[:, 0], state[:, 1]
+    lap = _periodic_laplacian(state, 2 / 16)
+    a, b = theta[:, 0, None, None], theta[:, 1, None, None]
+    du = a * lap[:, 0] + (u - u**3 - v if u_reaction else 0)
+    dv = b * lap[:, 1] + u - v
+    assert torch.allclose(model.field(state, theta), torch.stack([du, dv], 1), atol=1e-4)
+
+
+def test_hidden_reaction_terms_match_a_direct_evaluation(generator):
+    state = torch.randn(3, 2, 8, 8, generator=generator)
+    u, v = state[:, 0], state[:, 1]
+    k = torch.tensor([[1e-3], [5e-3], [2e-2]])
+    model = ReactionDiffusion(n_grid=8)
+    reaction = FitzHughNagumoReaction(Constant(5e-3))(state, k, model)
+    assert torch.allclose(reaction[:, 0], u - u**3 - v - k[:, :, None]) and (reaction[:, 1] == 0).all()
+    drain = ConstantDrain(Constant(5e-3))(state, k, model)
+    assert torch.allclose(drain[:, 0], -k[:, :, None].expand(3, 8, 8)) and (drain[:, 1] == 0).all()
+    full = model.with_hidden_effect([FitzHughNagumoReaction(Constant(5e-3))])
+    known = ReactionDiffusion(n_grid=8, u_reaction=True).with_hidden_effect([ConstantDrain(Constant(5e-3))])
+    theta = model.sample_theta(3, generator)
+    assert torch.allclose(full.vector_field(state, theta, k), known.vector_field(state, theta, k), atol=1e-5)
+
+
+def test_periodic_boundaries_wrap(generator):
+    model = ReactionDiffusion(n_grid=16)
+    theta = torch.tensor([[2e-3, 5e-3]])
+    bump = torch.zeros(1, 2, 16, 16)
+    bump[:, :, 0, 0] = 1.0
+    y = model.simulate(bump, theta)[0, 0, 0]
+    assert y[15, 0] > 1e-3 and torch.isclose(y[15, 0], y[1, 0]) and torch.isclose(y[0, 15], y[0, 1])
+    x0 = torch.rand(1, 2, 16, 16, generator=generator)
+    rolled = model.simulate(torch.roll(x0, (5, -3), (-2, -1)), theta)
+    assert torch.allclose(rolled, torch.roll(model.simulate(x0, theta), (5, -3), (-2, -1)), atol=1e-6)
+
+
+def test_reaction_diffusion_shapes_frames_and_measured_step(generator):
+    model = ReactionDiffusion()
+    x0, theta = model.sample_initial_state(4, generator), model.sample_theta(4, generator)
+    x = model.simulate(x0, theta)
+    assert x.shape == (4, 15, 2, 32, 32) == (4, *model.trajectory_shape)
+    assert ((x0 >= 0) & (x0 <= 1)).all() and ((theta[:, 0] >= 1e-3) & (theta[:, 1] <= 7e-3)).all()
+    assert torch.allclose(model.times()[1:][[0, -1]], torch.tensor([0.1, 1.5])), "frames at t = 0.1 ... 1.5"
+    term = [FitzHughNagumoReaction(Constant(5e-3))]
+    k = torch.full((4, 1), 5e-3)
+    fine = model.with_hidden_effect(term, step_size=1e-3).simulate(x0, theta, k)
+    coarse = model.with_hidden_effect(term, step_size=1e-2).simulate(x0, theta, k)
+    assert (fine - coarse).abs().max() < 1e-5, "the measured data's RK4 step is converged"
