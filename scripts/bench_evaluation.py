@@ -1,12 +1,13 @@
 """Time the joint evaluation on a config's test set, and MMD's memory on 10^4 samples.
 
-    python scripts/bench_evaluation.py --config configs/pendulum_mm.yaml [--repeats 5]
+    python scripts/bench_evaluation.py --config configs/pendulum_mm.yaml [--repeats 5] [--ckpt best.ckpt]
 
 Builds the test set as `otgb test` does and times :class:`otgb.metrics.joint.JointEvaluator`
 with all metrics (ABS ERR/N-RMSE when M = 1, MMD, MMDAgg, C2ST) for (i) candidate draws that
-come from the DGP itself (the model-like case: a near-chance C2ST trains longest), (ii) f_p
-alone, (iii) the Reference over ``--repeats`` splits. Then MMD (both scalars) on 10^4 vs 10^4
-samples of the same width, with the peak memory the process added.
+come from the DGP itself (a near-chance C2ST), (ii) with ``--ckpt``, a trained model's draws
+(the case `otgb test` meets), (iii) f_p alone, (iv) the Reference over ``--repeats`` splits.
+Then MMD (both scalars) on 10^4 vs 10^4 samples of the same width, with the peak memory the
+process added.
 """
 
 from __future__ import annotations
@@ -36,11 +37,20 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
+@torch.no_grad()
+def model_draws(model: KernelWeakOT, ckpt: str, data: dict[str, torch.Tensor]) -> torch.Tensor:
+    """The checkpoint's draws (its moving average when it has one) for every test input, like `otgb test`."""
+    model.load_state_dict(torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"])
+    draws = data["y"].shape[1]
+    return model.generate(data["x"], data["x0"], data["theta"], draws)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", required=True)
     parser.add_argument("--repeats", type=int, default=5, help="Reference splits")
     parser.add_argument("--mmd-samples", type=int, default=10_000)
+    parser.add_argument("--ckpt", default=None, help="a checkpoint of the config's model: also time its draws")
     args = parser.parse_args()
 
     cli = OTGBCLI(KernelWeakOT, SimulationDataModule, run=False, args=["--config", args.config])
@@ -51,6 +61,9 @@ def main() -> None:
     print(f"{args.config}: {n} test inputs x {draws} draws, threads {torch.get_num_threads()}")
     evaluator = JointEvaluator(tuple(data_module.physics.trajectory_shape))
     timed("model-like draws (DGP vs DGP)", lambda: evaluator.evaluate(data["y_ref"], data, tests=True))
+    if args.ckpt is not None:
+        y_hat = model_draws(cli.model, args.ckpt, data)
+        timed("trained model's draws", lambda: evaluator.evaluate(y_hat, data, tests=True))
     timed("f_p alone", lambda: evaluator.evaluate(data["x"].unsqueeze(1).expand_as(data["y"]), data, tests=True))
     timed(f"Reference ({args.repeats} splits)", lambda: reference_scores(evaluator, data, True, args.repeats))
 

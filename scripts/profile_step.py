@@ -1,11 +1,12 @@
 """Where the time of one training step goes: simulation, map solve, critic, backward.
 
-    python scripts/profile_step.py --config configs/pendulum.yaml [--steps 20]
+    python scripts/profile_step.py --config configs/pendulum.yaml [--steps 20] [--batch-size 64]
 
 Builds the model and data module from the config (as `otgb fit` would), then times the
 parts of Algorithm 1 on real batches: the f_p simulation of a step's source batches, the
 grey-box forward solves, the map backward passes, and the critic update (forward, penalty,
-backward). Prints mean milliseconds per training step and each part's share.
+backward). Prints mean milliseconds per training step, each part's share (the share of
+"simulate f_p" is the fraction of a step spent simulating) and f_p's simulations per second.
 """
 
 from __future__ import annotations
@@ -23,8 +24,9 @@ from otgb.ot import critic_loss, kernel_weak_cost
 from otgb.training import KernelWeakOT
 
 
-def build(config: str) -> tuple[KernelWeakOT, SimulationDataModule]:
-    cli = OTGBCLI(KernelWeakOT, SimulationDataModule, run=False, args=["--config", config, "--trainer.logger=false"])
+def build(config: str, overrides: list[str]) -> tuple[KernelWeakOT, SimulationDataModule]:
+    args = ["--config", config, "--trainer.logger=false", *overrides]
+    cli = OTGBCLI(KernelWeakOT, SimulationDataModule, run=False, args=args)
     return cli.model, cli.datamodule
 
 
@@ -32,8 +34,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", required=True)
     parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument("--batch-size", type=int, default=None, help="source batch size (default: the config's)")
     args = parser.parse_args()
-    model, dm = build(args.config)
+    model, dm = build(args.config, [] if args.batch_size is None else [f"--data.batch_size={args.batch_size}"])
     dm.setup("fit")
     map_opt = torch.optim.Adam(model.transport_map.parameters(), lr=1e-4)
     critic_opt = torch.optim.Adam(model.critic.parameters(), lr=1e-4)
@@ -79,6 +82,8 @@ def main() -> None:
     )
     for name, seconds in sorted(times.items(), key=lambda kv: -kv[1]):
         print(f"  {name:32s} {1000 * seconds / args.steps:8.1f} ms  {100 * seconds / total:5.1f} %")
+    rate = args.steps * dm.batch_size * model.t_max / times["simulate f_p"]
+    print(f"f_p simulations per second (batch {dm.batch_size}): {rate:.0f}")
 
 
 if __name__ == "__main__":

@@ -3,8 +3,9 @@ from functools import partial
 import pytest
 import torch
 
-from otgb.models import ConditionalMLP, GreyBoxODE, MLPCritic
-from otgb.physics import SimulationDiverged
+from otgb.models import ConditionalConvNet, ConditionalMLP, ConvCritic, GreyBoxODE, MLPCritic
+from otgb.ot import critic_loss
+from otgb.physics import Constant, FitzHughNagumoReaction, ReactionDiffusion, SimulationDiverged
 
 
 def _greybox(physics, z_dim=0, **kw):
@@ -57,3 +58,41 @@ def test_diverging_greybox_solve_is_named(pendulum, generator):
     x0, theta = pendulum.sample_initial_state(3, generator), pendulum.sample_theta(3, generator)
     with pytest.raises(SimulationDiverged, match="GreyBoxODE: the solve produced NaN/Inf"):
         gb(None, x0, theta, torch.zeros(3, 0))
+
+
+def test_conv_correction_on_a_periodic_grid_commutes_with_shifts(generator):
+    net = ConditionalConvNet((2, 16, 16), (2, 16, 16), cond_dim=4, padding_mode="circular", output_scale=1.0)
+    u, cond = torch.randn(3, 2, 16, 16, generator=generator), torch.randn(3, 4, generator=generator)
+    shifted = net(torch.roll(u, (3, -5), (-2, -1)), cond)
+    assert torch.allclose(shifted, torch.roll(net(u, cond), (3, -5), (-2, -1)), atol=1e-5)
+    assert not torch.allclose(net(u, cond), net(u, torch.randn(3, 4, generator=generator))), "the condition is used"
+    small = ConditionalConvNet((1, 20), (1, 20), cond_dim=1, output_scale=0.01)
+    assert small(torch.randn(5, 1, 20), torch.randn(5, 1)).abs().max() < 0.05
+
+
+def test_greybox_with_the_missing_reaction_reproduces_the_dgp(generator):
+    physics = ReactionDiffusion(n_grid=8)
+    dgp = physics.with_hidden_effect([FitzHughNagumoReaction(Constant(5e-3))])
+
+    class Reaction(torch.nn.Module):
+        def forward(self, state, cond):
+            u, v = state[:, 0], state[:, 1]
+            return torch.stack([u - u**3 - v - 5e-3, torch.zeros_like(v)], dim=1)
+
+    x0, theta = physics.sample_initial_state(3, generator), physics.sample_theta(3, generator)
+    y = dgp.simulate(x0, theta, torch.full((3, 1), 5e-3))
+    assert torch.allclose(GreyBoxODE(physics, 0, lambda *shapes: Reaction())(None, x0, theta, torch.zeros(3, 0)), y, atol=1e-5)
+    zero = GreyBoxODE(physics, 2, partial(ConditionalConvNet, padding_mode="circular", output_scale=0.0))
+    assert torch.allclose(zero(None, x0, theta, torch.randn(3, 2)), physics.simulate(x0, theta), atol=1e-6)
+
+
+@pytest.mark.parametrize("time_as_channels", [True, False])
+def test_conv_critic_scores_trajectories_and_takes_a_gradient_penalty(time_as_channels, generator):
+    shape = (6, 2, 8, 8)
+    critic = ConvCritic(shape, channels=(8, 16), time_as_channels=time_as_channels)
+    real, fake = torch.randn(4, *shape, generator=generator), torch.randn(4, *shape, generator=generator)
+    scores = critic(torch.cat([real, fake]))
+    assert scores.shape == (8,) and torch.allclose(scores[:4], critic(real), atol=1e-6), "one score per trajectory"
+    loss, parts = critic_loss(critic, real, fake, gp_weight=1.0, generator=generator)
+    loss.backward()
+    assert parts["gradient_penalty"] > 0 and all(p.grad is not None for p in critic.parameters())
