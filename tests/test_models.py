@@ -3,6 +3,7 @@ from functools import partial
 import pytest
 import torch
 
+from otgb.callbacks import FieldFigure
 from otgb.models import ConditionalConvNet, ConditionalMLP, ConvCritic, GreyBoxODE, MLPCritic
 from otgb.ot import critic_loss
 from otgb.physics import Constant, FitzHughNagumoReaction, ReactionDiffusion, SimulationDiverged
@@ -96,3 +97,13 @@ def test_conv_critic_scores_trajectories_and_takes_a_gradient_penalty(time_as_ch
     loss, parts = critic_loss(critic, real, fake, gp_weight=1.0, generator=generator)
     loss.backward()
     assert parts["gradient_penalty"] > 0 and all(p.grad is not None for p in critic.parameters())
+
+
+def test_field_figure_names_a_missing_channel(generator):
+    physics = ReactionDiffusion(n_grid=8)
+    x = torch.rand(1, 15, 2, 8, 8, generator=generator)
+    data = {"x": x, "y": x[:, None], "theta": physics.sample_theta(1, generator)}
+    with pytest.raises(ValueError, match="FieldFigure.channel=2: the observed field has 2 channel"):
+        FieldFigure(n_inputs=1, channel=2).draw(data, x[:, None], physics)
+    figure = FieldFigure(n_inputs=1, channel=1).draw(data, x[:, None], physics)
+    assert len(figure.axes) == 3 * 4, "measured, generated and f_p at four frames"

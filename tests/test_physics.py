@@ -74,6 +74,10 @@ def test_bad_inputs_are_named(pendulum, damped):
         Uniform(1.0, 0.5)
     with pytest.raises(ValueError, match="step_size"):
         Pendulum(step_size=0.03)
+    with pytest.raises(ValueError, match="step_size=0.0 must be positive"):
+        Pendulum(step_size=0.0)
+    with pytest.raises(ValueError, match=r"step_size=0.03 must be positive and divide dt=0.1"):
+        pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))], step_size=0.03)
 
 
 def test_diverging_solve_raises(pendulum):

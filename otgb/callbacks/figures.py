@@ -112,6 +112,9 @@ class FieldFigure(ValidationFigure):
         self.channel, self.frames = channel, None if frames is None else list(frames)
 
     def draw(self, data: dict[str, torch.Tensor], y_hat: torch.Tensor, physics: PhysicsModel) -> plt.Figure:
+        channels = data["x"].shape[2]
+        if not 0 <= self.channel < channels:
+            raise ValueError(f"FieldFigure.channel={self.channel}: the observed field has {channels} channel(s)")
         fields = {"measured": data["y"][:, 0], "generated": y_hat[:, 0], "f_p": data["x"]}
         fields = {k: v[:, :, self.channel] for k, v in fields.items()}  # (N, T, *space)
         space_dims = fields["measured"].dim() - 2

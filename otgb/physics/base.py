@@ -87,10 +87,7 @@ class PhysicsModel(nn.Module):
         if dt <= 0 or n_obs < 1:
             raise ValueError(f"{type(self).__name__}: need dt > 0 and n_obs >= 1, got dt={dt}, n_obs={n_obs}")
         self.dt, self.n_obs, self.include_initial = float(dt), int(n_obs), include_initial
-        self.step_size = float(step_size) if step_size is not None else float(dt)
-        ratio = self.dt / self.step_size
-        if self.step_size <= 0 or abs(ratio - round(ratio)) > 1e-6:
-            raise ValueError(f"{type(self).__name__}: step_size={step_size} must be positive and divide dt={dt}")
+        self.step_size = self._checked_step(step_size if step_size is not None else dt)
         self.method = method
         self.terms = nn.ModuleList(hidden_effect)
 
@@ -145,8 +142,14 @@ class PhysicsModel(nn.Module):
         model = copy.deepcopy(self)
         model.terms = nn.ModuleList([*self.terms, *copy.deepcopy(list(terms))])
         if step_size is not None:
-            model.step_size = float(step_size)
+            model.step_size = model._checked_step(step_size)
         return model
+
+    def _checked_step(self, step_size: float) -> float:
+        """A solver step that is positive and divides the observation interval dt."""
+        if not step_size > 0 or abs(self.dt / step_size - round(self.dt / step_size)) > 1e-6:
+            raise ValueError(f"{type(self).__name__}: step_size={step_size} must be positive and divide dt={self.dt}")
+        return float(step_size)
 
     def sample_effect_params(self, n: int, generator: torch.Generator) -> Tensor:
         """Latent parameters theta' of every term, (n, effect_dim), drawn once per trajectory."""

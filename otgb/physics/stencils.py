@@ -10,14 +10,6 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-BOUNDARIES = ("dirichlet", "periodic")
-
-
-def check_boundary(boundary: str, where: str) -> str:
-    if boundary not in BOUNDARIES:
-        raise ValueError(f"{where}: boundary={boundary!r}, expected one of {BOUNDARIES}")
-    return boundary
-
 
 def _shifted(u: Tensor, axis: int, step: int, boundary: str) -> Tensor:
     """u at index i + step along ``axis`` (a negative axis), with the boundary's ghost values."""
