@@ -14,9 +14,11 @@ features before the trajectory) and the folds keep each group together
 (StratifiedGroupKFold).
 
 Classifiers (``classifier``):
-- ``"mlp"``: scikit-learn's MLPClassifier with hidden layers (10 d, 10 d), ReLU, Adam, early
-  stopping on 10 % of the training fold (10 epochs without improvement), as in sbi's ``c2st``
-  MLP option; for low-dimensional joint samples such as the pendulum's (d = 53).
+- ``"mlp"``: an MLP with hidden layers (10 d, 10 d), ReLU, Adam, early stopping on 10 % of
+  the training fold (10 epochs without improvement), as in sbi's ``c2st`` MLP option; for
+  low-dimensional joint samples such as the pendulum's (d = 53). It is
+  :class:`otgb.metrics.classifiers.MLPClassifier`, scikit-learn's MLPClassifier algorithm in
+  torch: about 1.7x faster on a CPU, and it trains on the samples' device.
 - ``"conv"``: :class:`otgb.metrics.classifiers.ConvClassifier`, a small convolutional net over
   the trajectory part of each row, for PDE observations (d in the thousands).
 - ``"auto"`` (default): "mlp" up to ``AUTO_MLP_MAX_FEATURES`` features, "conv" above.
@@ -34,10 +36,9 @@ import numpy as np
 import torch
 from sklearn.base import clone
 from sklearn.model_selection import StratifiedGroupKFold, StratifiedKFold, cross_val_score
-from sklearn.neural_network import MLPClassifier
 from torch import Tensor
 
-from otgb.metrics.classifiers import ConvClassifier
+from otgb.metrics.classifiers import ConvClassifier, MLPClassifier
 from otgb.metrics.samples import TwoSampleMetric
 
 AUTO_MLP_MAX_FEATURES = 200  # an MLP of width 10 d is slow on a CPU well before d = 1000
@@ -104,7 +105,7 @@ def input_groups(rows: Tensor, trajectory_shape: tuple[int, ...] | None) -> np.n
 def make_classifier(
     classifier: Any, n_features: int, trajectory_shape: tuple[int, ...] | None, seed: int, device: str = "cpu"
 ) -> Any:
-    """The estimator behind a ``classifier`` setting (see the module docstring); "conv" trains on ``device``."""
+    """The estimator behind a ``classifier`` setting (see the module docstring); "mlp" and "conv" train on ``device``."""
     if not isinstance(classifier, str):
         return clone(classifier)
     if classifier not in CLASSIFIERS:
@@ -113,9 +114,7 @@ def make_classifier(
         classifier = "mlp" if n_features <= AUTO_MLP_MAX_FEATURES else "conv"
     if classifier == "mlp":
         width = 10 * n_features
-        return MLPClassifier(
-            hidden_layer_sizes=(width, width), max_iter=1000, early_stopping=True, n_iter_no_change=10, random_state=seed
-        )
+        return MLPClassifier(hidden=(width, width), random_state=seed, device=device)
     if trajectory_shape is None:
         raise ValueError("c2st: the 'conv' classifier needs trajectory_shape (T, *obs) to find the trajectory in each row")
     n_traj = int(np.prod(trajectory_shape))

@@ -1,14 +1,27 @@
-"""A small convolutional classifier for C2ST on high-dimensional joint samples (PDE observations).
+"""Torch classifiers with scikit-learn's estimator API for the C2ST (``cross_val_score`` clones and fits them).
 
-Each feature row is (conditioning inputs, trajectory): the first ``cond_dim`` features
-(theta, x0) and then the trajectory of shape (T, C, *spatial) flattened. The trajectory goes
-through two strided convolutions over (time, *spatial) with the C observed fields as
-channels (Conv1d for (T, C), Conv2d for (T, C, X), Conv3d for (T, C, X, Y)), is pooled to a
-fixed size and joined with an embedding of the conditioning inputs; an MLP head gives the
-logit. It follows scikit-learn's estimator API, so ``cross_val_score`` can clone and fit it.
+- :class:`MLPClassifier`: a fully connected ReLU net trained the way scikit-learn's
+  ``MLPClassifier(early_stopping=True)`` trains it (the MLP option of sbi's ``c2st``), for
+  low-dimensional joint samples such as the pendulum's. In float32 with a fused Adam step, a
+  5-fold C2ST of the pendulum's joint samples takes about 20 s on a 2-core CPU against 36 s
+  with scikit-learn's float32 MLP, and it runs on a GPU.
+- :class:`ConvClassifier`: a small convolutional net for high-dimensional joint samples (PDE
+  observations). Each row is (conditioning inputs, trajectory): the first ``cond_dim`` features
+  (theta, x0), then the trajectory of shape (T, C, *spatial) flattened. The trajectory goes
+  through two strided convolutions over (time, *spatial) with the C observed fields as channels
+  (Conv1d for (T, C), Conv2d for (T, C, X), Conv3d for (T, C, X, Y)), is pooled to a fixed size
+  and joined with an embedding of the conditioning inputs; an MLP head gives the logit.
+
+Both train with Adam on mini-batches reshuffled every epoch, hold out ``validation_fraction``
+of the training rows, and keep the weights that scored best there. Training stops once the
+held-out score has not improved by ``tol`` for more than ``n_iter_no_change`` epochs in a row
+(scikit-learn's rule). The held-out score is the accuracy for the MLP (as in scikit-learn) and
+minus the log loss for the conv net.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import torch
@@ -17,6 +30,147 @@ from torch import Tensor, nn
 
 CONV = {1: nn.Conv1d, 2: nn.Conv2d, 3: nn.Conv3d}
 POOL = {1: nn.AdaptiveAvgPool1d, 2: nn.AdaptiveAvgPool2d, 3: nn.AdaptiveAvgPool3d}
+
+
+class _TorchClassifier(ClassifierMixin, BaseEstimator):
+    """Shared training loop; subclasses build the network and say how the held-out rows are scored."""
+
+    tol = 0.0
+
+    def _network(self, n_features: int) -> nn.Module:
+        raise NotImplementedError
+
+    def _held_out_score(self, logits: Tensor, y: Tensor) -> float:
+        """Higher is better."""
+        raise NotImplementedError
+
+    def _parameter_groups(self, net: nn.Module, batch_size: int) -> list[dict]:
+        """Adam's parameter groups (options such as weight decay per group)."""
+        return [{"params": list(net.parameters())}]
+
+    def fit(self, features: np.ndarray, labels: np.ndarray) -> _TorchClassifier:
+        """Train with early stopping; works inside Lightning's validation (under inference mode) too."""
+        self.classes_ = np.unique(labels)
+        if not np.array_equal(self.classes_, [0, 1]):
+            raise ValueError(f"{type(self).__name__}: expected labels 0 and 1, got {self.classes_.tolist()}")
+        with torch.inference_mode(False), torch.enable_grad():
+            self.net_ = self._train(features, labels).eval()
+        return self
+
+    def _train(self, features: np.ndarray, labels: np.ndarray) -> nn.Module:
+        g = torch.Generator().manual_seed(self.random_state)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(self.random_state)
+            net = self._network(features.shape[1]).to(self.device)
+        x = torch.as_tensor(features, dtype=torch.float32, device=self.device)
+        y = torch.as_tensor(labels, dtype=torch.float32, device=self.device)
+        order = torch.randperm(len(x), generator=g).to(self.device)
+        n_held = max(1, int(self.validation_fraction * len(x)))
+        held, train = order[:n_held], order[n_held:]
+        batch_size = min(self.batch_size, len(train))
+        groups = self._parameter_groups(net, batch_size)
+        optimizer = torch.optim.Adam(groups, lr=self.lr, fused=x.device.type in ("cpu", "cuda"))
+        best_score, best_state, waited = -math.inf, None, 0
+        for _ in range(self.max_epochs):
+            net.train()
+            for batch in train[torch.randperm(len(train), generator=g).to(self.device)].split(batch_size):
+                loss = nn.functional.binary_cross_entropy_with_logits(net(x[batch]), y[batch])
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                optimizer.step()
+            score = self._held_out_score(self._logits(net.eval(), x[held]), y[held])
+            waited = 0 if score >= best_score + self.tol else waited + 1
+            if score > best_score:
+                best_score, best_state = score, {k: v.detach().clone() for k, v in net.state_dict().items()}
+            if waited > self.n_iter_no_change:
+                break
+        if best_state is None:
+            raise ValueError(f"{type(self).__name__}: the held-out score was never finite (NaN/Inf in the features?)")
+        net.load_state_dict(best_state)
+        return net
+
+    @staticmethod
+    @torch.no_grad()
+    def _logits(net: nn.Module, x: Tensor) -> Tensor:
+        return torch.cat([net(chunk) for chunk in x.split(1024)])
+
+    def decision_function(self, features: np.ndarray) -> np.ndarray:
+        x = torch.as_tensor(features, dtype=torch.float32, device=self.device)
+        return self._logits(self.net_, x).cpu().numpy()
+
+    def predict(self, features: np.ndarray) -> np.ndarray:
+        return (self.decision_function(features) > 0).astype(np.int64)
+
+
+class _MLP(nn.Sequential):
+    """ReLU layers then one logit, initialised as scikit-learn does: weights and biases uniform in
+    +-sqrt(f / (fan_in + fan_out)), with f = 6 for the hidden layers and 2 for the logistic output."""
+
+    def __init__(self, n_features: int, hidden: tuple[int, ...]) -> None:
+        sizes = [n_features, *hidden, 1]
+        layers: list[nn.Module] = []
+        for i, (fan_in, fan_out) in enumerate(zip(sizes[:-1], sizes[1:])):
+            linear = nn.Linear(fan_in, fan_out)
+            bound = math.sqrt((2.0 if i == len(hidden) else 6.0) / (fan_in + fan_out))
+            for tensor in (linear.weight, linear.bias):
+                nn.init.uniform_(tensor, -bound, bound)
+            layers += [linear, nn.ReLU()]
+        super().__init__(*layers[:-1])
+
+    def forward(self, rows: Tensor) -> Tensor:
+        return super().forward(rows).squeeze(1)
+
+
+class MLPClassifier(_TorchClassifier):
+    """scikit-learn's ``MLPClassifier(early_stopping=True)`` for binary labels, in torch.
+
+    The same algorithm and defaults: ReLU layers ``hidden``, Glorot-uniform initialisation,
+    Adam (lr 1e-3, betas (0.9, 0.999)) on mini-batches of min(200, n) rows, an L2 penalty
+    alpha/2 * sum ||W||^2 / batch size on the weights (as Adam's weight decay, so the last, shorter
+    batch of an epoch is penalised as a full one), 10 % of the rows held out, and training
+    stops once the held-out accuracy has not improved by 1e-4 for more than ``n_iter_no_change``
+    epochs; the best weights on the held-out rows are kept. Differences: float32 and a fused
+    Adam step (faster), a random rather than stratified held-out split, and torch's random
+    numbers, so single fits differ from scikit-learn's as two seeds do.
+
+    Args:
+        hidden: widths of the hidden layers.
+        alpha: L2 penalty.
+        max_epochs, batch_size, lr, n_iter_no_change, validation_fraction: training.
+        random_state: seed of the initial weights, the split and the batch order.
+        device: where to train ("cpu", "cuda", ...).
+    """
+
+    tol = 1e-4
+
+    def __init__(
+        self,
+        hidden: tuple[int, ...] = (100,),
+        alpha: float = 1e-4,
+        max_epochs: int = 1000,
+        batch_size: int = 200,
+        lr: float = 1e-3,
+        n_iter_no_change: int = 10,
+        validation_fraction: float = 0.1,
+        random_state: int = 0,
+        device: str = "cpu",
+    ) -> None:
+        self.hidden, self.alpha = hidden, alpha
+        self.max_epochs, self.batch_size, self.lr, self.n_iter_no_change = max_epochs, batch_size, lr, n_iter_no_change
+        self.validation_fraction, self.random_state, self.device = validation_fraction, random_state, device
+
+    def _network(self, n_features: int) -> nn.Module:
+        return _MLP(n_features, tuple(self.hidden))
+
+    def _parameter_groups(self, net: nn.Module, batch_size: int) -> list[dict]:
+        """The L2 penalty's gradient alpha W / batch size, added before Adam's moments as scikit-learn
+        does, is Adam's weight decay on the weights (not the biases)."""
+        weights = [layer.weight for layer in net if isinstance(layer, nn.Linear)]
+        biases = [layer.bias for layer in net if isinstance(layer, nn.Linear)]
+        return [{"params": weights, "weight_decay": self.alpha / batch_size}, {"params": biases}]
+
+    def _held_out_score(self, logits: Tensor, y: Tensor) -> float:
+        return float(((logits > 0).float() == y).float().mean())
 
 
 class _ConvNet(nn.Module):
@@ -51,16 +205,16 @@ class _ConvNet(nn.Module):
         return self.head(torch.cat(features, dim=1)).squeeze(1)
 
 
-class ConvClassifier(ClassifierMixin, BaseEstimator):
-    """Binary classifier (labels 0/1) trained with Adam and early stopping on a held-out fraction.
+class ConvClassifier(_TorchClassifier):
+    """Binary convolutional classifier (labels 0/1) of (inputs, trajectory) rows.
 
     Args:
         trajectory_shape: (T, C, *spatial) of the trajectory part of each row.
         cond_dim: number of leading conditioning features.
         channels: width of the first convolution (the second has twice as many).
         pooled: size per conv dimension after adaptive average pooling.
-        max_epochs, batch_size, lr: training; patience: epochs without a better held-out
-            loss before stopping (the best weights are kept).
+        max_epochs, batch_size, lr: training; n_iter_no_change: stop once the held-out log loss
+            has not improved for more than this many epochs (the best weights are kept).
         validation_fraction: share of the training rows held out for early stopping.
         random_state: seed of the initial weights, the split and the batch order.
         device: where to train ("cpu", "cuda", ...).
@@ -75,66 +229,17 @@ class ConvClassifier(ClassifierMixin, BaseEstimator):
         max_epochs: int = 100,
         batch_size: int = 128,
         lr: float = 1e-3,
-        patience: int = 5,
+        n_iter_no_change: int = 4,
         validation_fraction: float = 0.1,
         random_state: int = 0,
         device: str = "cpu",
     ) -> None:
         self.trajectory_shape, self.cond_dim, self.channels, self.pooled = trajectory_shape, cond_dim, channels, pooled
-        self.max_epochs, self.batch_size, self.lr, self.patience = max_epochs, batch_size, lr, patience
+        self.max_epochs, self.batch_size, self.lr, self.n_iter_no_change = max_epochs, batch_size, lr, n_iter_no_change
         self.validation_fraction, self.random_state, self.device = validation_fraction, random_state, device
 
-    def fit(self, features: np.ndarray, labels: np.ndarray) -> ConvClassifier:
-        """Train with early stopping; works inside Lightning's validation (under inference mode) too."""
-        self.classes_ = np.unique(labels)
-        if not np.array_equal(self.classes_, [0, 1]):
-            raise ValueError(f"ConvClassifier: expected labels 0 and 1, got {self.classes_.tolist()}")
-        with torch.inference_mode(False), torch.enable_grad():
-            self.net_ = self._train(features, labels).eval()
-        return self
+    def _network(self, n_features: int) -> nn.Module:
+        return _ConvNet(tuple(self.trajectory_shape), self.cond_dim, self.channels, self.pooled)
 
-    def _train(self, features: np.ndarray, labels: np.ndarray) -> nn.Module:
-        g = torch.Generator().manual_seed(self.random_state)
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(self.random_state)
-            net = _ConvNet(tuple(self.trajectory_shape), self.cond_dim, self.channels, self.pooled).to(self.device)
-        x = torch.as_tensor(features, dtype=torch.float32, device=self.device)
-        y = torch.as_tensor(labels, dtype=torch.float32, device=self.device)
-        order = torch.randperm(len(x), generator=g).to(self.device)
-        n_held = max(1, int(self.validation_fraction * len(x)))
-        held, train = order[:n_held], order[n_held:]
-        optimizer = torch.optim.Adam(net.parameters(), lr=self.lr)
-        best_loss, best_state, waited = float("inf"), None, 0
-        for _ in range(self.max_epochs):
-            net.train()
-            for batch in train[torch.randperm(len(train), generator=g).to(self.device)].split(self.batch_size):
-                loss = nn.functional.binary_cross_entropy_with_logits(net(x[batch]), y[batch])
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                optimizer.step()
-            held_loss = self._loss(net, x[held], y[held])
-            if held_loss < best_loss:
-                best_loss, waited = held_loss, 0
-                best_state = {k: v.detach().clone() for k, v in net.state_dict().items()}
-            else:
-                waited += 1
-                if waited >= self.patience:
-                    break
-        if best_state is None:
-            raise ValueError("ConvClassifier: the held-out loss was never finite (NaN/Inf in the features?)")
-        net.load_state_dict(best_state)
-        return net
-
-    @torch.no_grad()
-    def _loss(self, net: nn.Module, x: Tensor, y: Tensor) -> float:
-        net.eval()
-        logits = torch.cat([net(chunk) for chunk in x.split(1024)])
-        return float(nn.functional.binary_cross_entropy_with_logits(logits, y))
-
-    @torch.no_grad()
-    def decision_function(self, features: np.ndarray) -> np.ndarray:
-        x = torch.as_tensor(features, dtype=torch.float32, device=self.device)
-        return torch.cat([self.net_(chunk) for chunk in x.split(1024)]).cpu().numpy()
-
-    def predict(self, features: np.ndarray) -> np.ndarray:
-        return (self.decision_function(features) > 0).astype(np.int64)
+    def _held_out_score(self, logits: Tensor, y: Tensor) -> float:
+        return -float(nn.functional.binary_cross_entropy_with_logits(logits, y))
