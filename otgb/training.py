@@ -33,7 +33,7 @@ from otgb.physics.base import PhysicsModel
 
 MapFactory = Callable[[PhysicsModel, int], nn.Module]
 CriticFactory = Callable[[tuple], nn.Module]
-LATENTS = ("normal", "uniform")
+LATENTS = ("normal", "uniform", "categorical")
 
 
 def _adam(params: Any) -> torch.optim.Optimizer:
@@ -48,7 +48,9 @@ class KernelWeakOT(LightningModule):
         transport_map: builds the map from (physics, z_dim), e.g. :class:`otgb.models.GreyBoxODE`.
         critic: builds the critic from the trajectory shape (T, *obs).
         z_dim: size of the latent z; 0 for a deterministic map.
-        latent: distribution eta of z: "normal" (N(0, I)) or "uniform" (U(-1, 1)).
+        latent: distribution eta of z: "normal" (N(0, I)), "uniform" (U(-1, 1)) or "categorical"
+            (one of the z_dim one-hot vectors, equally likely: a discrete latent for a missing
+            effect with a few regimes, as the paper uses for some one-to-many tasks).
         n_z: |Z|, latent draws per source sample in the cost.
         gamma: weight of the variance term of the weak cost (0 one-to-one, 1 one-to-many).
         kernel: kernel of the weak cost, "distance" (-||a - b|| / 2, the paper's) or "linear"
@@ -124,6 +126,8 @@ class KernelWeakOT(LightningModule):
             raise ValueError(f"model: need z_dim >= 0, n_z >= 1, t_max >= 1; got z_dim={z_dim}, n_z={n_z}, t_max={t_max}")
         if latent not in LATENTS:
             raise ValueError(f"model.latent={latent!r}: expected one of {LATENTS}")
+        if latent == "categorical" and z_dim < 2:
+            raise ValueError(f"model.latent='categorical' draws one of z_dim categories: needs z_dim >= 2, got {z_dim}")
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"model.gamma={gamma}: expected a value in [0, 1]")
         if gamma > 0 and n_z < 2:
@@ -153,6 +157,9 @@ class KernelWeakOT(LightningModule):
         shape = (n, self.z_dim)
         if self.latent == "uniform":
             return 2 * torch.rand(shape, device=self.device, generator=self.generator) - 1
+        if self.latent == "categorical":
+            category = torch.randint(self.z_dim, (n,), device=self.device, generator=self.generator)
+            return torch.nn.functional.one_hot(category, self.z_dim).to(torch.get_default_dtype())
         return torch.randn(shape, device=self.device, generator=self.generator)
 
     def generate(self, x: Tensor, x0: Tensor, theta: Tensor, n_draws: int, averaged: bool = True) -> Tensor:

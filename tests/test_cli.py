@@ -9,7 +9,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from otgb.cli import logger_override, main
+from otgb.cli import OTGBCLI, logger_override, main
+from otgb.data import SimulationDataModule
+from otgb.training import KernelWeakOT
 
 CONFIG = str(Path(__file__).parents[1] / "configs" / "pendulum.yaml")
 
@@ -110,9 +112,16 @@ def test_test_subcommand_and_overrides(tmp_path):
     assert _last(_rows(tmp_path / "run" / "version_2"), "val/abs_err") == _last(_rows(run), "val/abs_err")
 
 
-def test_bad_config_value_is_named(tmp_path):
-    with pytest.raises(ValueError, match="model.gamma=1.0 > 0 needs n_z >= 2"):
-        main(["fit", *_args(tmp_path, "--model.gamma=1.0")])
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        (["--model.gamma=1.0"], "model.gamma=1.0 > 0 needs n_z >= 2"),
+        (["--model.latent=categorical", "--model.z_dim=1", "--model.n_z=2"], "categorical.*needs z_dim >= 2, got 1"),
+    ],
+)
+def test_bad_config_value_is_named(tmp_path, override, message):
+    with pytest.raises(ValueError, match=message):
+        main(["fit", *_args(tmp_path, *override)])
 
 
 def test_console_script_print_config():
@@ -191,3 +200,14 @@ def test_pde_config_fits_and_tests(tmp_path, name):
     assert report["run"]["n_inputs"] == 12 and report["model"]["c2st"]["mean"] >= 0
     data = torch.load(next((tmp_path / "cache").glob("test-*.pt")), weights_only=True)
     assert data["y"].shape[2:] == shape and data["x"].shape[1:] == shape
+
+
+def test_categorical_latent_draws_equally_likely_one_hot_codes(tmp_path):
+    config = str(Path(CONFIG).with_name("pendulum_2m.yaml"))
+    args = _args(tmp_path, "--model.latent=categorical", "--model.z_dim=3", config=config)
+    model = OTGBCLI(KernelWeakOT, SimulationDataModule, run=False, args=args).model
+    n = 3000
+    z = model.sample_z(n)
+    assert z.shape == (n, 3) and set(z.unique().tolist()) == {0.0, 1.0} and torch.all(z.sum(1) == 1)
+    counts = z.sum(0)
+    assert torch.all((counts - n / 3).abs() <= 3 * (n * (1 / 3) * (2 / 3)) ** 0.5), counts

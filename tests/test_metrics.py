@@ -135,6 +135,9 @@ def test_c2st_is_chance_for_equal_and_one_for_separated_samples(generator):
     assert c2st(p, q + 4.0)["c2st"] > 0.97
     with pytest.raises(ValueError, match="expected one of"):
         c2st(p, q, classifier="forest")
+    q[3, 1] = float("nan")
+    with pytest.raises(ValueError, match="MLPClassifier: the features contain NaN/Inf"):
+        c2st(p, q)
 
 
 def test_torch_mlp_judges_like_scikit_learns(generator):

@@ -80,12 +80,12 @@ def c2st(
                 f"c2st: {folds}-fold cross-validation needs >= {folds} distinct inputs, got {len(np.unique(groups))}"
             )
         cv = StratifiedGroupKFold(n_splits=folds, shuffle=True, random_state=seed)
-    scores = cross_val_score(estimator, features, labels, groups=groups, cv=cv, scoring="accuracy")
+    scores = cross_val_score(estimator, features, labels, groups=groups, cv=cv, scoring="accuracy", error_score="raise")
     result = {"c2st": torch.tensor(scores.mean()).float(), "c2st_std": torch.tensor(scores.std()).float()}
     if n_permutations > 0:
         rng = np.random.default_rng(seed)
         null = [
-            cross_val_score(estimator, features, rng.permutation(labels), groups=groups, cv=cv).mean()
+            cross_val_score(estimator, features, rng.permutation(labels), groups=groups, cv=cv, error_score="raise").mean()
             for _ in range(n_permutations)
         ]
         result["c2st_pvalue"] = torch.tensor((1 + sum(a >= scores.mean() for a in null)) / (n_permutations + 1)).float()

@@ -53,6 +53,8 @@ class _TorchClassifier(ClassifierMixin, BaseEstimator):
         self.classes_ = np.unique(labels)
         if not np.array_equal(self.classes_, [0, 1]):
             raise ValueError(f"{type(self).__name__}: expected labels 0 and 1, got {self.classes_.tolist()}")
+        if not np.isfinite(features).all():
+            raise ValueError(f"{type(self).__name__}: the features contain NaN/Inf")
         with torch.inference_mode(False), torch.enable_grad():
             self.net_ = self._train(features, labels).eval()
         return self
@@ -85,7 +87,7 @@ class _TorchClassifier(ClassifierMixin, BaseEstimator):
             if waited > self.n_iter_no_change:
                 break
         if best_state is None:
-            raise ValueError(f"{type(self).__name__}: the held-out score was never finite (NaN/Inf in the features?)")
+            raise ValueError(f"{type(self).__name__}: the held-out score was never finite (training diverged)")
         net.load_state_dict(best_state)
         return net
 
