@@ -4,6 +4,7 @@ import math
 
 import pytest
 import torch
+from sklearn.neural_network import MLPClassifier
 
 from otgb.data import generate_joint
 from otgb.metrics import C2ST, MMD, NRMSE, AbsErr, MMDAgg, abs_err, c2st, joint_samples, mmd2, mmdagg, nrmse
@@ -144,8 +145,6 @@ def test_torch_mlp_judges_like_scikit_learns(generator):
     """Gaussians shifted by 1.5 along one axis: the Bayes classifier's accuracy is Phi(0.75) = 0.773.
     The default "mlp" C2ST (torch) and scikit-learn's MLPClassifier with the same settings both come
     close to it from below, and agree within noise; the torch one also trains under inference mode."""
-    from sklearn.neural_network import MLPClassifier
-
     n, dim = 1000, 4
     p = torch.randn(n, dim, generator=generator)
     q = torch.randn(n, dim, generator=generator) + torch.tensor([1.5, 0.0, 0.0, 0.0])
