@@ -117,6 +117,8 @@ def test_test_subcommand_and_overrides(tmp_path):
     [
         (["--model.gamma=1.0"], "model.gamma=1.0 > 0 needs n_z >= 2"),
         (["--model.latent=categorical", "--model.z_dim=1", "--model.n_z=2"], "categorical.*needs z_dim >= 2, got 1"),
+        (["--evaluation.c2st_precision=bf16"], "c2st_precision='bf16'.*expected one of .*'bf16-mixed'"),
+        (["--evaluation.c2st_classifier=svm"], "c2st_classifier='svm'.*expected one of .*'mlp'"),
     ],
 )
 def test_bad_config_value_is_named(tmp_path, override, message):

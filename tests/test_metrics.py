@@ -8,6 +8,8 @@ from sklearn.neural_network import MLPClassifier
 
 from otgb.data import generate_joint
 from otgb.metrics import C2ST, MMD, NRMSE, AbsErr, MMDAgg, abs_err, c2st, joint_samples, mmd2, mmdagg, nrmse
+from otgb.metrics.classifiers import PRECISIONS
+from otgb.metrics.classifiers import MLPClassifier as TorchMLP
 from otgb.metrics.joint import JointEvaluator, reference_scores
 from otgb.metrics.mmd import PAPER_MULTIPLIERS, mmd_median, mmd_multiscale, standardise
 from otgb.metrics.mmdagg import _memberships, _permuted_mmd2
@@ -143,18 +145,32 @@ def test_c2st_is_chance_for_equal_and_one_for_separated_samples(generator):
 
 def test_torch_mlp_judges_like_scikit_learns(generator):
     """Gaussians shifted by 1.5 along one axis: the Bayes classifier's accuracy is Phi(0.75) = 0.773.
-    The default "mlp" C2ST (torch) and scikit-learn's MLPClassifier with the same settings both come
-    close to it from below, and agree within noise; the torch one also trains under inference mode."""
+    The "mlp" C2ST (torch, in float32 and in bfloat16 mixed precision) and scikit-learn's
+    MLPClassifier with the same settings all come close to it from below and agree within noise;
+    the torch one also trains under inference mode."""
     n, dim = 1000, 4
     p = torch.randn(n, dim, generator=generator)
     q = torch.randn(n, dim, generator=generator) + torch.tensor([1.5, 0.0, 0.0, 0.0])
     bayes, se = 0.5 * (1 + math.erf(0.75 / math.sqrt(2))), 0.5 / math.sqrt(2 * n)
     sklearn_mlp = MLPClassifier(hidden_layer_sizes=(10 * dim, 10 * dim), early_stopping=True, max_iter=1000, random_state=0)
     reference = float(c2st(p, q, classifier=sklearn_mlp)["c2st"])
-    with torch.inference_mode():  # as inside Lightning's validation loop
-        ours = float(c2st(p, q, classifier="mlp")["c2st"])
-    assert bayes - 6 * se <= ours <= bayes + 3 * se and bayes - 6 * se <= reference <= bayes + 3 * se
-    assert abs(ours - reference) <= 4 * se
+    assert bayes - 6 * se <= reference <= bayes + 3 * se
+    for precision in PRECISIONS[1:]:
+        with torch.inference_mode():  # as inside Lightning's validation loop
+            ours = float(c2st(p, q, classifier="mlp", precision=precision)["c2st"])
+        assert bayes - 6 * se <= ours <= bayes + 3 * se and abs(ours - reference) <= 4 * se, precision
+
+
+def test_auto_precision_uses_bfloat16_only_where_it_is_native(generator, monkeypatch):
+    classifier = TorchMLP(precision="auto")
+    for native in (False, True):
+        monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda native=native: native)
+        monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: False)
+        with classifier._autocast(torch.device("cpu")):
+            assert torch.is_autocast_enabled("cpu") == native
+    p = torch.randn(20, 2, generator=generator)
+    with pytest.raises(ValueError, match="precision='16-mixed', expected one of"):
+        c2st(p, p + 1, folds=2, precision="16-mixed")
 
 
 def test_c2st_groups_rows_by_shared_inputs(generator):

@@ -10,6 +10,8 @@ import torch
 from lightning import Callback, LightningModule, Trainer
 from torch import Tensor
 
+from otgb.metrics.c2st import CLASSIFIERS
+from otgb.metrics.classifiers import PRECISIONS
 from otgb.metrics.joint import JointEvaluator, reference_scores
 from otgb.metrics.mmdagg import PAPER_EXPONENTS, check_options
 from otgb.reports import write_report
@@ -33,6 +35,8 @@ class JointEvaluation(Callback):
     Args:
         tests_every: run MMDAgg and C2ST at every n-th validation (0: only at test).
         c2st_folds, c2st_classifier: C2ST settings ("auto", "mlp" or "conv").
+        c2st_precision: the C2ST classifier's arithmetic: "auto" (bfloat16 mixed precision where
+            the hardware multiplies bfloat16 natively, else float32), "32-true" or "bf16-mixed".
         mmdagg_permutations: permutations for each of MMDAgg's two stages.
         reference_repeats: random splits for the Reference.
         seed: seed of the evaluation's own randomness (folds, permutations, splits).
@@ -43,6 +47,7 @@ class JointEvaluation(Callback):
         tests_every: int = 5,
         c2st_folds: int = 5,
         c2st_classifier: str = "auto",
+        c2st_precision: str = "auto",
         mmdagg_permutations: int = 500,
         reference_repeats: int = 5,
         seed: int = 0,
@@ -52,10 +57,19 @@ class JointEvaluation(Callback):
                 "evaluation: need tests_every >= 0, reference_repeats >= 1, c2st_folds >= 2; got "
                 f"tests_every={tests_every}, reference_repeats={reference_repeats}, c2st_folds={c2st_folds}"
             )
+        if c2st_classifier not in CLASSIFIERS or c2st_precision not in PRECISIONS:
+            raise ValueError(
+                f"evaluation: c2st_classifier={c2st_classifier!r}, c2st_precision={c2st_precision!r}; "
+                f"expected one of {CLASSIFIERS} and one of {PRECISIONS}"
+            )
         check_options(0.05, PAPER_EXPONENTS, mmdagg_permutations, mmdagg_permutations)
         self.tests_every, self.reference_repeats, self.seed = tests_every, reference_repeats, seed
         self.options = dict(
-            c2st_folds=c2st_folds, c2st_classifier=c2st_classifier, mmdagg_permutations=mmdagg_permutations, seed=seed
+            c2st_folds=c2st_folds,
+            c2st_classifier=c2st_classifier,
+            c2st_precision=c2st_precision,
+            mmdagg_permutations=mmdagg_permutations,
+            seed=seed,
         )
         self.evaluator: JointEvaluator | None = None
         self.baseline_evaluator: JointEvaluator | None = None

@@ -53,12 +53,15 @@ def c2st(
     classifier: Any = "auto",
     trajectory_shape: tuple[int, ...] | None = None,
     n_permutations: int = 0,
+    precision: str = "auto",
 ) -> dict[str, Tensor]:
     """Cross-validated accuracy of telling p (n, D) from q (m, D) apart.
 
     ``trajectory_shape`` (T, *obs) says which trailing features form the trajectory (the
     leading ones are the conditioning inputs theta, x0): the folds group rows by their inputs,
     and the "conv" classifier reads the trajectory.
+    ``precision`` ("auto", "32-true", "bf16-mixed") is the "mlp"/"conv" classifier's
+    arithmetic (see :mod:`otgb.metrics.classifiers`).
     Returns ``c2st`` (mean accuracy over folds), ``c2st_std`` (std over folds) and, with
     permutations, ``c2st_pvalue``.
     """
@@ -66,7 +69,7 @@ def c2st(
         raise ValueError(f"c2st: expected (n, D) and (m, D), got {tuple(p.shape)} and {tuple(q.shape)}")
     if folds < 2 or min(len(p), len(q)) < folds:
         raise ValueError(f"c2st: {folds}-fold cross-validation needs folds >= 2 and >= {folds} rows per sample")
-    estimator = make_classifier(classifier, p.shape[1], trajectory_shape, seed, device=str(p.device))
+    estimator = make_classifier(classifier, p.shape[1], trajectory_shape, seed, str(p.device), precision)
     mean, std = p.double().mean(0), p.double().std(0)
     std = torch.where(std > 0, std, torch.ones_like(std))
     features = ((torch.cat([p, q]).double() - mean) / std).float().cpu().numpy()
@@ -103,9 +106,15 @@ def input_groups(rows: Tensor, trajectory_shape: tuple[int, ...] | None) -> np.n
 
 
 def make_classifier(
-    classifier: Any, n_features: int, trajectory_shape: tuple[int, ...] | None, seed: int, device: str = "cpu"
+    classifier: Any,
+    n_features: int,
+    trajectory_shape: tuple[int, ...] | None,
+    seed: int,
+    device: str = "cpu",
+    precision: str = "auto",
 ) -> Any:
-    """The estimator behind a ``classifier`` setting (see the module docstring); "mlp" and "conv" train on ``device``."""
+    """The estimator behind a ``classifier`` setting (see the module docstring); "mlp" and "conv" train on
+    ``device`` in ``precision``."""
     if not isinstance(classifier, str):
         return clone(classifier)
     if classifier not in CLASSIFIERS:
@@ -114,14 +123,18 @@ def make_classifier(
         classifier = "mlp" if n_features <= AUTO_MLP_MAX_FEATURES else "conv"
     if classifier == "mlp":
         width = 10 * n_features
-        return MLPClassifier(hidden=(width, width), random_state=seed, device=device)
+        return MLPClassifier(hidden=(width, width), random_state=seed, device=device, precision=precision)
     if trajectory_shape is None:
         raise ValueError("c2st: the 'conv' classifier needs trajectory_shape (T, *obs) to find the trajectory in each row")
     n_traj = int(np.prod(trajectory_shape))
     if n_traj > n_features:
         raise ValueError(f"c2st: trajectory_shape {tuple(trajectory_shape)} has more features than the rows ({n_features})")
     return ConvClassifier(
-        trajectory_shape=tuple(trajectory_shape), cond_dim=n_features - n_traj, random_state=seed, device=device
+        trajectory_shape=tuple(trajectory_shape),
+        cond_dim=n_features - n_traj,
+        random_state=seed,
+        device=device,
+        precision=precision,
     )
 
 
@@ -135,11 +148,17 @@ class C2ST(TwoSampleMetric):
         classifier: Any = "auto",
         trajectory_shape: tuple[int, ...] | None = None,
         n_permutations: int = 0,
+        precision: str = "auto",
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
         self.options = dict(
-            folds=folds, seed=seed, classifier=classifier, trajectory_shape=trajectory_shape, n_permutations=n_permutations
+            folds=folds,
+            seed=seed,
+            classifier=classifier,
+            trajectory_shape=trajectory_shape,
+            n_permutations=n_permutations,
+            precision=precision,
         )
 
     def score(self, p: Tensor, q: Tensor) -> dict[str, Tensor]:

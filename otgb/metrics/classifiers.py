@@ -17,6 +17,15 @@ of the training rows, and keep the weights that scored best there. Training stop
 held-out score has not improved by ``tol`` for more than ``n_iter_no_change`` epochs in a row
 (scikit-learn's rule). The held-out score is the accuracy for the MLP (as in scikit-learn) and
 minus the log loss for the conv net.
+
+``precision`` (Lightning's names): "32-true" computes in float32; "bf16-mixed" runs the
+network's forward and backward passes under bfloat16 autocast, with float32 weights and Adam
+states (mixed precision); "auto" (default) picks "bf16-mixed" where the device multiplies
+bfloat16 matrices natively (a CPU with AVX512-BF16 or AMX, a CUDA GPU with bf16 support) and
+"32-true" elsewhere, where bfloat16 would be emulated and many times slower. On the 2-core
+AVX512-BF16 CPU of this project, bfloat16 matrix products run 3.8x faster than float32 ones
+and the pendulum's 5-fold C2ST takes about 12 s instead of 22 s, with the same accuracy
+within its fold-to-fold noise (docs/results.md).
 """
 
 from __future__ import annotations
@@ -28,6 +37,7 @@ import torch
 from sklearn.base import BaseEstimator, ClassifierMixin
 from torch import Tensor, nn
 
+PRECISIONS = ("auto", "32-true", "bf16-mixed")
 CONV = {1: nn.Conv1d, 2: nn.Conv2d, 3: nn.Conv3d}
 POOL = {1: nn.AdaptiveAvgPool1d, 2: nn.AdaptiveAvgPool2d, 3: nn.AdaptiveAvgPool3d}
 
@@ -43,6 +53,13 @@ class _TorchClassifier(ClassifierMixin, BaseEstimator):
     def _held_out_score(self, logits: Tensor, y: Tensor) -> float:
         """Higher is better."""
         raise NotImplementedError
+
+    def _autocast(self, device: torch.device) -> torch.autocast:
+        """The autocast context of ``precision`` on ``device`` (disabled for "32-true")."""
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"{type(self).__name__}: precision={self.precision!r}, expected one of {PRECISIONS}")
+        enabled = self.precision == "bf16-mixed" or (self.precision == "auto" and native_bf16(device))
+        return torch.autocast(device.type, dtype=torch.bfloat16, enabled=enabled)
 
     def _parameter_groups(self, net: nn.Module, batch_size: int) -> list[dict]:
         """Adam's parameter groups (options such as weight decay per group)."""
@@ -76,7 +93,9 @@ class _TorchClassifier(ClassifierMixin, BaseEstimator):
         for _ in range(self.max_epochs):
             net.train()
             for batch in train[torch.randperm(len(train), generator=g).to(self.device)].split(batch_size):
-                loss = nn.functional.binary_cross_entropy_with_logits(net(x[batch]), y[batch])
+                with self._autocast(x.device):
+                    logits = net(x[batch])
+                loss = nn.functional.binary_cross_entropy_with_logits(logits.float(), y[batch])
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()
@@ -91,10 +110,10 @@ class _TorchClassifier(ClassifierMixin, BaseEstimator):
         net.load_state_dict(best_state)
         return net
 
-    @staticmethod
     @torch.no_grad()
-    def _logits(net: nn.Module, x: Tensor) -> Tensor:
-        return torch.cat([net(chunk) for chunk in x.split(1024)])
+    def _logits(self, net: nn.Module, x: Tensor) -> Tensor:
+        with self._autocast(x.device):
+            return torch.cat([net(chunk).float() for chunk in x.split(1024)])
 
     def decision_function(self, features: np.ndarray) -> np.ndarray:
         x = torch.as_tensor(features, dtype=torch.float32, device=self.device)
@@ -102,6 +121,15 @@ class _TorchClassifier(ClassifierMixin, BaseEstimator):
 
     def predict(self, features: np.ndarray) -> np.ndarray:
         return (self.decision_function(features) > 0).astype(np.int64)
+
+
+def native_bf16(device: torch.device) -> bool:
+    """Whether ``device`` multiplies bfloat16 matrices in hardware."""
+    if device.type == "cuda":
+        return torch.cuda.is_bf16_supported(including_emulation=False)
+    if device.type == "cpu":
+        return torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported()
+    return False
 
 
 class _MLP(nn.Sequential):
@@ -131,9 +159,10 @@ class MLPClassifier(_TorchClassifier):
     alpha/2 * sum ||W||^2 / batch size on the weights (as Adam's weight decay, so the last, shorter
     batch of an epoch is penalised as a full one), 10 % of the rows held out, and training
     stops once the held-out accuracy has not improved by 1e-4 for more than ``n_iter_no_change``
-    epochs; the best weights on the held-out rows are kept. Differences: float32 and a fused
-    Adam step (faster), a random rather than stratified held-out split, and torch's random
-    numbers, so single fits differ from scikit-learn's as two seeds do.
+    epochs; the best weights on the held-out rows are kept. Differences: float32 or bfloat16
+    mixed precision (``precision``) and a fused Adam step (faster), a random rather than
+    stratified held-out split, and torch's random numbers, so single fits differ from
+    scikit-learn's as two seeds do.
 
     Args:
         hidden: widths of the hidden layers.
@@ -141,6 +170,7 @@ class MLPClassifier(_TorchClassifier):
         max_epochs, batch_size, lr, n_iter_no_change, validation_fraction: training.
         random_state: seed of the initial weights, the split and the batch order.
         device: where to train ("cpu", "cuda", ...).
+        precision: "auto", "32-true" or "bf16-mixed" (see the module docstring).
     """
 
     tol = 1e-4
@@ -156,10 +186,12 @@ class MLPClassifier(_TorchClassifier):
         validation_fraction: float = 0.1,
         random_state: int = 0,
         device: str = "cpu",
+        precision: str = "auto",
     ) -> None:
         self.hidden, self.alpha = hidden, alpha
         self.max_epochs, self.batch_size, self.lr, self.n_iter_no_change = max_epochs, batch_size, lr, n_iter_no_change
         self.validation_fraction, self.random_state, self.device = validation_fraction, random_state, device
+        self.precision = precision
 
     def _network(self, n_features: int) -> nn.Module:
         return _MLP(n_features, tuple(self.hidden))
@@ -220,6 +252,7 @@ class ConvClassifier(_TorchClassifier):
         validation_fraction: share of the training rows held out for early stopping.
         random_state: seed of the initial weights, the split and the batch order.
         device: where to train ("cpu", "cuda", ...).
+        precision: "auto", "32-true" or "bf16-mixed" (see the module docstring).
     """
 
     def __init__(
@@ -235,10 +268,12 @@ class ConvClassifier(_TorchClassifier):
         validation_fraction: float = 0.1,
         random_state: int = 0,
         device: str = "cpu",
+        precision: str = "auto",
     ) -> None:
         self.trajectory_shape, self.cond_dim, self.channels, self.pooled = trajectory_shape, cond_dim, channels, pooled
         self.max_epochs, self.batch_size, self.lr, self.n_iter_no_change = max_epochs, batch_size, lr, n_iter_no_change
         self.validation_fraction, self.random_state, self.device = validation_fraction, random_state, device
+        self.precision = precision
 
     def _network(self, n_features: int) -> nn.Module:
         return _ConvNet(tuple(self.trajectory_shape), self.cond_dim, self.channels, self.pooled)

@@ -30,7 +30,7 @@ class JointEvaluator:
     Args:
         trajectory_shape: (T, *obs) of one trajectory (tells the conv C2ST classifier where
             the trajectory starts in a joint sample row).
-        c2st_folds, c2st_classifier: C2ST settings (see :func:`otgb.metrics.c2st.c2st`).
+        c2st_folds, c2st_classifier, c2st_precision: C2ST settings (see :func:`otgb.metrics.c2st.c2st`).
         mmdagg_permutations: B1 = B2 of the MMDAgg test.
         seed: seed of the C2ST folds/classifier and of the MMDAgg permutations.
         device: where the accumulated states and the computations live.
@@ -47,6 +47,7 @@ class JointEvaluator:
         trajectory_shape: tuple[int, ...],
         c2st_folds: int = 5,
         c2st_classifier: Any = "auto",
+        c2st_precision: str = "auto",
         mmdagg_permutations: int = 500,
         seed: int = 0,
         device: torch.device | str = "cpu",
@@ -58,7 +59,14 @@ class JointEvaluator:
             {
                 "mmd": MMD(**kw),
                 "mmdagg": MMDAgg(n_permutations=mmdagg_permutations, n_level=mmdagg_permutations, seed=seed, paired=True, **kw),
-                "c2st": C2ST(folds=c2st_folds, seed=seed, classifier=c2st_classifier, trajectory_shape=trajectory_shape, **kw),
+                "c2st": C2ST(
+                    folds=c2st_folds,
+                    seed=seed,
+                    classifier=c2st_classifier,
+                    trajectory_shape=trajectory_shape,
+                    precision=c2st_precision,
+                    **kw,
+                ),
             },
             compute_groups=True,
         ).to(device)
