@@ -161,6 +161,15 @@ def test_torch_mlp_judges_like_scikit_learns(generator):
         assert bayes - 6 * se <= ours <= bayes + 3 * se and abs(ours - reference) <= 4 * se, precision
 
 
+def test_torch_mlp_reports_its_training_like_scikit_learn(generator):
+    features = torch.randn(1000, 3, generator=generator)
+    labels = (features[:, 0] > 0).long()
+    classifier = TorchMLP(n_iter_no_change=3).fit(features.numpy(), labels.numpy())
+    assert classifier.n_iter_ == len(classifier.validation_scores_) >= 4
+    assert classifier.best_validation_score_ == max(classifier.validation_scores_) > 0.7
+    assert classifier.score(features.numpy(), labels.numpy()) > 0.8
+
+
 def test_auto_precision_uses_bfloat16_only_where_it_is_native(generator, monkeypatch):
     classifier = TorchMLP(precision="auto")
     for native in (False, True):
