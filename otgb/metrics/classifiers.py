@@ -1,7 +1,7 @@
 """Torch classifiers with scikit-learn's estimator API for the C2ST (``cross_val_score`` clones and fits them).
 
 - :class:`MLPClassifier`: a fully connected ReLU net trained the way scikit-learn's
-  ``MLPClassifier(early_stopping=True)`` trains it (the MLP option of sbi's ``c2st``), for
+  ``MLPClassifier(early_stopping=True)`` trains it (sbi's ``c2st`` MLP, with early stopping), for
   low-dimensional joint samples such as the pendulum's. A 5-fold C2ST of the pendulum's
   joint samples (3000 + 3000 rows, 53 features) takes 20-29 s on a 2-core CPU in float32
   against about 36 s with scikit-learn's float32 MLP, 10-14 s in bfloat16 mixed precision, and
