@@ -59,8 +59,6 @@ class _TorchClassifier(ClassifierMixin, BaseEstimator):
 
     def _autocast(self, device: torch.device) -> torch.autocast:
         """The autocast context of ``precision`` on ``device`` (disabled for "32-true")."""
-        if self.precision not in PRECISIONS:
-            raise ValueError(f"{type(self).__name__}: precision={self.precision!r}, expected one of {PRECISIONS}")
         enabled = self.precision == "bf16-mixed" or (self.precision == "auto" and native_bf16(device))
         return torch.autocast(device.type, dtype=torch.bfloat16, enabled=enabled)
 
@@ -75,6 +73,8 @@ class _TorchClassifier(ClassifierMixin, BaseEstimator):
             raise ValueError(f"{type(self).__name__}: expected labels 0 and 1, got {self.classes_.tolist()}")
         if not np.isfinite(features).all():
             raise ValueError(f"{type(self).__name__}: the features contain NaN/Inf")
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"{type(self).__name__}: precision={self.precision!r}, expected one of {PRECISIONS}")
         with torch.inference_mode(False), torch.enable_grad():
             self.net_ = self._train(features, labels).eval()
         return self
