@@ -1,0 +1,11 @@
+"""The error raised for bad input a user gave: a config value, a measured-data file, a shape.
+
+The ``otgb`` command prints an :class:`InputError` as one line (``otgb: error: <message>``)
+and exits with status 2, instead of a traceback: its message already names what was wrong,
+where, and what was expected. Anything else (a bug, a diverging solve) keeps its traceback.
+It subclasses ValueError, so code that catches ValueError keeps working.
+"""
+
+
+class InputError(ValueError):
+    """Bad user input; the message names what, where, and what was expected."""
