@@ -5,7 +5,7 @@
 
 The data module's f_p is handed to the model at instantiation, and the model's T_max sets
 how many source batches each training item holds. The joint evaluation callback
-(:class:`otgb.callbacks.JointEvaluation`) is always present; its settings are the config's
+(:class:`otgb.callbacks.Evaluation`) is always present; its settings are the config's
 ``evaluation:`` section (e.g. ``--evaluation.reference_repeats 10``). ``otgb test`` writes
 ``metrics.json`` and ``metrics.md`` into its run directory.
 """
@@ -16,7 +16,7 @@ from pathlib import Path
 
 from lightning.pytorch.cli import LightningCLI
 
-from otgb.callbacks import JointEvaluation
+from otgb.callbacks import Evaluation
 from otgb.data import SimulationDataModule
 from otgb.training import KernelWeakOT
 
@@ -25,7 +25,7 @@ class OTGBCLI(LightningCLI):
     def add_arguments_to_parser(self, parser) -> None:
         parser.link_arguments("model.t_max", "data.batches_per_step")
         parser.link_arguments("data.physics", "model.physics", apply_on="instantiate")
-        parser.add_lightning_class_args(JointEvaluation, "evaluation")
+        parser.add_lightning_class_args(Evaluation, "evaluation")
 
     def before_instantiate_classes(self) -> None:
         config = self.config[self.subcommand] if self.subcommand else self.config

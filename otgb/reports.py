@@ -1,7 +1,10 @@
 """Test reports: ``metrics.json`` and a Markdown table per run, and tables across runs.
 
-``metrics.json`` holds the run's facts and, for each source ("model", "fp" for f_p alone,
-"reference"), every metric as ``{"mean": float, "std": float | null}``:
+``metrics.json`` holds the run's facts (``run``, including the evaluation ``mode``: "joint"
+against a known DGP, or "marginal" against held-out measurements) and, for each source
+("model", "fp" for f_p alone, "reference"), every metric as ``{"mean": float, "std": float | null}``
+(``joint_<name>``: the metrics on rows (recorded inputs, y) of a measured file that recorded
+the inputs):
 
 - ABS ERR / N-RMSE: mean and std over the test inputs (model, f_p); over the random
   splits for the Reference;
@@ -9,6 +12,9 @@
   f_p; mean and std over splits for the Reference (``mmdagg_reject`` there is the rejection
   rate over splits, which should be near alpha);
 - C2ST: mean and std over the cross-validation folds (model, f_p); over splits (Reference).
+
+``per_time`` holds the energy distance per time step and observed component for each source,
+(T, C) lists, with the ``times`` and ``components`` they belong to.
 """
 
 from __future__ import annotations
@@ -20,11 +26,17 @@ from typing import Any
 
 SOURCES = {"model": "", "fp": "fp_", "reference": "ref_"}
 HEADERS = {"model": "model", "fp": "f_p alone", "reference": "Reference"}
+GROUPS = {"": "", "joint_": "joint with recorded inputs: "}  # metric-name prefix -> row label prefix
+REFERENCE_NOTE = {
+    "joint": "random splits of two independent DGP draw sets on the same inputs",
+    "marginal": "random splits of the held-out measurements into two halves",
+}
 LABELS = {
     "abs_err": "ABS ERR",
     "nrmse": "N-RMSE",
     "mmd": "MMD (paper-code, 6 kernels)",
     "mmd2_median": "MMD^2_u (median bandwidth)",
+    "energy": "Energy distance (standardised rows)",
     "mmdagg_reject": "MMDAgg rejects H0 (alpha 0.05)",
     "mmdagg_pvalue": "MMDAgg adjusted p-value",
     "mmdagg_mmd2": "MMDAgg MMD^2_u (selected bandwidth)",
@@ -33,15 +45,24 @@ LABELS = {
 
 
 def split_sources(results: dict[str, float]) -> dict[str, dict[str, dict[str, float | None]]]:
-    """Flat logged results (``fp_abs_err``, ``ref_c2st_std``, ...) -> {source: {metric: {mean, std}}}."""
+    """Flat logged results (``fp_abs_err``, ``ref_c2st_std``, ``joint_mmd``, ...) -> {source: {metric: {mean, std}}}."""
     out: dict[str, dict[str, dict[str, float | None]]] = {source: {} for source in SOURCES}
     for source, prefix in SOURCES.items():
-        for name in LABELS:
+        for name in metric_names():
             key = prefix + name
             if key in results:
                 std = results.get(f"{key}_std")
                 out[source][name] = {"mean": float(results[key]), "std": None if std is None else float(std)}
     return out
+
+
+def metric_names() -> list[str]:
+    return [group + name for group in GROUPS for name in LABELS]
+
+
+def label(name: str) -> str:
+    group = next(g for g in sorted(GROUPS, key=len, reverse=True) if name.startswith(g))
+    return GROUPS[group] + LABELS[name.removeprefix(group)]
 
 
 def format_value(mean: float, std: float | None) -> str:
@@ -51,30 +72,64 @@ def format_value(mean: float, std: float | None) -> str:
 
 
 def markdown_table(by_source: dict[str, dict[str, dict[str, float | None]]]) -> str:
-    names = [name for name in LABELS if any(name in by_source[s] for s in SOURCES)]
+    names = [name for name in metric_names() if any(name in by_source[s] for s in SOURCES)]
     lines = ["| metric | " + " | ".join(HEADERS[s] for s in SOURCES) + " |", "|---" * (len(SOURCES) + 1) + "|"]
     for name in names:
         cells = [format_value(**by_source[s][name]) if name in by_source[s] else "" for s in SOURCES]
-        lines.append(f"| {LABELS[name]} | " + " | ".join(cells) + " |")
+        lines.append(f"| {label(name)} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
-def write_report(run_dir: Path, run: dict[str, Any], results: dict[str, Any]) -> dict[str, Any]:
-    """Write ``metrics.json`` and ``metrics.md`` into ``run_dir``; return the JSON content."""
+def per_time_section(per_time: dict[str, Any], times: list[float], components: list[str]) -> str:
+    """Where in time each source differs most from the measured data (energy distance per step)."""
+    lines = ["| component | " + " | ".join(f"{HEADERS[s]}: max at t (value)" for s in SOURCES if s in per_time) + " |"]
+    lines.append("|---" * (1 + sum(s in per_time for s in SOURCES)) + "|")
+    for c, component in enumerate(components):
+        cells = []
+        for source in (s for s in SOURCES if s in per_time):
+            column = [row[c] for row in per_time[source]]
+            step = max(range(len(column)), key=column.__getitem__)
+            cells.append(f"t = {times[step]:.3g} ({column[step]:.3g})")
+        lines.append(f"| {component} | " + " | ".join(cells) + " |")
+    return "\nEnergy distance per time step (in the observation's units; all steps in metrics.json `per_time`):\n\n" + (
+        "\n".join(lines) + "\n"
+    )
+
+
+def write_report(
+    run_dir: Path,
+    run: dict[str, Any],
+    results: dict[str, Any],
+    per_time: dict[str, Any] | None = None,
+    labels: dict[str, list] | None = None,
+) -> dict[str, Any]:
+    """Write ``metrics.json`` and ``metrics.md`` into ``run_dir``; return the JSON content.
+
+    ``per_time``: vector results such as ``energy_per_time`` / ``fp_energy_per_time`` (T, C);
+    ``labels``: their ``times`` and ``components``.
+    """
     results = {k: float(v) for k, v in results.items()}
     by_source = split_sources(results)
     seconds = {source: results.get(f"{prefix}eval_seconds") for source, prefix in SOURCES.items()}
-    content = {"run": run, **by_source, "seconds": seconds}
+    content: dict[str, Any] = {"run": run, **by_source, "seconds": seconds}
+    vectors = {
+        s: per_time[f"{p}energy_per_time"].tolist() for s, p in SOURCES.items() if f"{p}energy_per_time" in (per_time or {})
+    }
+    if vectors:
+        content["per_time"] = {"statistic": "energy distance", **(labels or {}), **vectors}
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "metrics.json").write_text(json.dumps(content, indent=2) + "\n")
+    mode = run.get("mode", "joint")
     header = (
         f"# Test metrics: {run.get('name')}\n\n"
+        f"Evaluation mode **{mode}**: {run.get('description', '')}\n\n"
         f"checkpoint `{run.get('ckpt_path')}` (step {run.get('global_step')}), {run.get('n_inputs')} test inputs x "
         f"{run.get('draws_per_input')} draws\n\n"
     )
     note = (
         "\nmean ± std: over test inputs (ABS ERR, N-RMSE) or C2ST folds for model and f_p; over "
-        "random splits of two independent DGP draw sets for the Reference.\n"
+        f"{REFERENCE_NOTE[mode]} for the Reference.\n"
     )
-    (run_dir / "metrics.md").write_text(header + markdown_table(by_source) + note)
+    section = per_time_section(vectors, labels["times"], labels["components"]) if vectors and labels else ""
+    (run_dir / "metrics.md").write_text(header + markdown_table(by_source) + note + section)
     return content

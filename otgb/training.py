@@ -246,7 +246,7 @@ class KernelWeakOT(LightningModule):
         return {"y_hat": self.generate(batch["x"], batch["x0"], batch["theta"], batch["y"].shape[1])}
 
     def on_validation_epoch_end(self) -> None:
-        """Log training progress next to the metrics (those come from :class:`otgb.callbacks.JointEvaluation`)."""
+        """Log training progress next to the metrics (those come from :class:`otgb.callbacks.Evaluation`)."""
         if self._fit_clock is not None and not self.trainer.sanity_checking:
             elapsed = self.elapsed_before + time.perf_counter() - self._fit_clock
             self.log("val/wall_time_s", elapsed)

@@ -1,6 +1,6 @@
 """Lightning callbacks: the joint evaluation and figures."""
 
-from otgb.callbacks.evaluation import JointEvaluation
+from otgb.callbacks.evaluation import Evaluation
 from otgb.callbacks.figures import FieldFigure, TrajectoryFigure
 
-__all__ = ["FieldFigure", "JointEvaluation", "TrajectoryFigure"]
+__all__ = ["Evaluation", "FieldFigure", "TrajectoryFigure"]

@@ -1,4 +1,4 @@
-"""The joint evaluation as a Lightning callback: metrics at validation and test, baselines, reports."""
+"""The evaluation as a Lightning callback: metrics at validation and test, baselines, reports."""
 
 from __future__ import annotations
 
@@ -10,36 +10,51 @@ import torch
 from lightning import Callback, LightningModule, Trainer
 from torch import Tensor
 
+from otgb.errors import InputError
 from otgb.metrics.c2st import CLASSIFIERS
 from otgb.metrics.classifiers import PRECISIONS
-from otgb.metrics.joint import JointEvaluator, reference_scores
+from otgb.metrics.joint import JointEvaluator, reference_scores, split_half_scores
 from otgb.metrics.mmdagg import PAPER_EXPONENTS, check_options
 from otgb.reports import write_report
 
+EVERY_VALIDATION = ("mmd", "mmd2_median", "energy")
+POINTWISE = ("abs_err", "nrmse")
+TESTS = ("mmdagg_reject", "mmdagg_pvalue", "mmdagg_mmd2", "c2st")
 
-class JointEvaluation(Callback):
-    """Scores the map's draws on the joint validation/test sets (:mod:`otgb.metrics.joint`).
 
-    - Every validation: ABS ERR and N-RMSE (one-to-one sets) and MMD, as ``val/<name>``.
+class Evaluation(Callback):
+    """Scores the map's draws on the validation/test sets, in the data module's mode.
+
+    Joint mode (a known DGP, :class:`otgb.data.SimulationDataModule`): rows (theta, x0, y) of
+    the map's draws against the DGP's draws for the same inputs (:mod:`otgb.metrics.joint`).
+    Marginal mode (measurements from a file): the map's draws for inputs from the priors against
+    the held-out measurements, trajectories alone; when the file recorded inputs (theta and/or
+    x0), the map is run on exactly those and the same metrics on rows (recorded inputs, y) are
+    added as ``joint_<name>`` (with ABS ERR and N-RMSE when both theta and x0 are recorded).
+
+    - Every validation: MMD, the energy distance and, where pairs exist, ABS ERR and N-RMSE,
+      as ``val/<name>``.
     - Every ``tests_every``-th validation and always at test: also the MMDAgg test and C2ST.
-    - Once per run and stage (the first validation, and the test): the same metrics for
-      f_p alone (``<stage>/fp_<name>``: the uncorrected simulation as the prediction) and the
-      Reference (``<stage>/ref_<name>`` and ``ref_<name>_std``: DGP draws against independent
-      DGP draws on the same inputs, over ``reference_repeats`` random splits).
-    - At test, ``metrics.json`` and ``metrics.md`` (model, f_p alone, Reference) are written
-      to the run's log directory (see :func:`otgb.reports.write_report`).
+    - Once per run and stage (the first validation, and the test): the same metrics for f_p
+      alone (``<stage>/fp_<name>``: f_p simulations of the same inputs as the map's) and the
+      Reference (``<stage>/ref_<name>`` and ``ref_<name>_std`` over ``reference_repeats``
+      random splits: DGP draws against independent DGP draws on the same inputs when joint,
+      one half of the held-out measurements against the other when marginal).
+    - At test, ``metrics.json`` and ``metrics.md`` (model, f_p alone, Reference, and the mode)
+      are written to the run's log directory (see :func:`otgb.reports.write_report`), with
+      the energy distance per time step and observed component.
 
     The model's validation/test steps return ``{"y_hat": (B, M, T, *obs)}``; the metrics
     accumulate over batches and sync across processes.
 
     Args:
-        tests_every: run MMDAgg and C2ST at every n-th validation (0: only at test).
-        c2st_folds, c2st_classifier: C2ST settings ("auto", "mlp" or "conv").
-        c2st_precision: the C2ST classifier's arithmetic: "auto" (bfloat16 mixed precision where
-            the hardware multiplies bfloat16 natively, else float32), "32-true" or "bf16-mixed".
-        mmdagg_permutations: permutations for each of MMDAgg's two stages.
-        reference_repeats: random splits for the Reference.
-        seed: seed of the evaluation's own randomness (folds, permutations, splits).
+        tests_every: Run MMDAgg and C2ST at every n-th validation (0: only at test).
+        c2st_folds: Cross-validation folds of the C2ST.
+        c2st_classifier: C2ST classifier: "auto" (an MLP up to 200 features, else a conv net), "mlp" or "conv".
+        c2st_precision: C2ST arithmetic: "auto" (bfloat16 where the hardware multiplies it natively), "32-true" or "bf16-mixed".
+        mmdagg_permutations: Permutations for each of MMDAgg's two stages.
+        reference_repeats: Random splits averaged for the Reference.
+        seed: Seed of the evaluation's own randomness (folds, permutations, splits).
     """
 
     def __init__(
@@ -53,16 +68,19 @@ class JointEvaluation(Callback):
         seed: int = 0,
     ) -> None:
         if tests_every < 0 or reference_repeats < 1 or c2st_folds < 2:
-            raise ValueError(
+            raise InputError(
                 "evaluation: need tests_every >= 0, reference_repeats >= 1, c2st_folds >= 2; got "
                 f"tests_every={tests_every}, reference_repeats={reference_repeats}, c2st_folds={c2st_folds}"
             )
         if c2st_classifier not in CLASSIFIERS or c2st_precision not in PRECISIONS:
-            raise ValueError(
+            raise InputError(
                 f"evaluation: c2st_classifier={c2st_classifier!r}, c2st_precision={c2st_precision!r}; "
                 f"expected one of {CLASSIFIERS} and one of {PRECISIONS}"
             )
-        check_options(0.05, PAPER_EXPONENTS, mmdagg_permutations, mmdagg_permutations)
+        try:
+            check_options(0.05, PAPER_EXPONENTS, mmdagg_permutations, mmdagg_permutations)
+        except ValueError as error:
+            raise InputError(f"evaluation.mmdagg_permutations: {error}") from None
         self.tests_every, self.reference_repeats, self.seed = tests_every, reference_repeats, seed
         self.options = dict(
             c2st_folds=c2st_folds,
@@ -71,28 +89,61 @@ class JointEvaluation(Callback):
             mmdagg_permutations=mmdagg_permutations,
             seed=seed,
         )
-        self.evaluator: JointEvaluator | None = None
-        self.baseline_evaluator: JointEvaluator | None = None
+        self.plan: dict[str, tuple[tuple[str, ...], bool]] = {}
+        self.evaluators: dict[str, JointEvaluator] = {}
         self.validations = 0
         self.baselines_logged = False
 
-    def setup(self, trainer: Trainer, pl_module: LightningModule, stage: str) -> None:
-        self._check_monitors(trainer)
-        shape = tuple(pl_module.physics.trajectory_shape)
-        self.evaluator = JointEvaluator(shape, device=pl_module.device, **self.options)
-        # f_p and the Reference are scored on the whole set on every rank: no cross-process sync
-        self.baseline_evaluator = JointEvaluator(shape, device=pl_module.device, sync=False, **self.options)
+    # --- what is compared -------------------------------------------------------------------
+    @staticmethod
+    def evaluation_plan(mode: str, recorded_inputs: tuple[str, ...]) -> dict[str, tuple[tuple[str, ...], bool]]:
+        """Metric-name prefix -> (conditioning inputs, paired) for a data module's mode."""
+        if mode == "joint":
+            return {"": (("theta", "x0"), True)}
+        plan = {"": ((), False)}
+        if recorded_inputs:
+            plan["joint_"] = (tuple(recorded_inputs), True)
+        return plan
 
-    def _check_monitors(self, trainer: Trainer) -> None:
-        """A checkpoint monitoring a test metric needs that metric at every validation."""
+    def validation_metrics(self, datamodule: Any) -> list[str]:
+        """The ``val/<name>`` scalars every validation logs for this data module (tests included if every time)."""
+        names = list(EVERY_VALIDATION) + (list(TESTS) if self.tests_every == 1 else [])
+        metrics = []
+        for prefix, (inputs, paired) in self.evaluation_plan(datamodule.mode, datamodule.recorded_inputs).items():
+            pointwise = paired and set(inputs) == {"theta", "x0"} and datamodule.draws_per_input == 1
+            metrics += [f"val/{prefix}{name}" for name in (list(POINTWISE) if pointwise else []) + names]
+        return metrics
+
+    def setup(self, trainer: Trainer, pl_module: LightningModule, stage: str) -> None:
+        datamodule = trainer.datamodule
+        self._check_monitors(trainer, datamodule)
+        shape = tuple(pl_module.physics.trajectory_shape)
+        self.plan = self.evaluation_plan(datamodule.mode, datamodule.recorded_inputs)
+        make = lambda inputs, paired, sync: JointEvaluator(  # noqa: E731
+            shape, inputs=inputs, paired=paired, device=pl_module.device, sync=sync, **self.options
+        )
+        self.evaluators = {prefix: make(inputs, paired, True) for prefix, (inputs, paired) in self.plan.items()}
+        # f_p and the Reference are scored on the whole set on every rank: no cross-process sync
+        self.baselines = {prefix: make(inputs, paired, False) for prefix, (inputs, paired) in self.plan.items()}
+        self.references = {prefix: make(inputs, False, False) for prefix, (inputs, _) in self.plan.items()}
+
+    def _check_monitors(self, trainer: Trainer, datamodule: Any) -> None:
+        """A checkpoint must monitor a metric that every validation of this mode logs."""
+        available = self.validation_metrics(datamodule)
         for checkpoint in trainer.checkpoint_callbacks:
-            monitor = getattr(checkpoint, "monitor", None) or ""
-            if monitor.startswith(("val/c2st", "val/mmdagg")) and self.tests_every != 1:
-                raise ValueError(
+            monitor = getattr(checkpoint, "monitor", None)
+            if monitor is None or monitor in available:
+                continue
+            if monitor.removeprefix("val/").removeprefix("joint_") in TESTS and self.tests_every != 1:
+                raise InputError(
                     f"ModelCheckpoint(monitor={monitor!r}) needs that metric at every validation, but "
                     f"evaluation.tests_every={self.tests_every} computes it only every {self.tests_every} validations "
                     "(0: only at test): set evaluation.tests_every=1 or monitor val/mmd"
                 )
+            raise InputError(
+                f"ModelCheckpoint(monitor={monitor!r}): the {datamodule.mode} evaluation does not log it; "
+                f"choose one of {available}"
+            )
 
     # --- accumulate -----------------------------------------------------------------------
     def on_validation_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0) -> None:
@@ -104,59 +155,88 @@ class JointEvaluation(Callback):
 
     def _update(self, outputs: Any, batch: dict[str, Tensor], pl_module: LightningModule) -> None:
         if not isinstance(outputs, dict) or "y_hat" not in outputs:
-            raise TypeError("JointEvaluation: the model's validation/test step must return {'y_hat': (B, M, T, *obs)}")
-        if self.evaluator.device != pl_module.device:  # the module moved to its device after setup
+            raise TypeError("Evaluation: the model's validation/test step must return {'y_hat': (B, M, T, *obs)}")
+        if next(iter(self.evaluators.values())).device != pl_module.device:  # the module moved after setup
             self.setup(pl_module.trainer, pl_module, "")
-        self.evaluator.update(outputs["y_hat"], batch["y"], batch["theta"], batch["x0"])
+        for evaluator in self.evaluators.values():
+            evaluator.update(outputs["y_hat"], batch)
 
     # --- compute and log ------------------------------------------------------------------
     def on_validation_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
-        if trainer.sanity_checking or self.evaluator.one_to_one is None:
+        if trainer.sanity_checking or next(iter(self.evaluators.values())).one_to_one is None:
             return
         self.validations += 1
         tests = self.tests_every > 0 and self.validations % self.tests_every == 0
         results = self._model_results(tests)
         if not self.baselines_logged:
-            results.update(self._baselines(trainer.datamodule.val_set))
+            results.update(self._baselines(trainer.datamodule.val_set, trainer.datamodule.mode))
             self.baselines_logged = True
         self._log(pl_module, "val", results)
 
     def on_test_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        datamodule = trainer.datamodule
         results = self._model_results(tests=True)
-        results.update(self._baselines(trainer.datamodule.test_set))
-        self._log(pl_module, "test", results)
+        results.update(self._baselines(datamodule.test_set, datamodule.mode))
+        scalars = self._log(pl_module, "test", results)
         if trainer.is_global_zero and trainer.log_dir is not None:
-            data = trainer.datamodule.test_set
+            data = datamodule.test_set
             run = {
                 "log_dir": str(trainer.log_dir),
                 "name": Path(trainer.log_dir).parent.name,
                 "ckpt_path": str(trainer.ckpt_path) if trainer.ckpt_path else None,
                 "global_step": trainer.global_step if pl_module.restored_step is None else pl_module.restored_step,
                 "seed": torch.initial_seed(),
+                **self.mode_facts(datamodule),
                 "n_inputs": len(data["y"]),
                 "draws_per_input": data["y"].shape[1],
             }
-            write_report(Path(trainer.log_dir), run, results)
+            per_time = {name: value for name, value in results.items() if value.dim() > 0}
+            write_report(Path(trainer.log_dir), run, scalars, per_time, self._labels(pl_module))
 
-    def _model_results(self, tests: bool) -> dict[str, Any]:
+    @staticmethod
+    def mode_facts(datamodule: Any) -> dict[str, Any]:
+        """What produced the numbers: the mode, and the measured file and its split when marginal."""
+        facts: dict[str, Any] = {"mode": datamodule.mode, "description": datamodule.describe().removeprefix("otgb: ")}
+        if datamodule.mode == "marginal":
+            facts["measured_path"] = datamodule.measured_path
+            facts["split"] = {part: len(index) for part, index in datamodule.parts.items()}
+            facts["recorded_inputs"] = list(datamodule.recorded_inputs)
+        return facts
+
+    @staticmethod
+    def _labels(pl_module: LightningModule) -> dict[str, list]:
+        physics = pl_module.physics
+        return {"times": physics.times()[-physics.n_obs :].tolist(), "components": list(physics.observed)}
+
+    def _model_results(self, tests: bool) -> dict[str, Tensor]:
         start = time.perf_counter()
-        results = self.evaluator.compute(tests)
-        self.evaluator.reset()
+        results = {}
+        for prefix, evaluator in self.evaluators.items():
+            results.update({prefix + k: v for k, v in evaluator.compute(tests).items()})
+            evaluator.reset()
         results["eval_seconds"] = torch.tensor(time.perf_counter() - start)
         return results
 
-    def _baselines(self, data: dict[str, Tensor]) -> dict[str, Tensor]:
-        """f_p alone and the Reference on a whole joint set, all metrics: ``fp_<name>``, ``ref_<name>``."""
+    def _baselines(self, data: dict[str, Tensor], mode: str) -> dict[str, Tensor]:
+        """f_p alone and the Reference on a whole set, all metrics: ``fp_<name>``, ``ref_<name>``."""
         results = {}
         start = time.perf_counter()
         fp_draws = data["x"].unsqueeze(1).expand_as(data["y"])
-        results.update({f"fp_{k}": v for k, v in self.baseline_evaluator.evaluate(fp_draws, data, tests=True).items()})
+        for prefix, evaluator in self.baselines.items():
+            results.update({f"fp_{prefix}{k}": v for k, v in evaluator.evaluate(fp_draws, data, tests=True).items()})
         results["fp_eval_seconds"] = torch.tensor(time.perf_counter() - start)
         start = time.perf_counter()
-        reference = reference_scores(self.baseline_evaluator, data, True, self.reference_repeats, self.seed)
-        results.update({f"ref_{k}": v for k, v in reference.items()})
+        for prefix in self.plan:
+            if mode == "joint":
+                reference = reference_scores(self.baselines[prefix], data, True, self.reference_repeats, self.seed)
+            else:
+                reference = split_half_scores(self.references[prefix], data, True, self.reference_repeats, self.seed)
+            results.update({f"ref_{prefix}{k}": v for k, v in reference.items()})
         results["ref_eval_seconds"] = torch.tensor(time.perf_counter() - start)
         return results
 
-    def _log(self, pl_module: LightningModule, stage: str, results: dict[str, Tensor]) -> None:
-        pl_module.log_dict({f"{stage}/{k}": v.float() for k, v in results.items()})
+    def _log(self, pl_module: LightningModule, stage: str, results: dict[str, Tensor]) -> dict[str, Tensor]:
+        """Log the scalar results as ``<stage>/<name>`` and return them (vectors stay out of the loggers)."""
+        scalars = {k: v.float() for k, v in results.items() if v.dim() == 0}
+        pl_module.log_dict({f"{stage}/{k}": v for k, v in scalars.items()})
+        return scalars

@@ -1,8 +1,14 @@
-"""Figures logged at each validation: generated vs measured vs f_p for fixed validation inputs.
+"""Figures logged at each validation: generated vs measured vs f_p.
+
+Joint mode (a known DGP), for fixed validation inputs:
 
 - :class:`TrajectoryFigure`: curves over time of one observed component (ODE systems).
 - :class:`FieldFigure`: fields over space (PDE systems): the space-time image of a 1-D field,
   or a 2-D field at a few frames.
+
+Marginal mode (measurements from a file), both callbacks draw :func:`distribution_figure`
+instead: nothing is paired, so the sources are compared as distributions over time (quantile
+bands and a few sample paths), saved as ``distributions_step<N>.png``.
 """
 
 from __future__ import annotations
@@ -39,22 +45,89 @@ class ValidationFigure(Callback):
     def on_validation_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
         if trainer.sanity_checking or not trainer.is_global_zero:
             return
-        data = {k: v[: self.n_inputs].to(pl_module.device) for k, v in trainer.datamodule.val_set.items()}
-        y_hat = pl_module.generate(data["x"], data["x0"], data["theta"], data["y"].shape[1]).cpu()
-        data = {k: v.cpu() for k, v in data.items()}
-        figure = self.draw(data, y_hat, trainer.datamodule.physics)
+        datamodule = trainer.datamodule
+        if datamodule.mode == "marginal":
+            tag, figure = "distributions", self._distributions(datamodule, pl_module)
+        else:
+            data = {k: v[: self.n_inputs].to(pl_module.device) for k, v in datamodule.val_set.items()}
+            y_hat = pl_module.generate(data["x"], data["x0"], data["theta"], data["y"].shape[1]).cpu()
+            data = {k: v.cpu() for k, v in data.items()}
+            tag, figure = self.tag, self.draw(data, y_hat, datamodule.physics)
         for logger in trainer.loggers:
             if isinstance(logger, TensorBoardLogger):
-                logger.experiment.add_figure(f"val/{self.tag}", figure, global_step=trainer.global_step, close=False)
+                logger.experiment.add_figure(f"val/{tag}", figure, global_step=trainer.global_step, close=False)
         if trainer.log_dir is not None:
             out = Path(trainer.log_dir) / "figures"
             out.mkdir(parents=True, exist_ok=True)
-            figure.savefig(out / f"{self.tag}_step{trainer.global_step:07d}.png", dpi=80)
+            figure.savefig(out / f"{tag}_step{trainer.global_step:07d}.png", dpi=80)
         plt.close(figure)
+
+    def _distributions(self, datamodule, pl_module: LightningModule) -> plt.Figure:
+        """Measured vs generated vs f_p as distributions over time, for the whole validation set (nothing is paired)."""
+        data, chunk = datamodule.val_set, datamodule.eval_batch_size
+        y_hat = torch.cat(
+            [
+                pl_module.generate(*(data[k][i : i + chunk].to(pl_module.device) for k in ("x", "x0", "theta")), 1).cpu()
+                for i in range(0, len(data["x"]), chunk)
+            ]
+        )
+        physics = datamodule.physics
+        samples = {"measured": data["y"][:, 0], "generated": y_hat[:, 0], "f_p": data["x"]}
+        return distribution_figure(samples, physics.times()[-physics.n_obs :], list(physics.observed))
 
     def draw(self, data: dict[str, torch.Tensor], y_hat: torch.Tensor, physics: PhysicsModel) -> plt.Figure:
         """data: the joint set's rows (x (N, T, *obs), y (N, M, T, *obs), theta, x0); y_hat (N, M, T, *obs)."""
         raise NotImplementedError
+
+
+BAND_STYLE = {"measured": ("black", "-"), "generated": ("tab:green", "-"), "f_p": ("tab:orange", "--")}
+
+
+def probe_series(trajectories: torch.Tensor, names: Sequence[str]) -> tuple[torch.Tensor, list[str]]:
+    """(N, T, C, *space) or (N, T, C) -> (N, T, K) series and their labels.
+
+    ODE observations give one series per component; fields one per channel at up to three
+    cells along the grid's diagonal (a quarter, half and three quarters of the way).
+    """
+    channels, space = trajectories.shape[2], trajectories.shape[3:]
+    if not space:
+        return trajectories, list(names)
+    fractions = (0.25, 0.5, 0.75)
+    cells = sorted({tuple(min(int(f * size), size - 1) for size in space) for f in fractions})
+    series = torch.stack([trajectories[(slice(None), slice(None), c, *cell)] for c in range(channels) for cell in cells], dim=-1)
+    labels = [f"{names[c]} at cell {cell}" for c in range(channels) for cell in cells]
+    return series, labels
+
+
+def distribution_figure(samples: dict[str, torch.Tensor], times: torch.Tensor, names: Sequence[str]) -> plt.Figure:
+    """Median, 25-75 % and 5-95 % bands over time of each source, and three sample paths each.
+
+    ``samples``: source name -> trajectories (N, T, *obs) (the sources may differ in N).
+    """
+    series = {name: probe_series(values.float(), names) for name, values in samples.items()}
+    labels = next(iter(series.values()))[1]
+    cols = min(len(labels), 3)
+    rows = -(-len(labels) // cols)
+    figure, axes = plt.subplots(rows, cols, figsize=(4.5 * cols, 2.8 * rows), squeeze=False)
+    t = times.numpy()
+    for k, ax in enumerate(axes.flat):
+        if k >= len(labels):
+            ax.axis("off")
+            continue
+        for source, (values, _) in series.items():
+            colour, style = BAND_STYLE.get(source, ("tab:blue", "-"))
+            q = torch.quantile(values[..., k], torch.tensor([0.05, 0.25, 0.5, 0.75, 0.95]), dim=0).numpy()
+            ax.fill_between(t, q[0], q[4], color=colour, alpha=0.12, lw=0)
+            ax.fill_between(t, q[1], q[3], color=colour, alpha=0.25, lw=0)
+            ax.plot(t, q[2], color=colour, ls=style, lw=1.5, label=f"{source} (n={len(values)})")
+            for path in values[:3, :, k]:
+                ax.plot(t, path.numpy(), color=colour, ls=style, lw=0.5, alpha=0.6)
+        ax.set_title(labels[k], fontsize=8)
+        ax.set_xlabel("t", fontsize=7)
+    axes.flat[0].legend(fontsize=7)
+    figure.suptitle("median, 25-75 % and 5-95 % bands, 3 sample paths each (unpaired)", fontsize=8)
+    figure.tight_layout()
+    return figure
 
 
 def _theta_label(physics: PhysicsModel, theta: torch.Tensor) -> str:

@@ -1,4 +1,4 @@
-"""The data module: source stream, fixed measured set, joint validation and test sets."""
+"""The data module: source stream, measured set, and validation/test sets in joint or marginal mode."""
 
 from __future__ import annotations
 
@@ -7,18 +7,22 @@ from typing import Any
 
 import torch
 from lightning import LightningDataModule
+from lightning.pytorch.utilities import rank_zero_info
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
-from otgb.data.measured import cache_key, cached, generate_joint, generate_measured, load_measured
+from otgb.data.files import MeasuredFile, read_measured
+from otgb.data.measured import cache_key, cached, generate_joint, generate_measured, simulate_in_chunks, split_indices
+from otgb.data.seeding import generator_for
 from otgb.data.stream import SourceStream
+from otgb.errors import InputError
 from otgb.physics.base import PhysicsModel, Term
 
 CACHE_FORMAT = 2  # 2: joint sets hold y_ref
 
 
 class JointDataset(Dataset):
-    """Rows of a joint set: dicts of x0, theta, x, y (M draws) and y_ref (M more DGP draws)."""
+    """Rows of an evaluation set: dicts of x0, theta, x, y (M draws) and, when joint, y_ref (M more DGP draws)."""
 
     def __init__(self, tensors: dict[str, Tensor]) -> None:
         self.tensors = tensors
@@ -33,25 +37,41 @@ class JointDataset(Dataset):
 class SimulationDataModule(LightningDataModule):
     """Source simulations of f_p on the fly, next to a fixed set of measured trajectories.
 
-    The DGP is ``physics`` with ``hidden_effect`` added (optionally with a finer solver step,
-    ``measured_step_size``). Training batches are items of :class:`SourceStream`; f_p is
-    simulated on the training device when a batch arrives there, and the simulations are
-    counted against ``simulation_budget`` (over all ranks). Validation and test sets are
-    joint: the same (x0, theta) through f_p and, ``draws_per_input`` times, through the DGP.
+    Training batches are items of :class:`SourceStream`; f_p is simulated on the training
+    device when a batch arrives there, and the simulations are counted against
+    ``simulation_budget`` (over all ranks). The measured data and the evaluation come in one
+    of two modes (:attr:`mode`, named in the log at start-up and in every test report):
+
+    - ``"joint"`` (``hidden_effect`` given, no file): the DGP is known, ``physics`` plus the
+      hidden-effect terms (optionally with a finer solver step, ``measured_step_size``). The
+      measured set is generated from it; validation and test sets are joint: the same
+      (x0, theta) through f_p and, ``draws_per_input`` times, through the DGP.
+    - ``"marginal"`` (``measured_path`` given): the measurements are all there is. The file
+      (:mod:`otgb.data.files`) is split into train / validation / test parts that never
+      overlap; the critic sees only the train part. A validation or test set holds the
+      held-out measurements and, for the map and f_p, as many inputs (x0, theta) drawn from
+      the priors, or the inputs the file recorded for each trajectory.
 
     Args:
-        physics: the incomplete model f_p.
-        hidden_effect: the terms the DGP adds to f_p (hidden from the model).
-        batch_size: source inputs per map update.
-        measured_batch_size: measured trajectories per critic update (default: batch_size).
-        batches_per_step: map updates per critic update (T_max; linked from the model).
-        simulation_budget: total f_p simulations for training.
-        n_measured: |Y| when the measured set is generated from the DGP.
-        measured_path: a user's measured set (.pt/.npz, key "y", shape (N, T, *obs)) instead.
-        n_val, n_test: joint inputs for validation and test. draws_per_input: M.
-        seed: seed of the generated sets. stream_seed: seed of the source stream
-            (default: the run's seed, ``torch.initial_seed()`` after ``seed_everything``).
-        cache_dir: where generated sets are cached.
+        physics: The incomplete model f_p, a :class:`otgb.physics.PhysicsModel`.
+        hidden_effect: Terms the data-generating process adds to f_p, hidden from the model (joint mode).
+        batch_size: Source inputs per map update.
+        measured_batch_size: Measured trajectories per critic update (default: batch_size).
+        batches_per_step: Map updates per critic update (T_max; linked from the model's t_max).
+        simulation_budget: Total f_p simulations for training; training stops when it is spent.
+        n_measured: Size |Y| of the generated measured set (joint mode).
+        measured_path: A file of measured trajectories (.pt, .npz or .csv): selects the marginal mode.
+        measured_step_size: Solver step of the generated measured data (joint mode; default: the model's).
+        val_fraction: Share of the file's trajectories held out for validation (marginal mode).
+        test_fraction: Share of the file's trajectories held out for the test (marginal mode).
+        n_val: Joint validation inputs generated from the DGP (joint mode).
+        n_test: Joint test inputs generated from the DGP (joint mode).
+        draws_per_input: DGP draws M per joint validation/test input (joint mode).
+        eval_batch_size: Inputs per validation/test batch.
+        seed: Seed of the generated sets, the split of a file and the evaluation inputs.
+        stream_seed: Seed of the source stream (default: the run's seed after seed_everything).
+        cache_dir: Folder where generated sets are cached.
+        num_workers: DataLoader workers for the source stream.
     """
 
     def __init__(
@@ -65,6 +85,8 @@ class SimulationDataModule(LightningDataModule):
         n_measured: int = 1000,
         measured_path: str | None = None,
         measured_step_size: float | None = None,
+        val_fraction: float = 0.15,
+        test_fraction: float = 0.15,
         n_val: int = 200,
         n_test: int = 300,
         draws_per_input: int = 1,
@@ -87,14 +109,23 @@ class SimulationDataModule(LightningDataModule):
             ("n_measured", n_measured),
         ]:
             if value < 1:
-                raise ValueError(f"data.{name} must be >= 1, got {value}")
+                raise InputError(f"data.{name} must be >= 1, got {value}")
         if simulation_budget < batch_size * batches_per_step:
-            raise ValueError(
+            raise InputError(
                 f"data.simulation_budget={simulation_budget} is smaller than one training step needs "
                 f"(batch_size * batches_per_step = {batch_size * batches_per_step})"
             )
+        if measured_path is not None and hidden_effect:
+            raise InputError(
+                f"data.measured_path={measured_path!r} and data.hidden_effect are both set: measurements from a file need no "
+                "hidden effect (it only generates synthetic measurements); remove one, e.g. --data.hidden_effect=[]"
+            )
+        if measured_path is None and not hidden_effect:
+            raise InputError(
+                "data: no measured data: set data.measured_path to a file of measurements, or data.hidden_effect to the "
+                "terms that generate synthetic measurements from physics + terms"
+            )
         self.physics = physics
-        self.dgp = physics.with_hidden_effect(hidden_effect, step_size=measured_step_size)
         self.batch_size, self.batches_per_step = batch_size, batches_per_step
         self.measured_batch_size = measured_batch_size
         self.simulation_budget = simulation_budget
@@ -106,15 +137,53 @@ class SimulationDataModule(LightningDataModule):
         self.measured: Tensor | None = None
         self.val_set: dict[str, Tensor] | None = None
         self.test_set: dict[str, Tensor] | None = None
+        if measured_path is None:
+            self.dgp: PhysicsModel | None = physics.with_hidden_effect(hidden_effect, step_size=measured_step_size)
+            self.measured_file: MeasuredFile | None = None
+        else:
+            self.dgp = None
+            self.measured_file = read_measured(measured_path, physics)
+            self.parts = split_indices(len(self.measured_file), val_fraction, test_fraction, seed, measured_path)
+        rank_zero_info(self.describe())
+
+    # --- the mode -------------------------------------------------------------------------
+    @property
+    def mode(self) -> str:
+        """"joint" (a known DGP generates the measured data) or "marginal" (measurements from a file)."""
+        return "joint" if self.measured_file is None else "marginal"
+
+    @property
+    def recorded_inputs(self) -> tuple[str, ...]:
+        """Map inputs recorded with each measured trajectory: a subset of ("theta", "x0"); all of them when joint."""
+        return ("theta", "x0") if self.measured_file is None else self.measured_file.recorded_inputs
+
+    def describe(self) -> str:
+        """One line for the log: which evaluation mode, and what it compares."""
+        if self.measured_file is None:
+            return (
+                f"otgb: evaluation mode 'joint': measured data generated by a known DGP ({type(self.physics).__name__} + "
+                f"{', '.join(type(t).__name__ for t in self.dgp.terms)}); the map is scored against DGP draws for the same inputs"
+            )
+        sizes = " / ".join(f"{len(self.parts[p])} {p}" for p in ("train", "val", "test"))
+        inputs = (
+            f"the inputs the file recorded ({', '.join(self.recorded_inputs)})"
+            if self.recorded_inputs
+            else "inputs drawn from the priors"
+        )
+        return (
+            f"otgb: evaluation mode 'marginal': {len(self.measured_file)} measured trajectories from "
+            f"{self.measured_path} ({sizes}); no DGP is known: the map's draws ({inputs}) are compared with held-out "
+            "measurements by two-sample metrics"
+        )
 
     # --- sets ---------------------------------------------------------------------------
     def setup(self, stage: str) -> None:
         if stage == "fit" and self.measured is None:
             self.measured = self._measured_set()
         if stage in ("fit", "validate") and self.val_set is None:
-            self.val_set = self._joint_set("val", self.n_val)
+            self.val_set = self._evaluation_set("val", self.n_val)
         if stage == "test" and self.test_set is None:
-            self.test_set = self._joint_set("test", self.n_test)
+            self.test_set = self._evaluation_set("test", self.n_test)
         if self.stream_seed is None:
             self.stream_seed = torch.initial_seed()
 
@@ -122,18 +191,31 @@ class SimulationDataModule(LightningDataModule):
         return cache_key(CACHE_FORMAT, repr(self.physics), repr(self.dgp), self.seed, *parts)
 
     def _measured_set(self) -> Tensor:
-        if self.measured_path is not None:
-            return load_measured(self.measured_path, self.physics.trajectory_shape)
+        if self.measured_file is not None:
+            return self.measured_file.y[self.parts["train"]]
         key = self._key("measured", self.n_measured)
         return cached(self.cache_dir, "measured", key, lambda: {"y": generate_measured(self.dgp, self.n_measured, self.seed)})[
             "y"
         ]
 
-    def _joint_set(self, split: str, n: int) -> dict[str, Tensor]:
+    def _evaluation_set(self, split: str, n: int) -> dict[str, Tensor]:
+        if self.measured_file is not None:
+            return self._held_out_set(split)
         key = self._key(split, n, self.draws_per_input)
         return cached(
             self.cache_dir, split, key, lambda: generate_joint(self.physics, self.dgp, n, self.draws_per_input, self.seed, split)
         )
+
+    def _held_out_set(self, split: str) -> dict[str, Tensor]:
+        """Held-out measurements y (n, 1, T, *obs) with the map's inputs (x0, theta) and f_p on them (x).
+
+        Inputs the file did not record are drawn from the priors (seeded by ``seed`` and the split).
+        """
+        part = self.measured_file.subset(self.parts[split])
+        n, g = len(part), generator_for(self.seed, split, "inputs")
+        x0 = part.x0 if part.x0 is not None else self.physics.sample_initial_state(n, g)
+        theta = part.theta if part.theta is not None else self.physics.sample_theta(n, g)
+        return {"x0": x0, "theta": theta, "x": simulate_in_chunks(self.physics, x0, theta), "y": part.y.unsqueeze(1)}
 
     # --- loaders ------------------------------------------------------------------------
     def source_stream(self) -> SourceStream:

@@ -1,12 +1,9 @@
-"""Measured (target) data and joint evaluation sets: generate, cache, load, validate.
+"""Measured (target) data: generated from a known DGP and cached, or split from a user's file.
 
-Files on disk
--------------
-A user's measured set is a ``.pt`` file (a tensor, or a dict with key ``"y"``) or an
-``.npz`` file with key ``"y"``; ``y`` has shape (N, T, *obs_shape), e.g. (N, 50, 1) for the
-pendulum, and must be finite. Generated sets are cached as ``<split>-<key>.pt`` where the
-key hashes everything they depend on, so a changed setting regenerates them and a cached
-file is never overwritten with different content.
+Generated sets are cached as ``<split>-<key>.pt`` where the key hashes everything they depend
+on, so a changed setting regenerates them and a cached file is never overwritten with
+different content. A user's file (:mod:`otgb.data.files`) is split into train / validation /
+test parts that never overlap (:func:`split_indices`).
 """
 
 from __future__ import annotations
@@ -16,53 +13,14 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
 import torch
 from torch import Tensor
 
 from otgb.data.seeding import generator_for
+from otgb.errors import InputError
 from otgb.physics.base import PhysicsModel
 
 CHUNK = 256
-
-
-def check_trajectories(y: Tensor, trajectory_shape: tuple[int, ...], where: str) -> Tensor:
-    """Check shape (N, *trajectory_shape) and finiteness; return y as float32."""
-    expected = "(N, " + ", ".join(map(str, trajectory_shape)) + ")"
-    if y.dim() != len(trajectory_shape) + 1 or tuple(y.shape[1:]) != tuple(trajectory_shape):
-        raise ValueError(f"{where}: measured trajectories have shape {tuple(y.shape)}, expected {expected}")
-    if len(y) == 0:
-        raise ValueError(f"{where}: the measured set is empty, expected {expected} with N >= 1")
-    bad = ~torch.isfinite(y.flatten(1)).all(dim=1)
-    if bool(bad.any()):
-        raise ValueError(
-            f"{where}: {int(bad.sum())} measured trajectories contain NaN/Inf (first at index {int(bad.nonzero()[0])})"
-        )
-    return y.float()
-
-
-def load_measured(path: str | os.PathLike, trajectory_shape: tuple[int, ...]) -> Tensor:
-    """Load a user's measured set from .pt or .npz (key ``"y"``), validated."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"measured data file {str(path)!r} does not exist (expected a .pt or .npz file with key 'y')")
-    if path.suffix == ".npz":
-        with np.load(path) as archive:
-            if "y" not in archive:
-                raise KeyError(f"{path}: no array 'y' in the .npz file (found {sorted(archive.files)})")
-            y = torch.from_numpy(archive["y"])
-    elif path.suffix == ".pt":
-        content = torch.load(path, map_location="cpu", weights_only=True)
-        if isinstance(content, dict):
-            if "y" not in content:
-                raise KeyError(f"{path}: no tensor 'y' in the .pt dict (found {sorted(content)})")
-            content = content["y"]
-        if not isinstance(content, Tensor):
-            raise TypeError(f"{path}: expected a tensor or a dict with tensor 'y', got {type(content).__name__}")
-        y = content
-    else:
-        raise ValueError(f"measured data file {str(path)!r}: unsupported suffix {path.suffix!r}, expected .pt or .npz")
-    return check_trajectories(y, trajectory_shape, str(path))
 
 
 @torch.no_grad()
@@ -108,3 +66,34 @@ def cached(cache_dir: str | os.PathLike, split: str, key: str, build: Callable[[
     torch.save(data, tmp)
     os.replace(tmp, path)
     return data
+
+
+MIN_HELD_OUT = 10  # trajectories per held-out part: its Reference compares two halves of >= 5
+
+
+def split_indices(n: int, val_fraction: float, test_fraction: float, seed: int, where: str) -> dict[str, Tensor]:
+    """Disjoint random train / val / test indices of n trajectories (seeded), each part sorted.
+
+    The held-out parts get round(fraction * n) trajectories each; the train part the rest.
+    """
+    for name, fraction in (("data.val_fraction", val_fraction), ("data.test_fraction", test_fraction)):
+        if not 0.0 < fraction < 1.0:
+            raise InputError(f"{name}={fraction}: expected a fraction in (0, 1)")
+    sizes = {"val": round(val_fraction * n), "test": round(test_fraction * n)}
+    sizes["train"] = n - sizes["val"] - sizes["test"]
+    if min(sizes["val"], sizes["test"]) < MIN_HELD_OUT or sizes["train"] < 1:
+        raise InputError(
+            f"{where}: {n} trajectories split by val_fraction={val_fraction}, test_fraction={test_fraction} give "
+            f"{sizes['train']} train / {sizes['val']} validation / {sizes['test']} test; each held-out part needs >= "
+            f"{MIN_HELD_OUT} and training >= 1: give more trajectories or larger fractions"
+        )
+    order = torch.randperm(n, generator=generator_for(seed, "measured-split"))
+    parts = {"val": order[: sizes["val"]], "test": order[sizes["val"] : sizes["val"] + sizes["test"]]}
+    parts["train"] = order[sizes["val"] + sizes["test"] :]
+    return {name: part.sort().values for name, part in parts.items()}
+
+
+@torch.no_grad()
+def simulate_in_chunks(physics: PhysicsModel, x0: Tensor, theta: Tensor) -> Tensor:
+    """f_p trajectories (n, T, *obs) for the inputs x0 (n, *state), theta (n, P)."""
+    return torch.cat([physics.simulate(x0[i : i + CHUNK], theta[i : i + CHUNK]) for i in range(0, len(x0), CHUNK)])

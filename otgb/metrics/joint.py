@@ -1,12 +1,16 @@
-"""The joint evaluation of the paper (paper.tex, "Evaluation"): one set of metrics for any
-generated draws y_hat against the DGP's draws y on the same inputs (theta, x0).
+"""One set of metrics for generated draws y_hat against measured draws y.
 
-- ABS ERR and N-RMSE pair y_hat_i with y_i (one-to-one sets, M = 1 draw per input);
-- MMD (every evaluation) and, with ``tests``, the MMDAgg test and C2ST compare the joint
-  samples (theta, x0, y_hat) and (theta, x0, y) (any M).
+Joint (the evaluation of "Hybrid Generative Modeling for Incomplete Physics: Deep Grey-Box
+Meets Optimal Transport", section "Evaluation"): rows (theta, x0, y) with the DGP's draws for
+the same inputs as the map's. Marginal: rows y alone, the map's draws for inputs from the
+priors against held-out measurements.
 
-``reference_scores`` gives every metric's noise floor: the same metrics between two
-independent DGP draw sets on the same inputs.
+- ABS ERR and N-RMSE pair y_hat_i with y_i (joint one-to-one sets, M = 1 draw per input);
+- MMD and the energy distance (every evaluation) and, with ``tests``, the MMDAgg test and
+  C2ST compare the two samples of rows (any M).
+
+Noise floors (the Reference): ``reference_scores`` compares two independent DGP draw sets on
+the same inputs (joint); ``split_half_scores`` two random halves of the measurements (marginal).
 """
 
 from __future__ import annotations
@@ -18,18 +22,25 @@ from torch import Tensor
 from torchmetrics import MetricCollection
 
 from otgb.metrics.c2st import C2ST
+from otgb.metrics.energy import EnergyDistance
 from otgb.metrics.errors import NRMSE, AbsErr
 from otgb.metrics.mmd import MMD
 from otgb.metrics.mmdagg import MMDAgg
-from otgb.metrics.samples import joint_samples
+from otgb.metrics.samples import sample_rows
 
 
 class JointEvaluator:
-    """Accumulates (y_hat, y, theta, x0) batches and computes the joint metrics.
+    """Accumulates (y_hat, y, inputs) batches and computes the metrics on rows (inputs, trajectory).
 
     Args:
-        trajectory_shape: (T, *obs) of one trajectory (tells the conv C2ST classifier where
-            the trajectory starts in a joint sample row).
+        trajectory_shape: (T, *obs) of one trajectory (tells the conv C2ST classifier and the
+            per-time statistic where the trajectory starts in a sample row).
+        inputs: the batch entries that condition each row, ("theta", "x0") for the joint
+            evaluation; () compares the trajectories' marginal distributions alone.
+        paired: whether row i of y_hat and row i of y share their inputs (the map evaluated on
+            the inputs of the measured draw); MMDAgg then permutes within pairs. ABS ERR and
+            N-RMSE are computed when the pairs are fully determined (inputs cover theta and x0)
+            and there is one draw per input.
         c2st_folds, c2st_classifier, c2st_precision: C2ST settings (see :func:`otgb.metrics.c2st.c2st`).
         mmdagg_permutations: B1 = B2 of the MMDAgg test.
         seed: seed of the C2ST folds/classifier and of the MMDAgg permutations.
@@ -38,13 +49,14 @@ class JointEvaluator:
             process already holds whole, such as the f_p and Reference baselines).
 
     The two-sample metrics share one copy of the accumulated samples (a torchmetrics
-    compute group), and everything syncs across processes when computed. Rows of the two
-    joint samples are paired (same input and draw index), so MMDAgg permutes within pairs.
+    compute group), and everything syncs across processes when computed.
     """
 
     def __init__(
         self,
         trajectory_shape: tuple[int, ...],
+        inputs: tuple[str, ...] = ("theta", "x0"),
+        paired: bool = True,
         c2st_folds: int = 5,
         c2st_classifier: Any = "auto",
         c2st_precision: str = "auto",
@@ -54,11 +66,14 @@ class JointEvaluator:
         sync: bool = True,
     ) -> None:
         kw = {"sync_on_compute": sync}
+        self.inputs, self.paired = tuple(inputs), paired
+        self.pointwise = paired and set(self.inputs) == {"theta", "x0"}
         self.errors = MetricCollection({"abs_err": AbsErr(**kw), "nrmse": NRMSE(**kw)}, compute_groups=False).to(device)
         self.two_sample = MetricCollection(
             {
                 "mmd": MMD(**kw),
-                "mmdagg": MMDAgg(n_permutations=mmdagg_permutations, n_level=mmdagg_permutations, seed=seed, paired=True, **kw),
+                "energy": EnergyDistance(trajectory_shape=trajectory_shape, **kw),
+                "mmdagg": MMDAgg(n_permutations=mmdagg_permutations, n_level=mmdagg_permutations, seed=seed, paired=paired, **kw),
                 "c2st": C2ST(
                     folds=c2st_folds,
                     seed=seed,
@@ -73,27 +88,38 @@ class JointEvaluator:
         self.device = torch.device(device)
         self.one_to_one: bool | None = None
 
-    def update(self, y_hat: Tensor, y: Tensor, theta: Tensor, x0: Tensor) -> None:
-        """Add a batch: y_hat and y (B, M, T, *obs) for the inputs theta (B, P), x0 (B, *state)."""
-        if y_hat.shape != y.shape:
-            raise ValueError(f"generated draws {tuple(y_hat.shape)} and DGP draws {tuple(y.shape)} differ in shape")
+    def update(self, y_hat: Tensor, batch: dict[str, Tensor], candidate: dict[str, Tensor] | None = None) -> None:
+        """Add draws y_hat (B, M, T, *obs) against ``batch["y"]`` (B', M', T, *obs).
+
+        The rows of ``batch["y"]`` are conditioned on the batch's inputs, those of y_hat on
+        ``candidate``'s (default: the same batch, which a paired evaluation needs).
+        """
+        y = batch["y"]
+        if self.paired and (candidate is not None or y_hat.shape != y.shape):
+            raise ValueError(f"paired draws need the same inputs and shape: got {tuple(y_hat.shape)} and {tuple(y.shape)}")
         move = lambda t: t.detach().to(self.device, torch.float32)  # noqa: E731
-        y_hat, y, theta, x0 = map(move, (y_hat, y, theta, x0))
+        y_hat, y = move(y_hat), move(y)
         self.one_to_one = y.shape[1] == 1
-        if self.one_to_one:
+        if self.pointwise and self.one_to_one:
             self.errors.update(y_hat[:, 0], y[:, 0])
-        self.two_sample.update(joint_samples(theta, x0, y), joint_samples(theta, x0, y_hat))
+        cond = self._conditioning(batch)
+        cond_hat = cond if candidate is None else self._conditioning(candidate)
+        self.two_sample.update(sample_rows(move(cond), y), sample_rows(move(cond_hat), y_hat))
+
+    def _conditioning(self, batch: dict[str, Tensor]) -> Tensor:
+        parts = [batch[name].flatten(1) for name in self.inputs]
+        return torch.cat(parts, dim=1) if parts else batch["y"].new_zeros(len(batch["y"]), 0)
 
     def compute(self, tests: bool) -> dict[str, Tensor]:
-        """Named scalars: abs_err, nrmse (+ _std over inputs) when M = 1; mmd, mmd2_median;
-        with ``tests`` also mmdagg_reject/_pvalue/_mmd2 and c2st (+ c2st_std over folds)."""
+        """Named results: abs_err, nrmse (+ _std over inputs) when pointwise; mmd, mmd2_median, energy and
+        energy_per_time (T, C); with ``tests`` also mmdagg_reject/_pvalue/_mmd2 and c2st (+ c2st_std over folds)."""
         if self.one_to_one is None:
             raise RuntimeError("JointEvaluator.compute called before any update")
         results: dict[str, Tensor] = {}
-        if self.one_to_one:
+        if self.pointwise and self.one_to_one:
             for metric in self.errors.values():
                 results.update(metric.compute())
-        for name in ("mmd", "mmdagg", "c2st") if tests else ("mmd",):
+        for name in ("mmd", "energy", "mmdagg", "c2st") if tests else ("mmd", "energy"):
             # copy_state=False: the group's members read the shared samples instead of copying them
             results.update(self.two_sample.__getitem__(name, copy_state=False).compute())
         return {k: v.detach().float().cpu() for k, v in results.items()}
@@ -103,12 +129,12 @@ class JointEvaluator:
         self.two_sample.reset()
         self.one_to_one = None
 
-    def evaluate(self, y_hat: Tensor, data: dict[str, Tensor], tests: bool, batch: int = 1024) -> dict[str, Tensor]:
-        """All metrics of y_hat against ``data["y"]`` on a whole joint set, in one call."""
+    def evaluate(
+        self, y_hat: Tensor, data: dict[str, Tensor], tests: bool, candidate: dict[str, Tensor] | None = None
+    ) -> dict[str, Tensor]:
+        """All metrics of y_hat (inputs: ``candidate``, default ``data``) against ``data["y"]``, in one call."""
         self.reset()
-        for start in range(0, len(y_hat), batch):
-            s = slice(start, start + batch)
-            self.update(y_hat[s], data["y"][s], data["theta"][s], data["x0"][s])
+        self.update(y_hat, data, candidate)
         results = self.compute(tests)
         self.reset()
         return results
@@ -117,7 +143,7 @@ class JointEvaluator:
 def reference_scores(
     evaluator: JointEvaluator, data: dict[str, Tensor], tests: bool, repeats: int = 5, seed: int = 0
 ) -> dict[str, Tensor]:
-    """The metrics between two independent DGP draw sets of the same size: the noise floor.
+    """The metrics between two independent DGP draw sets of the same size: the joint noise floor.
 
     ``data["y"]`` and ``data["y_ref"]`` hold M independent DGP draws each for the same inputs.
     Each repeat pools the 2M draws per input, splits them at random into two sets of M and
@@ -126,8 +152,7 @@ def reference_scores(
     """
     if "y_ref" not in data:
         raise KeyError("reference scores need data['y_ref'], independent DGP draws for the same inputs")
-    if repeats < 1:
-        raise ValueError(f"reference_repeats={repeats}: expected >= 1")
+    _check_repeats(repeats)
     pooled = torch.cat([data["y"], data["y_ref"]], dim=1)
     n, draws = pooled.shape[:2]
     g = torch.Generator().manual_seed(seed)
@@ -137,11 +162,44 @@ def reference_scores(
         shuffled = torch.gather(pooled, 1, order.reshape(n, draws, *([1] * (pooled.dim() - 2))).expand_as(pooled))
         half_a, half_b = shuffled[:, : draws // 2], shuffled[:, draws // 2 :]
         runs.append(evaluator.evaluate(half_a, {**data, "y": half_b}, tests))
+    return mean_and_std(runs)
+
+
+def split_half_scores(
+    evaluator: JointEvaluator, data: dict[str, Tensor], tests: bool, repeats: int = 5, seed: int = 0
+) -> dict[str, Tensor]:
+    """The metrics between two random halves of a set of measurements: the marginal noise floor.
+
+    Each repeat splits the rows of ``data`` (y with its inputs) at random into two halves and
+    scores one against the other with an unpaired ``evaluator``; mean and ``_std`` over repeats.
+    The halves are half the size of the set, so the floor is slightly above that of a full-size
+    comparison (the MMD and energy estimates shrink like 1/n).
+    """
+    if evaluator.paired:
+        raise ValueError("split-half scores compare different inputs: the evaluator must be unpaired")
+    _check_repeats(repeats)
+    n = len(data["y"])
+    g = torch.Generator().manual_seed(seed)
+    runs = []
+    for _ in range(repeats):
+        order = torch.randperm(n, generator=g)
+        half_a, half_b = ({k: v[idx] for k, v in data.items()} for idx in (order[: n // 2], order[n // 2 : 2 * (n // 2)]))
+        runs.append(evaluator.evaluate(half_b["y"], half_a, tests, candidate=half_b))
+    return mean_and_std(runs)
+
+
+def _check_repeats(repeats: int) -> None:
+    if repeats < 1:
+        raise ValueError(f"reference_repeats={repeats}: expected >= 1")
+
+
+def mean_and_std(runs: list[dict[str, Tensor]]) -> dict[str, Tensor]:
+    """Mean (``<name>``) and std (``<name>_std``) over repeated evaluations, elementwise for vectors."""
     results = {}
     for name in runs[0]:
         if name.endswith("_std"):
             continue
         values = torch.stack([r[name] for r in runs])
-        results[name] = values.mean()
-        results[f"{name}_std"] = values.std() if repeats > 1 else torch.tensor(0.0)
+        results[name] = values.mean(0)
+        results[f"{name}_std"] = values.std(0) if len(runs) > 1 else torch.zeros_like(values[0])
     return results

@@ -18,14 +18,17 @@ def joint_samples(theta: Tensor, x0: Tensor, y: Tensor) -> Tensor:
 
     theta (N, P), x0 (N, *state), y (N, M, T, *obs) -> (N * M, P + |state| + T * |obs|).
     """
-    if y.dim() < 3 or len(theta) != len(y) or len(x0) != len(y):
-        raise ValueError(
-            f"joint samples need theta (N, P), x0 (N, ...), y (N, M, T, ...); got {tuple(theta.shape)}, "
-            f"{tuple(x0.shape)}, {tuple(y.shape)}"
-        )
+    if len(x0) != len(theta):
+        raise ValueError(f"joint samples need theta (N, P) and x0 (N, ...), same N; got {tuple(theta.shape)}, {tuple(x0.shape)}")
+    return sample_rows(torch.cat([theta.flatten(1), x0.flatten(1).to(theta.dtype)], dim=1), y)
+
+
+def sample_rows(cond: Tensor, y: Tensor) -> Tensor:
+    """Rows (cond_i, y_ij) for every input i and draw j: cond (N, C) (C may be 0), y (N, M, T, *obs) -> (N * M, C + T * |obs|)."""
+    if y.dim() < 3 or cond.dim() != 2 or len(cond) != len(y):
+        raise ValueError(f"sample rows need cond (N, C) and y (N, M, T, ...); got {tuple(cond.shape)}, {tuple(y.shape)}")
     n, m = y.shape[:2]
-    inputs = torch.cat([theta.flatten(1), x0.flatten(1)], dim=1).to(y.dtype)
-    return torch.cat([inputs.repeat_interleave(m, dim=0), y.reshape(n * m, -1)], dim=1)
+    return torch.cat([cond.to(y.dtype).repeat_interleave(m, dim=0), y.reshape(n * m, -1)], dim=1)
 
 
 class TwoSampleMetric(Metric):

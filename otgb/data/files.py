@@ -1,0 +1,242 @@
+"""Reading a user's file of measured trajectories: ``.pt``, ``.npz`` or ``.csv``.
+
+What a file holds (names as the physics model declares them):
+
+- ``y`` (required): the measured trajectories, (N, T, *obs_shape), e.g. (N, 50, 1) for the
+  pendulum's angle at t = 0, 0.1, ..., 4.9, or (N, 50, 1, 20) for an advection-diffusion field;
+- ``t`` (optional): the observation times (T,); checked against the model's grid;
+- ``theta`` (optional): the physics parameters each trajectory was recorded with, (N, P), in
+  the order of the model's ``theta_names``;
+- ``x0`` (optional): each trajectory's full initial state, (N, *state_shape).
+
+``.pt``: a tensor (``y``) or a dict of tensors with those keys. ``.npz``: arrays with those
+keys. ``.csv`` (low-dimensional series only): the long layout, one row per trajectory and
+time, with a header
+
+    trajectory, t, <observed variables>[, <theta names>][, x0_<state variables>]
+
+e.g. ``trajectory,t,angle,omega`` for the pendulum with recorded omega. Rows of one trajectory
+share its id; the per-trajectory columns (theta, x0_*) must be constant within it.
+
+Every problem is an :class:`otgb.errors.InputError` naming the file, what was found and what
+was expected. The file is only read, never written.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from otgb.errors import InputError
+from otgb.physics.base import PhysicsModel
+
+KEYS = ("y", "t", "theta", "x0")
+SUFFIXES = (".pt", ".npz", ".csv")
+
+
+@dataclass(frozen=True)
+class MeasuredFile:
+    """The validated content of a measurement file: y (N, T, *obs), and the recorded inputs if any."""
+
+    path: str
+    y: Tensor
+    theta: Tensor | None = None
+    x0: Tensor | None = None
+
+    def __len__(self) -> int:
+        return len(self.y)
+
+    @property
+    def recorded_inputs(self) -> tuple[str, ...]:
+        """Which map inputs the file recorded: a subset of ("theta", "x0"), in that order."""
+        return tuple(name for name in ("theta", "x0") if getattr(self, name) is not None)
+
+    def subset(self, index: Tensor) -> MeasuredFile:
+        pick = lambda v: None if v is None else v[index]  # noqa: E731
+        return replace(self, y=self.y[index], theta=pick(self.theta), x0=pick(self.x0))
+
+
+def read_measured(path: str | os.PathLike, physics: PhysicsModel) -> MeasuredFile:
+    """Read and validate a measurement file for ``physics`` (see the module docstring)."""
+    path = Path(path)
+    if path.suffix not in SUFFIXES:
+        raise InputError(f"measured data file {str(path)!r}: unsupported suffix {path.suffix!r}, expected one of {SUFFIXES}")
+    if not path.is_file():
+        raise InputError(f"measured data file {str(path)!r} does not exist (expected a {'/'.join(SUFFIXES)} file)")
+    reader = {".pt": _read_pt, ".npz": _read_npz, ".csv": _read_csv}[path.suffix]
+    content = reader(path, physics)
+    unknown = sorted(set(content) - set(KEYS))
+    if unknown:
+        raise InputError(f"{path}: unknown entries {unknown}; a measurement file holds {list(KEYS)} (only 'y' is required)")
+    if "y" not in content:
+        raise InputError(f"{path}: no entry 'y' (the measured trajectories); found {sorted(content)}")
+    tensors = {key: _as_tensor(path, key, value) for key, value in content.items()}
+    y = check_trajectories(tensors["y"], tuple(physics.trajectory_shape), f"{path}: 'y'")
+    if "t" in tensors:
+        check_time_grid(tensors["t"], physics, str(path))
+    theta = _per_trajectory(path, tensors, "theta", (physics.theta_dim,), len(y), f"theta_names {tuple(physics.theta_names)}")
+    x0 = _per_trajectory(path, tensors, "x0", tuple(physics.state_shape), len(y), "the model's full initial state")
+    return MeasuredFile(str(path), y, theta, x0)
+
+
+def check_trajectories(y: Tensor, trajectory_shape: tuple[int, ...], where: str) -> Tensor:
+    """Check shape (N, *trajectory_shape), N >= 1, and finiteness; return y as float32."""
+    expected = "(N, " + ", ".join(map(str, trajectory_shape)) + ")"
+    if y.dim() != len(trajectory_shape) + 1 or tuple(y.shape[1:]) != tuple(trajectory_shape):
+        raise InputError(f"{where}: measured trajectories have shape {tuple(y.shape)}, expected {expected}")
+    if len(y) == 0:
+        raise InputError(f"{where}: no trajectories, expected {expected} with N >= 1")
+    _check_finite(y, where, "trajectories")
+    return y.float()
+
+
+def check_time_grid(t: Tensor, physics: PhysicsModel, where: str) -> None:
+    """The file's observation times must be the model's (T,) grid (to 1e-6 relative)."""
+    expected = physics.times()[-physics.n_obs :].double()
+    t = t.double().flatten()
+    if t.shape != expected.shape or not torch.allclose(t, expected, rtol=1e-6, atol=1e-6 * float(expected.abs().max())):
+        raise InputError(
+            f"{where}: the time grid {_grid(t)} differs from the model's {_grid(expected)} "
+            f"(physics dt={physics.dt}, n_obs={physics.n_obs})"
+        )
+
+
+def _grid(t: Tensor) -> str:
+    values = ", ".join(f"{v:.6g}" for v in t[:3].tolist())
+    return f"[{values}, ..., {float(t[-1]):.6g}] ({len(t)} points)" if len(t) > 3 else f"[{values}] ({len(t)} points)"
+
+
+def _check_finite(values: Tensor, where: str, what: str) -> None:
+    bad = ~torch.isfinite(values.reshape(len(values), -1)).all(dim=1)
+    if bool(bad.any()):
+        raise InputError(f"{where}: {int(bad.sum())} {what} contain NaN/Inf (first at index {int(bad.nonzero()[0])})")
+
+
+def _as_tensor(path: Path, key: str, value: Any) -> Tensor:
+    if isinstance(value, np.ndarray):
+        if not (np.issubdtype(value.dtype, np.floating) or np.issubdtype(value.dtype, np.integer)) or value.dtype == bool:
+            raise InputError(f"{path}: '{key}' has dtype {value.dtype}, expected real numbers (float or int)")
+        value = torch.from_numpy(np.ascontiguousarray(value))
+    if not isinstance(value, Tensor):
+        raise InputError(f"{path}: '{key}' is a {type(value).__name__}, expected a tensor of real numbers")
+    if value.is_complex() or value.dtype == torch.bool:
+        raise InputError(f"{path}: '{key}' has dtype {value.dtype}, expected real numbers (float or int)")
+    return value
+
+
+def _per_trajectory(
+    path: Path, tensors: dict[str, Tensor], key: str, shape: tuple[int, ...], n: int, meaning: str
+) -> Tensor | None:
+    if key not in tensors:
+        return None
+    value = tensors[key]
+    if tuple(value.shape) != (n, *shape):
+        expected = ", ".join(map(str, (n, *shape)))
+        raise InputError(
+            f"{path}: '{key}' has shape {tuple(value.shape)}, expected ({expected}): one row per trajectory, {meaning}"
+        )
+    _check_finite(value, f"{path}: '{key}'", "rows")
+    return value.float()
+
+
+def _read_pt(path: Path, physics: PhysicsModel) -> dict[str, Any]:
+    try:
+        content = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # a corrupt or non-tensor file: say which and why, in one line
+        raise InputError(f"{path}: cannot be read as a PyTorch file of tensors ({type(error).__name__}: {error})") from None
+    if isinstance(content, Tensor):
+        return {"y": content}
+    if not isinstance(content, dict):
+        raise InputError(f"{path}: holds a {type(content).__name__}, expected a tensor or a dict of tensors with key 'y'")
+    return dict(content)
+
+
+def _read_npz(path: Path, physics: PhysicsModel) -> dict[str, Any]:
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            return {key: archive[key] for key in archive.files}
+    except (ValueError, OSError) as error:
+        raise InputError(f"{path}: cannot be read as an .npz archive of numeric arrays ({error})") from None
+
+
+def _read_csv(path: Path, physics: PhysicsModel) -> dict[str, Any]:
+    """The long layout: trajectory, t, <observed>[, <theta names>][, x0_<state names>] (module docstring)."""
+    if len(physics.obs_shape) != 1:
+        raise InputError(
+            f"{path}: CSV holds low-dimensional series; {type(physics).__name__} observes fields of shape "
+            f"{tuple(physics.obs_shape)}: use a .npz or .pt file with 'y' of shape (N, *{tuple(physics.trajectory_shape)})"
+        )
+    observed, thetas = list(physics.observed), list(physics.theta_names)
+    initial = [f"x0_{name}" for name in physics.state_names]
+    with open(path, newline="") as handle:
+        rows = list(csv.reader(handle))
+    if not rows:
+        raise InputError(f"{path}: the file is empty, expected a header 'trajectory,t,{','.join(observed)}' and rows")
+    header = [name.strip() for name in rows[0]]
+    allowed = ["trajectory", "t", *observed, *thetas, *initial]
+    missing = [name for name in ["trajectory", "t", *observed] if name not in header]
+    unknown = [name for name in header if name not in allowed]
+    if missing or unknown or len(set(header)) != len(header):
+        raise InputError(
+            f"{path}: header {header}: missing {missing}, unknown {unknown}; expected columns 'trajectory', 't', "
+            f"{observed} and optionally {thetas} and {initial}, each once"
+        )
+    values = _numeric_rows(path, rows[1:], len(header))
+    column = {name: values[:, i] for i, name in enumerate(header)}
+    ids, starts, counts = np.unique(column["trajectory"], return_index=True, return_counts=True)
+    order = np.argsort(starts)  # trajectories in the order they appear in the file
+    ids, counts = ids[order], counts[order]
+    if len(set(counts.tolist())) != 1:
+        raise InputError(
+            f"{path}: trajectories have different numbers of rows ({sorted(set(counts.tolist()))}), expected the same grid"
+        )
+    n, steps = len(ids), int(counts[0])
+    index = np.concatenate([np.flatnonzero(column["trajectory"] == i) for i in ids])  # grouped, file order within
+    table = {name: torch.from_numpy(col[index].reshape(n, steps)) for name, col in column.items()}
+    times = table["t"]
+    if not torch.equal(times, times[:1].expand_as(times)):
+        first = int((times != times[:1]).any(dim=1).nonzero()[0])
+        raise InputError(
+            f"{path}: trajectory {ids[first]:g} has times {_grid(times[first])}, trajectory {ids[0]:g} {_grid(times[0])}"
+        )
+    content: dict[str, Any] = {"t": times[0], "y": torch.stack([table[name] for name in observed], dim=-1)}
+    for key, names in (("theta", thetas), ("x0", initial)):
+        present = [name for name in names if name in table]
+        if present and present != names:
+            raise InputError(
+                f"{path}: columns {present} given without {[m for m in names if m not in present]}: give all of {names} or none"
+            )
+        if present:
+            content[key] = _constant_per_trajectory(path, table, names, ids)
+    return content
+
+
+def _numeric_rows(path: Path, rows: list[list[str]], width: int) -> np.ndarray:
+    if not rows:
+        raise InputError(f"{path}: a header but no rows of data")
+    values = np.empty((len(rows), width))
+    for line, row in enumerate(rows, start=2):
+        if len(row) != width:
+            raise InputError(f"{path}, line {line}: {len(row)} fields, expected {width} (as in the header)")
+        try:
+            values[line - 2] = [float(field) for field in row]
+        except ValueError:
+            raise InputError(f"{path}, line {line}: a field is not a number: {row}") from None
+    return values
+
+
+def _constant_per_trajectory(path: Path, table: dict[str, Tensor], names: list[str], ids: np.ndarray) -> Tensor:
+    block = torch.stack([table[name] for name in names], dim=-1)  # (N, T, K)
+    varying = (block != block[:, :1]).any(dim=(1, 2))
+    if bool(varying.any()):
+        raise InputError(
+            f"{path}: {names} change within trajectory {ids[int(varying.nonzero()[0])]:g}; they are per-trajectory values"
+        )
+    return block[:, 0]
