@@ -1,9 +1,8 @@
-import numpy as np
 import pytest
 import torch
 from torch.utils.data import DataLoader
 
-from otgb.data import SimulationDataModule, SourceStream, load_measured
+from otgb.data import SimulationDataModule, SourceStream
 from otgb.physics import Constant, Pendulum, Uniform, ViscousFriction
 
 
@@ -82,36 +81,6 @@ def test_joint_sets_share_inputs_between_fp_and_dgp(tmp_path):
     assert torch.equal(v["x"][:, 0], v["y"][:, 0, 0]) and torch.equal(v["x"][:, 0], v["x0"][:, :1])
     assert not torch.allclose(v["y"][:, 0], v["y"][:, 1]), "each draw has its own friction"
     assert torch.allclose(dm.physics.simulate(v["x0"], v["theta"]), v["x"])
-
-
-def test_user_measured_files(tmp_path):
-    y = torch.randn(12, 50, 1)
-    torch.save({"y": y}, tmp_path / "m.pt")
-    np.savez(tmp_path / "m.npz", y=y.numpy())
-    assert torch.equal(load_measured(tmp_path / "m.pt", (50, 1)), y)
-    assert torch.equal(load_measured(tmp_path / "m.npz", (50, 1)), y)
-    dm = _module(tmp_path, measured_path=str(tmp_path / "m.npz"))
-    dm.setup("fit")
-    assert torch.equal(dm.measured, y)
-
-
-@pytest.mark.parametrize(
-    ("content", "match"),
-    [
-        (torch.randn(12, 40, 1), r"m.pt: measured trajectories have shape \(12, 40, 1\), expected \(N, 50, 1\)"),
-        (torch.full((3, 50, 1), float("nan")), "3 measured trajectories contain NaN/Inf"),
-        ({"z": torch.randn(3, 50, 1)}, "no tensor 'y'"),
-    ],
-)
-def test_bad_measured_files_are_named(tmp_path, content, match):
-    torch.save(content, tmp_path / "m.pt")
-    with pytest.raises((ValueError, KeyError), match=match):
-        load_measured(tmp_path / "m.pt", (50, 1))
-
-
-def test_missing_measured_file(tmp_path):
-    with pytest.raises(FileNotFoundError, match="nope.npz"):
-        _module(tmp_path, measured_path=str(tmp_path / "nope.npz")).setup("fit")
 
 
 def test_bad_config_values(tmp_path):

@@ -18,7 +18,7 @@ from otgb.data.stream import SourceStream
 from otgb.errors import InputError
 from otgb.physics.base import PhysicsModel, Term
 
-CACHE_FORMAT = 2  # 2: joint sets hold y_ref
+CACHE_FORMAT = 3  # 2: joint sets hold y_ref; 3: measured sets hold their inputs
 
 
 class JointDataset(Dataset):
@@ -194,9 +194,7 @@ class SimulationDataModule(LightningDataModule):
         if self.measured_file is not None:
             return self.measured_file.y[self.parts["train"]]
         key = self._key("measured", self.n_measured)
-        return cached(self.cache_dir, "measured", key, lambda: {"y": generate_measured(self.dgp, self.n_measured, self.seed)})[
-            "y"
-        ]
+        return cached(self.cache_dir, "measured", key, lambda: generate_measured(self.dgp, self.n_measured, self.seed))["y"]
 
     def _evaluation_set(self, split: str, n: int) -> dict[str, Tensor]:
         if self.measured_file is not None:

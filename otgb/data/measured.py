@@ -24,11 +24,12 @@ CHUNK = 256
 
 
 @torch.no_grad()
-def generate_measured(dgp: PhysicsModel, n: int, seed: int) -> Tensor:
-    """|Y| = n trajectories of the DGP from its priors, (n, T, *obs)."""
+def generate_measured(dgp: PhysicsModel, n: int, seed: int) -> dict[str, Tensor]:
+    """|Y| = n trajectories of the DGP from its priors: y (n, T, *obs) and the inputs x0, theta they came from."""
     g = generator_for(seed, "measured")
     x0, theta, effect = dgp.sample_initial_state(n, g), dgp.sample_theta(n, g), dgp.sample_effect_params(n, g)
-    return torch.cat([dgp.simulate(x0[i : i + CHUNK], theta[i : i + CHUNK], effect[i : i + CHUNK]) for i in range(0, n, CHUNK)])
+    y = torch.cat([dgp.simulate(x0[i : i + CHUNK], theta[i : i + CHUNK], effect[i : i + CHUNK]) for i in range(0, n, CHUNK)])
+    return {"y": y, "x0": x0, "theta": theta}
 
 
 @torch.no_grad()

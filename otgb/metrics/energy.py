@@ -3,9 +3,12 @@ statistics based on distances", 2013), over the whole rows and per time step.
 
     E(P, Q) = 2 E||X - Y|| - E||X - X'|| - E||Y - Y'||   (>= 0, = 0 iff P = Q)
 
-estimated with the V-statistic (all pairs, i = j included), which is twice GeomLoss's
-``SamplesLoss("energy")`` (GeomLoss halves it). It is the MMD of the distance kernel, needs
-no bandwidth, and is smooth in the samples, so it is a stable selection metric.
+estimated without bias (the U-statistic: the within-sample means skip i = j), so it is 0 on
+average for equal distributions whatever the sample sizes, and a Reference computed on two
+halves of a set is on the same scale as a comparison of the whole set (the V-statistic, e.g.
+GeomLoss's ``SamplesLoss("energy")``, which is half of it, grows like 1/n for equal
+distributions; hence the few lines here). It is the MMD of the distance kernel, needs no
+bandwidth, and is smooth in the samples, so it is a stable selection metric.
 
 - :func:`energy_distance`: on pooled-standardised rows (as the MMD, :mod:`otgb.metrics.mmd`),
   so inputs and trajectory features of different units weigh alike.
@@ -19,26 +22,31 @@ from __future__ import annotations
 import math
 
 import torch
-from geomloss import SamplesLoss
 from torch import Tensor
 
 from otgb.metrics.mmd import _as_float, standardise
 from otgb.metrics.samples import TwoSampleMetric
 
-_GEOMLOSS_ENERGY = SamplesLoss("energy", backend="tensorized")
 MAX_BLOCK_ENTRIES = 2**25  # distance-matrix entries per batched call (256 MiB in float64)
 
 
 def batched_energy(p: Tensor, q: Tensor) -> Tensor:
-    """Energy distance of each batch entry: p (G, n, F), q (G, m, F) -> (G,), in bounded memory."""
-    per_group = p.shape[1] * q.shape[1] + p.shape[1] ** 2 + q.shape[1] ** 2
-    step = max(1, MAX_BLOCK_ENTRIES // per_group)
-    parts = [2 * _GEOMLOSS_ENERGY(p[g : g + step], q[g : g + step]) for g in range(0, len(p), step)]
-    return torch.cat(parts).clamp_min(0.0)
+    """Unbiased energy distance of each batch entry: p (G, n, F), q (G, m, F) -> (G,), in bounded memory."""
+    n, m = p.shape[1], q.shape[1]
+    if n < 2 or m < 2:
+        raise ValueError(f"the energy distance needs at least 2 points per sample, got {n} and {m}")
+    step = max(1, MAX_BLOCK_ENTRIES // (n * m + n * n + m * m))
+    parts = []
+    for g in range(0, len(p), step):
+        a, b = p[g : g + step], q[g : g + step]
+        within_a = torch.cdist(a, a).sum((1, 2)) / (n * (n - 1))  # the zero diagonal is skipped by the divisor
+        within_b = torch.cdist(b, b).sum((1, 2)) / (m * (m - 1))
+        parts.append(2 * torch.cdist(a, b).mean((1, 2)) - within_a - within_b)
+    return torch.cat(parts)
 
 
 def energy_distance(p: Tensor, q: Tensor) -> Tensor:
-    """Energy distance between the rows of p (n, D) and q (m, D), on pooled-standardised features."""
+    """Unbiased energy distance between the rows of p (n, D) and q (m, D), on pooled-standardised features."""
     p, q = standardise(*_as_float(p, q))
     return batched_energy(p[None].double(), q[None].double())[0]
 

@@ -1,0 +1,182 @@
+"""Measurement files (.pt/.npz/.csv), their split, and the data module's two modes."""
+
+import csv
+
+import numpy as np
+import pytest
+import torch
+
+from otgb.data import SimulationDataModule, read_measured, split_indices
+from otgb.errors import InputError
+from otgb.physics import AdvectionDiffusion, Constant, Pendulum, ViscousFriction
+
+
+@pytest.fixture
+def measurements(damped, generator):
+    """40 friction-pendulum trajectories with the inputs they were simulated with."""
+    x0, theta = damped.sample_initial_state(40, generator), damped.sample_theta(40, generator)
+    y = damped.simulate(x0, theta, damped.sample_effect_params(40, generator))
+    return {"y": y, "t": damped.times(), "theta": theta, "x0": x0}
+
+
+def write_csv(path, content, columns=("trajectory", "t", "angle", "omega", "x0_angle", "x0_velocity")):
+    with open(path, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(columns)
+        for i in range(len(content["y"])):
+            for k, t in enumerate(content["t"].tolist()):
+                values = {
+                    "trajectory": i,
+                    "t": t,
+                    "angle": float(content["y"][i, k, 0]),
+                    "omega": float(content["theta"][i, 0]),
+                    "x0_angle": float(content["x0"][i, 0]),
+                    "x0_velocity": float(content["x0"][i, 1]),
+                }
+                writer.writerow([values[c] for c in columns])
+
+
+def test_the_three_formats_read_the_same_content(tmp_path, pendulum, measurements):
+    torch.save(measurements, tmp_path / "m.pt")
+    np.savez(tmp_path / "m.npz", **{k: v.numpy() for k, v in measurements.items()})
+    write_csv(tmp_path / "m.csv", measurements)
+    torch.save(measurements["y"], tmp_path / "y_only.pt")
+    for name in ("m.pt", "m.npz", "m.csv"):
+        content = read_measured(tmp_path / name, pendulum)
+        assert content.recorded_inputs == ("theta", "x0"), name
+        assert torch.allclose(content.y, measurements["y"]) and torch.allclose(content.theta, measurements["theta"])
+        assert torch.allclose(content.x0, measurements["x0"]), name
+    assert read_measured(tmp_path / "y_only.pt", pendulum).recorded_inputs == ()
+    assert list((tmp_path).iterdir()) and (tmp_path / "m.csv").stat().st_size > 0
+
+
+def test_csv_keeps_trajectories_in_file_order_and_reads_partial_inputs(tmp_path, pendulum, measurements):
+    write_csv(tmp_path / "m.csv", measurements, columns=("t", "angle", "trajectory", "omega"))
+    rows = (tmp_path / "m.csv").read_text().splitlines()
+    header, body = rows[0], rows[1:]
+    shuffled = body[50:100] + body[:50] + body[100:]  # trajectory 1 first
+    (tmp_path / "s.csv").write_text("\n".join([header, *shuffled]) + "\n")
+    content = read_measured(tmp_path / "s.csv", pendulum)
+    assert content.recorded_inputs == ("theta",)
+    assert torch.allclose(content.y[0], measurements["y"][1]) and torch.allclose(content.y[1], measurements["y"][0])
+
+
+BAD_CONTENT = {
+    "wrong shape": ({"y": torch.randn(12, 40, 1)}, r"'y': measured trajectories have shape \(12, 40, 1\), expected \(N, 50, 1\)"),
+    "empty": ({"y": torch.zeros(0, 50, 1)}, "no trajectories"),
+    "nan": ({"y": torch.full((3, 50, 1), float("nan"))}, "3 trajectories contain NaN/Inf"),
+    "missing key": ({"z": torch.randn(3, 50, 1)}, r"unknown entries \['z'\]"),
+    "no y": ({"t": torch.arange(50.0)}, "no entry 'y'"),
+    "bool dtype": ({"y": torch.ones(3, 50, 1, dtype=torch.bool)}, "'y' has dtype (torch.)?bool, expected real numbers"),
+    "grid": ({"y": torch.randn(3, 50, 1), "t": torch.arange(50.0) * 0.2}, r"grid \[0, 0.2, 0.4, ..., 9.8\].*model's \[0, 0.1"),
+    "theta width": ({"y": torch.randn(3, 50, 1), "theta": torch.ones(3, 2)}, r"'theta' has shape \(3, 2\), expected \(3, 1\)"),
+    "theta inf": ({"y": torch.randn(3, 50, 1), "theta": torch.tensor([[1.0], [float("inf")], [1.0]])}, "1 rows contain NaN/Inf"),
+    "x0 shape": ({"y": torch.randn(3, 50, 1), "x0": torch.ones(3, 1)}, r"'x0' has shape \(3, 1\), expected \(3, 2\)"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_CONTENT))
+def test_bad_files_are_named_in_one_line(tmp_path, pendulum, case):
+    content, match = BAD_CONTENT[case]
+    torch.save(content, tmp_path / "m.pt")
+    np.savez(tmp_path / "m.npz", **{k: v.numpy() for k, v in content.items()})
+    for name in ("m.pt", "m.npz"):
+        with pytest.raises(InputError, match=match) as error:
+            read_measured(tmp_path / name, pendulum)
+        assert str(tmp_path / name) in str(error.value) and "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("", "the file is empty"),
+        ("trajectory,t,angle\n", "a header but no rows"),
+        ("trajectory,t,angel\n0,0,1\n", r"missing \['angle'\], unknown \['angel'\]"),
+        ("trajectory,t,angle\n0,0,1\n0,0.1\n", "line 3: 2 fields, expected 3"),
+        ("trajectory,t,angle\n0,0,x\n", r"line 2: a field is not a number"),
+        ("trajectory,t,angle\n0,0,1\n0,0.1,1\n1,0,1\n", r"different numbers of rows \(\[1, 2\]\)"),
+        ("trajectory,t,angle,x0_angle\n0,0,1,1\n", r"\['x0_angle'\] given without \['x0_velocity'\]"),
+    ],
+)
+def test_bad_csv_files_are_named(tmp_path, pendulum, text, match):
+    (tmp_path / "m.csv").write_text(text)
+    with pytest.raises(InputError, match=match):
+        read_measured(tmp_path / "m.csv", pendulum)
+
+
+def test_csv_checks_per_trajectory_values_and_fields(tmp_path, pendulum, measurements):
+    write_csv(tmp_path / "m.csv", measurements, columns=("trajectory", "t", "angle", "omega"))
+    lines = (tmp_path / "m.csv").read_text().splitlines()
+    lines[3] = ",".join(lines[3].split(",")[:3] + ["9.9"])  # omega changes within trajectory 0
+    (tmp_path / "v.csv").write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=r"\['omega'\] change within trajectory 0"):
+        read_measured(tmp_path / "v.csv", pendulum)
+    with pytest.raises(InputError, match="CSV holds low-dimensional series.*use a .npz or .pt"):
+        read_measured(tmp_path / "m.csv", AdvectionDiffusion())
+
+
+def test_missing_file_and_suffix(tmp_path, pendulum):
+    with pytest.raises(InputError, match="nope.npz' does not exist"):
+        read_measured(tmp_path / "nope.npz", pendulum)
+    with pytest.raises(InputError, match="unsupported suffix '.h5'"):
+        read_measured(tmp_path / "m.h5", pendulum)
+    (tmp_path / "broken.pt").write_bytes(b"not a torch file")
+    with pytest.raises(InputError, match="broken.pt: cannot be read as a PyTorch file"):
+        read_measured(tmp_path / "broken.pt", pendulum)
+
+
+def test_split_is_disjoint_seeded_and_sized():
+    parts = split_indices(1000, 0.15, 0.15, seed=0, where="f")
+    assert [len(parts[p]) for p in ("train", "val", "test")] == [700, 150, 150]
+    joined = torch.cat(list(parts.values()))
+    assert len(joined.unique()) == 1000
+    assert all(torch.equal(parts[p], split_indices(1000, 0.15, 0.15, seed=0, where="f")[p]) for p in parts)
+    assert not torch.equal(parts["val"], split_indices(1000, 0.15, 0.15, seed=1, where="f")["val"])
+    with pytest.raises(InputError, match="f: 50 trajectories .* 34 train / 8 validation / 8 test.*>= 10"):
+        split_indices(50, 0.15, 0.15, seed=0, where="f")
+    with pytest.raises(InputError, match=r"data.val_fraction=1.2: expected a fraction in \(0, 1\)"):
+        split_indices(100, 1.2, 0.1, seed=0, where="f")
+
+
+def _module(tmp_path, **kw):
+    args = dict(physics=Pendulum(), n_val=6, n_test=5, batch_size=8, simulation_budget=800, cache_dir=str(tmp_path / "cache"))
+    return SimulationDataModule(**{**args, **kw})
+
+
+def test_marginal_mode_sets_never_overlap_and_the_file_is_untouched(tmp_path, measurements):
+    path = tmp_path / "m.pt"
+    torch.save({"y": measurements["y"]}, path)
+    before = path.read_bytes()
+    dm = _module(tmp_path, measured_path=str(path), val_fraction=0.25, test_fraction=0.25)
+    assert dm.mode == "marginal" and dm.recorded_inputs == () and dm.dgp is None
+    dm.setup("fit")
+    dm.setup("test")
+    assert len(dm.measured) == 20 and dm.val_set["y"].shape == (10, 1, 50, 1) and dm.test_set["y"].shape == (10, 1, 50, 1)
+    rows = lambda t: {tuple(r.flatten().tolist()) for r in t}  # noqa: E731
+    train, val, test = rows(dm.measured), rows(dm.val_set["y"][:, 0]), rows(dm.test_set["y"][:, 0])
+    assert not (train & val) and not (train & test) and not (val & test)
+    assert train | val | test == rows(measurements["y"])
+    assert torch.allclose(dm.val_set["x"], dm.physics.simulate(dm.val_set["x0"], dm.val_set["theta"]))
+    assert path.read_bytes() == before and not (tmp_path / "cache").exists(), "nothing written for a file"
+    assert "marginal" in dm.describe() and "20 train / 10 val / 10 test" in dm.describe()
+
+
+def test_recorded_inputs_are_the_evaluation_inputs(tmp_path, measurements):
+    np.savez(tmp_path / "m.npz", **{k: v.numpy() for k, v in measurements.items() if k != "x0"})
+    dm = _module(tmp_path, measured_path=str(tmp_path / "m.npz"), val_fraction=0.25, test_fraction=0.25)
+    dm.setup("validate")
+    assert dm.recorded_inputs == ("theta",)
+    val = dm.parts["val"]
+    assert torch.equal(dm.val_set["theta"], measurements["theta"][val])
+    assert torch.equal(dm.val_set["y"][:, 0], measurements["y"][val])
+    assert not torch.equal(dm.val_set["x0"], measurements["x0"][val]), "x0 was not recorded: drawn from the prior"
+
+
+def test_mode_settings_are_checked(tmp_path, measurements):
+    torch.save(measurements["y"], tmp_path / "m.pt")
+    friction = [ViscousFriction(Constant(1.2))]
+    with pytest.raises(InputError, match="measured_path=.* and data.hidden_effect are both set"):
+        _module(tmp_path, measured_path=str(tmp_path / "m.pt"), hidden_effect=friction)
+    with pytest.raises(InputError, match="no measured data: set data.measured_path"):
+        _module(tmp_path)
+    assert _module(tmp_path, hidden_effect=friction).mode == "joint"
