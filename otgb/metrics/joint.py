@@ -1,5 +1,6 @@
-"""The joint evaluation of the paper (paper.tex, "Evaluation"): one set of metrics for any
-generated draws y_hat against the DGP's draws y on the same inputs (theta, x0).
+"""The joint evaluation of "Hybrid Generative Modeling for Incomplete Physics: Deep Grey-Box
+Meets Optimal Transport" (ICLR 2025): one set of metrics for any generated draws y_hat
+against the DGP's draws y on the same inputs (theta, x0).
 
 - ABS ERR and N-RMSE pair y_hat_i with y_i (one-to-one sets, M = 1 draw per input);
 - MMD (every evaluation) and, with ``tests``, the MMDAgg test and C2ST compare the joint
@@ -30,7 +31,10 @@ class JointEvaluator:
     Args:
         trajectory_shape: (T, *obs) of one trajectory (tells the conv C2ST classifier where
             the trajectory starts in a joint sample row).
-        c2st_folds, c2st_classifier, c2st_precision: C2ST settings (see :func:`otgb.metrics.c2st.c2st`).
+        c2st_folds: cross-validation folds of the C2ST.
+        c2st_classifier: the C2ST classifier, "auto", "mlp", "conv" or a scikit-learn
+            classifier (see :mod:`otgb.metrics.c2st`).
+        c2st_precision: the C2ST classifier's arithmetic, "auto", "32-true" or "bf16-mixed".
         mmdagg_permutations: B1 = B2 of the MMDAgg test.
         seed: seed of the C2ST folds/classifier and of the MMDAgg permutations.
         device: where the accumulated states and the computations live.

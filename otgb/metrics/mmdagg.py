@@ -1,4 +1,5 @@
-"""MMDAgg: an MMD two-sample test aggregated over kernel bandwidths (Schrab et al. 2023).
+"""MMDAgg: an MMD two-sample test aggregated over kernel bandwidths (Schrab et al. 2023, "MMD
+Aggregated Two-Sample Test").
 
 One unbiased MMD^2_u (see :mod:`otgb.metrics.mmd`) per bandwidth sigma_l = 2^l * sigma_med
 (sigma_med: median heuristic on pooled-standardised points; l in [-4, 0] by default, the
@@ -173,7 +174,18 @@ def _pvalues(statistics: Tensor, null: Tensor) -> Tensor:
 
 
 class MMDAgg(TwoSampleMetric):
-    """The MMDAgg test on accumulated samples: ``{"mmdagg_reject", "mmdagg_pvalue", "mmdagg_mmd2"}``."""
+    """The MMDAgg test on accumulated samples: ``{"mmdagg_reject", "mmdagg_pvalue", "mmdagg_mmd2"}``.
+
+    Args:
+        alpha: level of the test.
+        exponents: the bandwidths 2^l * sigma_med, one per exponent l.
+        n_permutations: B1, permutations for each bandwidth's p-value.
+        n_level: B2, permutations for the null distribution of the aggregated statistic.
+        seed: seed of the permutations and of the median heuristic's subset.
+        chunk: rows of the kernel matrix held in memory at a time.
+        paired: row i of p and row i of q share their inputs (swaps within pairs).
+        kwargs: torchmetrics Metric options (e.g. ``sync_on_compute``).
+    """
 
     def __init__(
         self,
