@@ -14,6 +14,12 @@ class CosineOverRun(LambdaLR):
     ``total_steps`` defaults to the run's length in training steps, which :class:`KernelWeakOT`
     fills in from the trainer (the simulation budget or ``max_steps``, whichever ends first),
     so the schedule follows a changed budget without editing the config.
+
+    Args:
+        optimizer: the optimiser whose learning rate is scheduled.
+        final_factor: the learning rate at the end of the run, as a fraction of the initial one.
+        total_steps: length of the run in training steps (None: filled in by the module; no
+            decay until then).
     """
 
     def __init__(self, optimizer: Optimizer, final_factor: float = 0.01, total_steps: int | None = None) -> None:

@@ -60,8 +60,12 @@ class KernelWeakOT(LightningModule):
         grad_clip: max gradient norm for both networks (None: no clipping).
         ema_decay: if set, validation, test and figures use an exponential moving average
             of the map's weights with this decay per map update (None: the map itself).
-        map_optimizer, critic_optimizer, map_scheduler, critic_scheduler: optimiser and
-            learning-rate schedule factories; schedules step once per training step.
+        map_optimizer: optimiser factory of the map T_phi (default: Adam).
+        critic_optimizer: optimiser factory of the critic f_psi (default: Adam).
+        map_scheduler: learning-rate schedule factory of the map's optimiser, stepped once
+            per training step (None: a constant learning rate).
+        critic_scheduler: learning-rate schedule factory of the critic's optimiser, stepped
+            once per training step (None: a constant learning rate).
     """
 
     def __init__(

@@ -13,7 +13,7 @@ from otgb.metrics.classifiers import MLPClassifier as TorchMLP
 from otgb.metrics.joint import JointEvaluator, reference_scores
 from otgb.metrics.mmd import PAPER_MULTIPLIERS, mmd_median, mmd_multiscale, standardise
 from otgb.metrics.mmdagg import _memberships, _permuted_mmd2
-from otgb.physics import Uniform, ViscousFriction
+from otgb.physics import Constant, Pendulum, Uniform, ViscousFriction
 
 
 def test_errors_by_hand():
@@ -117,6 +117,27 @@ def test_mmdagg_keeps_its_level_and_has_power(paired):
     assert rejections_alt >= 19
 
 
+@pytest.mark.parametrize("paired", [True, False])
+def test_mmdagg_does_not_reject_bit_identical_samples(generator, paired):
+    """p_agg = 1: every paired swap of identical samples leaves MMD^2_u unchanged (ties, which
+    count), and every plain permutation can only raise it (the observed split keeps each
+    point's twin in the other sample). In float32, or without the tie tolerance, about half
+    the paired ties came out just below the observed value (p_agg < 1, down to a rejection)."""
+    p = torch.randn(200, 6, generator=generator)
+    out = mmdagg(p, p.clone(), paired=paired)
+    assert out["mmdagg_reject"] == 0.0 and out["mmdagg_pvalue"] > 0.99
+
+
+def test_reference_of_a_deterministic_dgp_is_not_rejected():
+    """One-to-one pendulum with a constant friction: the Reference compares two bit-identical draw sets."""
+    physics = Pendulum()
+    dgp = physics.with_hidden_effect([ViscousFriction(Constant(1.2))])
+    data = generate_joint(physics, dgp, 200, 1, 0, "val")
+    assert torch.equal(data["y"], data["y_ref"])
+    reference = reference_scores(JointEvaluator(tuple(data["y"].shape[2:])), data, tests=True, repeats=2)
+    assert reference["mmdagg_reject"] == 0.0 and reference["mmdagg_pvalue"] > 0.5
+
+
 def test_mmdagg_metric_and_bad_settings(generator):
     p, q = torch.randn(50, 2, generator=generator), torch.randn(50, 2, generator=generator) + 2.0
     metric = MMDAgg(n_permutations=200, n_level=50)
@@ -218,8 +239,6 @@ def test_c2st_permutation_pvalue(generator):
 
 @pytest.fixture(scope="module")
 def one_to_many_set(tmp_path_factory):
-    from otgb.physics import Pendulum
-
     physics = Pendulum()
     dgp = physics.with_hidden_effect([ViscousFriction(Uniform(0.6, 1.5))])
     return generate_joint(physics, dgp, n=120, draws=4, seed=3, split="test")

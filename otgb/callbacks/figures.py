@@ -32,6 +32,9 @@ class ValidationFigure(Callback):
 
     The figure goes to TensorBoard (tag ``val/<tag>``) and to
     ``<log_dir>/figures/<tag>_step<global_step>.png``. Subclasses define :meth:`draw`.
+
+    Args:
+        n_inputs: validation inputs drawn (the first ones of the validation set).
     """
 
     tag = "figure"
@@ -135,7 +138,12 @@ def _theta_label(physics: PhysicsModel, theta: torch.Tensor) -> str:
 
 
 class TrajectoryFigure(ValidationFigure):
-    """Measured draws, the map's draws and the f_p simulation of one observed component over time."""
+    """Measured draws, the map's draws and the f_p simulation of one observed component over time.
+
+    Args:
+        n_inputs: validation inputs drawn, one panel each.
+        component: index of the observed component shown (e.g. 0 = the angle).
+    """
 
     tag = "trajectories"
 
@@ -173,7 +181,8 @@ class FieldFigure(ValidationFigure):
     ``frames`` (indices into the trajectory), one row per source.
 
     Args:
-        n_inputs: validation inputs drawn. channel: the field shown (e.g. 0 = u).
+        n_inputs: validation inputs drawn, one row each.
+        channel: the field shown (e.g. 0 = u).
         frames: frame indices for 2-D fields (default: four spread over the trajectory).
     """
 

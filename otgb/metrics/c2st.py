@@ -1,4 +1,4 @@
-"""Classifier two-sample test (Lopez-Paz & Oquab 2017) on joint samples.
+"""Classifier two-sample test (Lopez-Paz & Oquab 2017, "Revisiting Classifier Two-Sample Tests") on joint samples.
 
 Label the rows of p with 0 and of q with 1, z-score all rows with the mean and std of p
 (the reference sample), and report the k-fold cross-validated accuracy of a classifier
@@ -140,7 +140,17 @@ def make_classifier(
 
 
 class C2ST(TwoSampleMetric):
-    """C2ST accuracy on accumulated samples: ``{"c2st", "c2st_std"[, "c2st_pvalue"]}``."""
+    """C2ST accuracy on accumulated samples: ``{"c2st", "c2st_std"[, "c2st_pvalue"]}``.
+
+    Args:
+        folds: number of cross-validation folds.
+        seed: seed of the folds and of the classifier.
+        classifier: "auto", "mlp", "conv" or a scikit-learn classifier (see the module docstring).
+        trajectory_shape: (T, *obs) of the trajectory part of each row (None: no grouping by inputs).
+        n_permutations: relabelled cross-validations for a permutation p-value (0: none).
+        precision: the "mlp"/"conv" classifier's arithmetic, "auto", "32-true" or "bf16-mixed".
+        kwargs: torchmetrics Metric options (e.g. ``sync_on_compute``).
+    """
 
     def __init__(
         self,

@@ -140,7 +140,12 @@ def native_bf16(device: torch.device) -> bool:
 
 class _MLP(nn.Sequential):
     """ReLU layers then one logit, initialised as scikit-learn does: weights and biases uniform in
-    +-sqrt(f / (fan_in + fan_out)), with f = 6 for the hidden layers and 2 for the logistic output."""
+    +-sqrt(f / (fan_in + fan_out)), with f = 6 for the hidden layers and 2 for the logistic output.
+
+    Args:
+        n_features: width of the input rows.
+        hidden: widths of the hidden layers.
+    """
 
     def __init__(self, n_features: int, hidden: tuple[int, ...]) -> None:
         sizes = [n_features, *hidden, 1]
@@ -173,7 +178,12 @@ class MLPClassifier(_TorchClassifier):
     Args:
         hidden: widths of the hidden layers.
         alpha: L2 penalty.
-        max_epochs, batch_size, lr, n_iter_no_change, validation_fraction: training.
+        max_epochs: most passes over the training rows.
+        batch_size: rows per Adam step (at most the number of training rows).
+        lr: Adam's learning rate.
+        n_iter_no_change: stop once the held-out accuracy has not improved by 1e-4 for more
+            than this many epochs (the best weights are kept).
+        validation_fraction: share of the training rows held out for early stopping.
         random_state: seed of the initial weights, the split and the batch order.
         device: where to train ("cpu", "cuda", ...).
         precision: "auto", "32-true" or "bf16-mixed" (see the module docstring).
@@ -214,6 +224,15 @@ class MLPClassifier(_TorchClassifier):
 
 
 class _ConvNet(nn.Module):
+    """Two strided convolutions and pooling over the trajectory, an MLP code of the inputs, one logit.
+
+    Args:
+        trajectory_shape: (T, C, *spatial) of the trajectory part of each row.
+        cond_dim: number of leading conditioning features.
+        channels: width of the first convolution (the second has twice as many).
+        pooled: size per conv dimension after adaptive average pooling.
+    """
+
     def __init__(self, trajectory_shape: tuple[int, ...], cond_dim: int, channels: int, pooled: int) -> None:
         super().__init__()
         time, fields, *spatial = trajectory_shape
@@ -253,8 +272,11 @@ class ConvClassifier(_TorchClassifier):
         cond_dim: number of leading conditioning features.
         channels: width of the first convolution (the second has twice as many).
         pooled: size per conv dimension after adaptive average pooling.
-        max_epochs, batch_size, lr: training; n_iter_no_change: stop once the held-out log loss
-            has not improved for more than this many epochs (the best weights are kept).
+        max_epochs: most passes over the training rows.
+        batch_size: rows per Adam step (at most the number of training rows).
+        lr: Adam's learning rate.
+        n_iter_no_change: stop once the held-out log loss has not improved for more than this
+            many epochs (the best weights are kept).
         validation_fraction: share of the training rows held out for early stopping.
         random_state: seed of the initial weights, the split and the batch order.
         device: where to train ("cpu", "cuda", ...).

@@ -1,4 +1,6 @@
-"""Pointwise errors for one-to-one tasks, as in the paper's official evaluator (../shared/REFERENCE.md).
+"""Pointwise errors for one-to-one tasks, as in the evaluator of the paper's official code
+(DMML-Geneva/ot-deep-grey-box-model, for "Hybrid Generative Modeling for Incomplete Physics:
+Deep Grey-Box Meets Optimal Transport", ICLR 2025).
 
     ABS ERR = mean_i [ mean_t |y_hat_i(t) - y_i(t)| ]
     N-RMSE  = mean_i [ sqrt(mean_t (y_hat_i(t) - y_i(t))^2) ] / (max(y) - min(y)),

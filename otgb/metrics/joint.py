@@ -41,7 +41,10 @@ class JointEvaluator:
             the inputs of the measured draw); MMDAgg then permutes within pairs. ABS ERR and
             N-RMSE are computed when the pairs are fully determined (inputs cover theta and x0)
             and there is one draw per input.
-        c2st_folds, c2st_classifier, c2st_precision: C2ST settings (see :func:`otgb.metrics.c2st.c2st`).
+        c2st_folds: cross-validation folds of the C2ST.
+        c2st_classifier: the C2ST classifier, "auto", "mlp", "conv" or a scikit-learn
+            classifier (see :mod:`otgb.metrics.c2st`).
+        c2st_precision: the C2ST classifier's arithmetic, "auto", "32-true" or "bf16-mixed".
         mmdagg_permutations: B1 = B2 of the MMDAgg test.
         seed: seed of the C2ST folds/classifier and of the MMDAgg permutations.
         device: where the accumulated states and the computations live.

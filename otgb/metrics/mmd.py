@@ -1,4 +1,4 @@
-"""Maximum mean discrepancy on joint samples (Gretton et al. 2012; paper.tex, "Evaluation").
+"""Maximum mean discrepancy on joint samples (Gretton et al. 2012, "A Kernel Two-Sample Test").
 
 Samples p (n, D) and q (m, D) are standardised with the pooled mean and std, and compared
 with the exponentiated-quadratic kernel
@@ -17,10 +17,11 @@ Two scalars are reported:
   On joint samples the median bandwidth is wide (set by the many trajectory features) and
   can miss a wrong conditional that smaller bandwidths see: that is what MMDAgg
   (:mod:`otgb.metrics.mmdagg`) aggregates over bandwidths for.
-- ``mmd``: the figure comparable with the paper's Table 1, as in its official evaluator
-  (../shared/REFERENCE.md): the biased (V-statistic) estimate with the sum of 6 kernels at
-  sigma^2 = h * 2^(i-3), i = 0..5, where h is the mean squared distance between distinct
-  pooled points. Biased: positive even for equal distributions (about 2 * 6 / n for large n).
+- ``mmd``: the figure comparable with Table 1 of "Hybrid Generative Modeling for Incomplete
+  Physics: Deep Grey-Box Meets Optimal Transport" (ICLR 2025), as in the evaluator of its
+  official code (DMML-Geneva/ot-deep-grey-box-model): the biased (V-statistic) estimate
+  with the sum of 6 kernels at sigma^2 = h * 2^(i-3), i = 0..5, where h is the mean squared
+  distance between distinct pooled points. Biased: positive even for equal distributions (about 2 * 6 / n for large n).
 
 Kernel sums are accumulated over row blocks of ``chunk`` points, so memory is
 O(chunk * (n + m)) whatever the sample sizes.
@@ -127,7 +128,12 @@ def _as_float(p: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:
 
 
 class MMD(TwoSampleMetric):
-    """MMD between accumulated samples: ``{"mmd": paper-code figure, "mmd2_median": unbiased MMD^2}``."""
+    """MMD between accumulated samples: ``{"mmd": paper-code figure, "mmd2_median": unbiased MMD^2}``.
+
+    Args:
+        chunk: rows of the kernel matrix held in memory at a time.
+        kwargs: torchmetrics Metric options (e.g. ``sync_on_compute``).
+    """
 
     def __init__(self, chunk: int = 1024, **kwargs) -> None:
         super().__init__(**kwargs)

@@ -1,9 +1,12 @@
-"""MMDAgg: an MMD two-sample test aggregated over kernel bandwidths (Schrab et al. 2023).
+"""MMDAgg: an MMD two-sample test aggregated over kernel bandwidths (Schrab et al. 2023, "MMD
+Aggregated Two-Sample Test").
 
 One unbiased MMD^2_u (see :mod:`otgb.metrics.mmd`) per bandwidth sigma_l = 2^l * sigma_med
 (sigma_med: median heuristic on pooled-standardised points; l in [-4, 0] by default, the
-paper's collection in ../shared/REFERENCE.md), weights w_l = 1/L. Permutations of the pooled
-points (valid for any sample sizes) give the null distribution:
+collection used by the official code of "Hybrid Generative Modeling for Incomplete Physics:
+Deep Grey-Box Meets Optimal Transport" (ICLR 2025), DMML-Geneva/ot-deep-grey-box-model),
+weights w_l = 1/L. Permutations of the pooled points (valid for any sample sizes) give the
+null distribution:
 
 1. ``n_permutations`` (B1) permuted statistics per bandwidth give each bandwidth's
    permutation p-value p_l = (1 + #{b: M_l^b >= M_l}) / (B1 + 1).
@@ -27,6 +30,17 @@ original) is the alpha-quantile of the null t^b. Reported: the decision, p_agg a
 at the bandwidth with the smallest weighted p-value
 (ties broken by the statistic's z-score against its permutations).
 
+Ties: a permuted statistic equal to the observed one counts as at least as extreme (">="),
+and a null t^b equal to t as at most as large ("<="). Equal in exact arithmetic must stay
+equal in the computed one: on bit-identical paired samples (a deterministic DGP against
+itself) every swap leaves MMD^2_u unchanged, but float32 sums in a different order come out
+up to ~4e-7 apart, about half of them below the observed value, and p_agg fell to 0.02-0.05
+(a rejection of two identical samples). So the statistics are computed in float64 (from the
+standardised points on) and ties are counted with an absolute tolerance ``TIE_TOLERANCE``
+= 1e-9: far above float64 rounding of these sums (kernels are bounded by 1, so MMD^2_u is
+O(1) and its rounding O(1e-15)), far below any real permutation fluctuation (O(1/n)). The
+same tolerance applies to t, which lives on a grid of spacing L/(B1 + 1).
+
 All permuted statistics come from one pass over the kernel matrix in row blocks: with a the
 0/1 membership of p under a permutation and K~ the kernel matrix with zero diagonal,
 
@@ -47,6 +61,7 @@ from otgb.metrics.mmd import _as_float, median_bandwidth, sq_distance_blocks, st
 from otgb.metrics.samples import TwoSampleMetric
 
 PAPER_EXPONENTS = (-4, -3, -2, -1, 0)
+TIE_TOLERANCE = 1e-9
 
 
 def mmdagg(
@@ -70,7 +85,7 @@ def mmdagg(
     p_agg above) and ``mmdagg_mmd2`` (MMD^2_u at the most significant bandwidth).
     """
     check_options(alpha, exponents, n_permutations, n_level)
-    p, q = standardise(*_as_float(p, q))
+    p, q = standardise(*(x.double() for x in _as_float(p, q)))  # float64: see "Ties" in the module docstring
     n, m = len(p), len(q)
     if n < 2 or m < 2:
         raise ValueError(f"mmdagg needs at least 2 points per sample, got {n} and {m}")
@@ -86,7 +101,7 @@ def mmdagg(
     weights = torch.full((len(exponents), 1), 1.0 / len(exponents), dtype=p.dtype, device=p.device)
     t_per_bandwidth = (_pvalues(observed, null) / weights)[:, 0]
     t_null = (_pvalues(level_draws, null) / weights).min(dim=0).values
-    p_agg = (1 + (t_null <= t_per_bandwidth.min()).sum()) / (n_level + 1)
+    p_agg = (1 + (t_null <= t_per_bandwidth.min() + TIE_TOLERANCE).sum()) / (n_level + 1)
     z = (observed[:, 0] - null.mean(1)) / null.std(1).clamp_min(torch.finfo(null.dtype).tiny)
     best = torch.where(t_per_bandwidth == t_per_bandwidth.min(), z, -torch.inf).argmax()  # ties: the largest z-score
     return {
@@ -127,7 +142,11 @@ def _memberships(n: int, m: int, n_perm: int, seed: int, device: torch.device, p
 
 
 def _permuted_mmd2(pooled: Tensor, membership: Tensor, n: int, sq_bandwidths: Tensor, chunk: int) -> Tensor:
-    """MMD^2_u for every membership column and bandwidth -> (L, columns)."""
+    """MMD^2_u for every membership column and bandwidth -> (L, columns), in the dtype of ``pooled``.
+
+    :func:`mmdagg` passes float64 points and memberships, so that statistics equal in exact
+    arithmetic agree to far within ``TIE_TOLERANCE``.
+    """
     m = len(pooled) - n
     n_bw, n_col = len(sq_bandwidths), membership.shape[1]
     aka, akb, bkb = (torch.zeros(n_bw, n_col, dtype=pooled.dtype, device=pooled.device) for _ in range(3))
@@ -146,13 +165,27 @@ def _permuted_mmd2(pooled: Tensor, membership: Tensor, n: int, sq_bandwidths: Te
 
 
 def _pvalues(statistics: Tensor, null: Tensor) -> Tensor:
-    """Permutation p-values (1 + #{null >= s}) / (B + 1) per bandwidth row: (L, S) x (L, B) -> (L, S)."""
-    exceed = (null[:, None, :] >= statistics[:, :, None]).sum(dim=2)
+    """Permutation p-values (1 + #{null >= s}) / (B + 1) per bandwidth row: (L, S) x (L, B) -> (L, S).
+
+    A null value within ``TIE_TOLERANCE`` below s is a tie and counts (see the module docstring).
+    """
+    exceed = (null[:, None, :] >= statistics[:, :, None] - TIE_TOLERANCE).sum(dim=2)
     return (1 + exceed).to(statistics.dtype) / (null.shape[1] + 1)
 
 
 class MMDAgg(TwoSampleMetric):
-    """The MMDAgg test on accumulated samples: ``{"mmdagg_reject", "mmdagg_pvalue", "mmdagg_mmd2"}``."""
+    """The MMDAgg test on accumulated samples: ``{"mmdagg_reject", "mmdagg_pvalue", "mmdagg_mmd2"}``.
+
+    Args:
+        alpha: level of the test.
+        exponents: the bandwidths 2^l * sigma_med, one per exponent l.
+        n_permutations: B1, permutations for each bandwidth's p-value.
+        n_level: B2, permutations for the null distribution of the aggregated statistic.
+        seed: seed of the permutations and of the median heuristic's subset.
+        chunk: rows of the kernel matrix held in memory at a time.
+        paired: row i of p and row i of q share their inputs (swaps within pairs).
+        kwargs: torchmetrics Metric options (e.g. ``sync_on_compute``).
+    """
 
     def __init__(
         self,

@@ -1,8 +1,9 @@
 """Joint samples (theta, x0, y) and the base of the two-sample metrics.
 
-The paper evaluates on the joint distribution pi(theta, x0, y) (paper.tex, "Evaluation"):
-a model is only right if each generated y fits its own inputs, so every sample row holds the
-inputs next to the trajectory.
+The paper ("Hybrid Generative Modeling for Incomplete Physics: Deep Grey-Box Meets Optimal
+Transport", ICLR 2025) evaluates on the joint distribution pi(theta, x0, y): a model is only
+right if each generated y fits its own inputs, so every sample row holds the inputs next to
+the trajectory.
 """
 
 from __future__ import annotations

@@ -15,6 +15,8 @@ class MLPCritic(nn.Module):
 
     Args:
         trajectory_shape: (T, *obs_shape) of one trajectory.
+        hidden: widths of the hidden layers.
+        activation_name: torch.nn class name of the activation after each hidden layer.
     """
 
     def __init__(
@@ -33,7 +35,15 @@ class MLPCritic(nn.Module):
 
 
 class ResidualBlock(nn.Module):
-    """act -> conv(stride) -> act -> conv, plus a strided 1x1 projection of the input."""
+    """act -> conv(stride) -> act -> conv, plus a strided 1x1 projection of the input.
+
+    Args:
+        conv: the convolution class (nn.Conv1d/2d/3d).
+        c_in: input channels.
+        c_out: output channels.
+        stride: stride of the first convolution and of the projection.
+        activation_name: torch.nn class name of the activation.
+    """
 
     def __init__(self, conv: type[nn.Module], c_in: int, c_out: int, stride: int, activation_name: str) -> None:
         super().__init__()
@@ -59,6 +69,8 @@ class ConvCritic(nn.Module):
     Args:
         trajectory_shape: (T, C, *space) of one trajectory.
         channels: widths of the stem and of each residual block.
+        time_as_channels: stack the T frames as channels and convolve over space only.
+        activation_name: torch.nn class name of the activation.
     """
 
     def __init__(

@@ -27,9 +27,14 @@ class ConditionalMLP(nn.Module):
     close to f_p.
 
     Args:
-        in_shape: shape of u (flattened). out_shape: shape of the output.
-        cond_dim: size of c. hidden: widths of the hidden layers.
+        in_shape: shape of u (flattened).
+        out_shape: shape of the output.
+        cond_dim: size of c (0: no condition, no encoder).
+        hidden: widths of the hidden layers.
         cond_features: width of the condition code.
+        activation_name: torch.nn class name of the activation, in the encoder and after
+            each hidden layer.
+        output_scale: factor on the output layer's initial weights (its bias starts at 0).
     """
 
     def __init__(
@@ -86,9 +91,16 @@ class ConditionalConvNet(nn.Module):
     by ``output_scale`` so that a grey-box starts close to f_p.
 
     Args:
-        in_shape: (C, *space) of u. out_shape: (C_out, *space) of the output.
-        cond_dim: size of c. channels: widths of the hidden convolutions (one layer each,
-            plus the output layer).
+        in_shape: (C, *space) of u.
+        out_shape: (C_out, *space) of the output (the same grid as u).
+        cond_dim: size of c (0: no condition, no encoder).
+        channels: widths of the hidden convolutions (one layer each, plus the output layer).
+        kernel_size: size of every convolution's kernel (odd, so that the grid is kept).
+        padding_mode: padding of the convolutions, "zeros" (Dirichlet) or "circular" (periodic).
+        cond_features: channels of the condition code.
+        activation_name: torch.nn class name of the activation, in the encoder and between
+            the convolutions.
+        output_scale: factor on the output layer's initial weights (its bias starts at 0).
     """
 
     def __init__(
