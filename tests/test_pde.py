@@ -6,13 +6,16 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from otgb.errors import InputError
 from otgb.physics import (
     Advection,
     AdvectionDiffusion,
     Constant,
     ConstantDrain,
+    FieldModel,
     FitzHughNagumoReaction,
     Pendulum,
+    Prior,
     ReactionDiffusion,
 )
 
@@ -55,10 +58,54 @@ def test_advection_moves_the_profile_at_speed_beta():
     assert torch.allclose(y.sum(-1), y[0].sum(), rtol=1e-4), "mass is conserved away from the ends"
 
 
-def test_advection_needs_a_grid(generator):
-    dgp = Pendulum().with_hidden_effect([Advection(Constant(0.1))])
-    with pytest.raises(TypeError, match="Advection needs a model with a spatial grid"):
-        dgp.simulate(torch.zeros(2, 2), torch.ones(2, 1), torch.full((2, 1), 0.1))
+def test_spatial_terms_need_a_field_model():
+    message = "Advection acts on an otgb.physics.FieldModel; Pendulum is not one"
+    with pytest.raises(InputError, match=message):
+        Pendulum().with_hidden_effect([Advection(Constant(0.1))])
+    with pytest.raises(InputError, match=message):
+        Pendulum(hidden_effect=[Advection(Constant(0.1))])
+    with pytest.raises(InputError, match=r"ConstantDrain: channel=2 is invalid; expected an index 0..1 into .*\('u', 'v'\)"):
+        ReactionDiffusion(n_grid=8).with_hidden_effect([ConstantDrain(Constant(1.0), channel=2)])
+    with pytest.raises(InputError, match="FitzHughNagumoReaction acts on a \\(u, v\\) state; AdvectionDiffusion has"):
+        AdvectionDiffusion().with_hidden_effect([FitzHughNagumoReaction(Constant(1.0))])
+
+
+class Heat(FieldModel):
+    """Diffusion alpha Lap(T) of one channel on any grid (the FieldModel contract in a few lines)."""
+
+    state_names = ("T",)
+    theta_names = ("alpha",)
+
+    def __init__(self, grid_shape=(8, 8), dx=0.1, boundary="periodic", alpha: Prior = Constant(0.1)) -> None:
+        super().__init__(grid_shape, dx, boundary, dt=0.1, n_obs=3)
+
+    def field(self, state, theta):
+        return theta[:, 0, None, None, None] * self.laplacian(state)
+
+    def sample_initial_state(self, n, generator):
+        return torch.rand(n, *self.state_shape, generator=generator)
+
+
+def test_field_model_holds_a_validated_grid(generator):
+    heat = Heat()
+    assert heat.state_shape == heat.obs_shape == (1, 8, 8) and heat.spatial_dims == 2 and heat.boundary == "periodic"
+    x0 = heat.sample_initial_state(2, generator)
+    y = heat.simulate(x0, heat.sample_theta(2, generator))
+    assert y.shape == (2, 3, 1, 8, 8) and torch.allclose(y.mean((-2, -1)), x0.mean((-2, -1), keepdim=True).squeeze(-1))
+    for kwargs, message in [
+        ({"grid_shape": (8, 2)}, r"Heat: grid_shape=\(8, 2\) is invalid; expected one integer >= 3 per spatial axis"),
+        ({"grid_shape": ()}, r"grid_shape=\(\) is invalid"),
+        ({"dx": 0.0}, "Heat: dx=0.0 is invalid; expected a positive number"),
+        ({"boundary": "neumann"}, "Heat: boundary='neumann' is invalid; expected one of 'dirichlet', 'periodic'"),
+    ]:
+        with pytest.raises(InputError, match=message):
+            Heat(**kwargs)
+    with pytest.raises(InputError, match="AdvectionDiffusion: n_grid=2 is invalid; expected an integer >= 3"):
+        AdvectionDiffusion(n_grid=2)
+    with pytest.raises(InputError, match="ReactionDiffusion: u_reaction='yes' is invalid"):
+        ReactionDiffusion(u_reaction="yes")
+    with pytest.raises(InputError, match="AdvectionDiffusion: amplitude=1.0 is invalid; expected a Prior"):
+        AdvectionDiffusion(amplitude=1.0)
 
 
 def _periodic_laplacian(u, dx):

@@ -1,6 +1,7 @@
 import pytest
 import torch
 
+from otgb.errors import InputError
 from otgb.physics import Choice, Constant, Pendulum, SimulationDiverged, Uniform, ViscousFriction
 
 
@@ -64,20 +65,38 @@ def test_stochastic_priors(pendulum, generator):
 
 
 def test_bad_inputs_are_named(pendulum, damped):
-    with pytest.raises(ValueError, match="initial state has shape"):
+    with pytest.raises(InputError, match="initial state has shape"):
         pendulum.simulate(torch.zeros(4, 3), torch.ones(4, 1))
-    with pytest.raises(ValueError, match="theta has shape"):
+    with pytest.raises(InputError, match="theta has shape"):
         pendulum.simulate(torch.zeros(4, 2), torch.ones(4, 2))
-    with pytest.raises(ValueError, match="hidden-effect parameters"):
+    with pytest.raises(InputError, match="hidden-effect parameters"):
         damped.simulate(torch.zeros(4, 2), torch.ones(4, 1))
-    with pytest.raises(ValueError, match="low < high"):
-        Uniform(1.0, 0.5)
-    with pytest.raises(ValueError, match="step_size"):
+    with pytest.raises(InputError, match=r"Pendulum: step_size=0.03 is invalid; expected a positive step that divides dt=0.1"):
         Pendulum(step_size=0.03)
-    with pytest.raises(ValueError, match="step_size=0.0 must be positive"):
+    with pytest.raises(InputError, match="step_size=0.0 is invalid"):
         Pendulum(step_size=0.0)
-    with pytest.raises(ValueError, match=r"step_size=0.03 must be positive and divide dt=0.1"):
+    with pytest.raises(InputError, match=r"step_size=0.03 is invalid; expected a positive step that divides dt=0.1"):
         pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))], step_size=0.03)
+
+
+@pytest.mark.parametrize(
+    ("build", "message"),
+    [
+        (lambda: Pendulum(dt=-0.1), "Pendulum: dt=-0.1 is invalid; expected a positive number"),
+        (lambda: Pendulum(n_obs=0), "Pendulum: n_obs=0 is invalid; expected an integer >= 1"),
+        (lambda: Pendulum(method="dopri5"), "Pendulum: method='dopri5' is invalid; expected one of torchdiffeq's fixed-step"),
+        (lambda: Pendulum(omega=2.0), r"Pendulum: omega=2.0 is invalid; expected a Prior \(otgb.physics.Uniform"),
+        (lambda: Pendulum(hidden_effect=[1.2]), r"Pendulum: hidden_effect\[0\]=1.2 is invalid; expected an otgb.physics.Term"),
+        (lambda: ViscousFriction(1.2), "ViscousFriction: xi=1.2 is invalid; expected a Prior"),
+        (lambda: Pendulum(hidden_effect=[ViscousFriction(Constant(1.0), velocity_index=2)]), "ViscousFriction: velocity_index=2"),
+        (lambda: Uniform(1.0, 0.5), r"Uniform: \(low, high\)=\(1.0, 0.5\) is invalid; expected finite numbers with low < high"),
+        (lambda: Choice([]), r"Choice: values=\[\] is invalid; expected a non-empty list of finite numbers"),
+        (lambda: Constant(float("inf")), "Constant: value=inf is invalid; expected a finite number"),
+    ],
+)
+def test_bad_constructor_arguments_raise_input_error_naming_class_argument_and_expectation(build, message):
+    with pytest.raises(InputError, match=message):
+        build()
 
 
 def test_diverging_solve_raises(pendulum):

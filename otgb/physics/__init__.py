@@ -1,7 +1,7 @@
 """Simulators: the incomplete physics f_p and the data-generating process built from it."""
 
 from otgb.physics.advection_diffusion import AdvectionDiffusion
-from otgb.physics.base import PhysicsModel, SimulationDiverged, Term
+from otgb.physics.base import FieldModel, PhysicsModel, SimulationDiverged, Term, raise_if_diverged
 from otgb.physics.pendulum import Pendulum
 from otgb.physics.priors import Choice, Constant, Prior, Uniform
 from otgb.physics.reaction_diffusion import ReactionDiffusion
@@ -11,6 +11,7 @@ __all__ = [
     "Advection",
     "AdvectionDiffusion",
     "ConstantDrain",
+    "FieldModel",
     "FitzHughNagumoReaction",
     "ReactionDiffusion",
     "Choice",
@@ -21,5 +22,6 @@ __all__ = [
     "SimulationDiverged",
     "Term",
     "Uniform",
+    "raise_if_diverged",
     "ViscousFriction",
 ]

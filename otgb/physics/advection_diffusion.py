@@ -14,28 +14,36 @@ import math
 from collections.abc import Sequence
 
 import torch
+from jsonargparse import lazy_instance
 from torch import Tensor
 
-from otgb.physics.base import PhysicsModel, Term, check_range, uniform_box
-from otgb.physics.stencils import laplacian
+from otgb.physics.arguments import invalid
+from otgb.physics.base import FieldModel, Term
+from otgb.physics.priors import Prior, Uniform, check_prior, sample_joint
 
 
-class AdvectionDiffusion(PhysicsModel):
+class AdvectionDiffusion(FieldModel):
     """1-D diffusion observed at all grid points, 50 frames at dt = 0.02 by default.
 
     Args:
-        alpha_range: prior U(low, high) of the diffusion coefficient alpha.
-        amplitude_range: prior U(low, high) of the initial amplitude c.
-        n_grid, dx: grid points and spacing.
+        alpha: prior of the diffusion coefficient alpha, drawn once per trajectory.
+        amplitude: prior of the amplitude c of the initial profile c sin(pi s / 2).
+        n_grid: number of grid points, at least 3.
+        dx: grid spacing; the zero Dirichlet ends lie at s = 0 and s = (n_grid + 1) dx.
+        dt: time between two frames.
+        n_obs: number of frames, the first at t = 0.
+        step_size: solver step, a divisor of dt; defaults to dt.
+        method: a torchdiffeq fixed-step method ("rk4", "euler", "midpoint", ...).
+        hidden_effect: terms added to f_p; empty for f_p (the data module adds the DGP's).
     """
 
+    state_names = ("T",)
     theta_names = ("alpha",)
-    boundary = "dirichlet"
 
     def __init__(
         self,
-        alpha_range: tuple[float, float] = (0.01, 0.1),
-        amplitude_range: tuple[float, float] = (0.5, 1.5),
+        alpha: Prior = lazy_instance(Uniform, low=0.01, high=0.1),
+        amplitude: Prior = lazy_instance(Uniform, low=0.5, high=1.5),
         n_grid: int = 20,
         dx: float = 0.1,
         dt: float = 0.02,
@@ -44,13 +52,11 @@ class AdvectionDiffusion(PhysicsModel):
         method: str = "rk4",
         hidden_effect: Sequence[Term] = (),
     ) -> None:
-        super().__init__(dt, n_obs, True, step_size, method, hidden_effect)
-        if n_grid < 3 or not dx > 0:
-            raise ValueError(f"AdvectionDiffusion: need n_grid >= 3 and dx > 0, got n_grid={n_grid}, dx={dx}")
-        self.alpha_range = check_range("AdvectionDiffusion.alpha_range", alpha_range)
-        self.amplitude_range = check_range("AdvectionDiffusion.amplitude_range", amplitude_range)
-        self.n_grid, self.dx = int(n_grid), float(dx)
-        self.state_shape = self.obs_shape = (1, self.n_grid)
+        if not (isinstance(n_grid, int) and n_grid >= 3):
+            raise invalid(self, "n_grid", n_grid, "an integer >= 3")
+        super().__init__((n_grid,), dx, "dirichlet", dt, n_obs, True, step_size, method, hidden_effect)
+        self.n_grid = n_grid
+        self.amplitude = check_prior(self, "amplitude", amplitude)
 
     @property
     def grid(self) -> Tensor:
@@ -59,21 +65,9 @@ class AdvectionDiffusion(PhysicsModel):
 
     def field(self, state: Tensor, theta: Tensor) -> Tensor:
         alpha = theta[:, :1, None]
-        return alpha * laplacian(state, self.dx, self.boundary, dims=1)
-
-    def observe(self, state: Tensor) -> Tensor:
-        return state
-
-    def sample_theta(self, n: int, generator: torch.Generator) -> Tensor:
-        return uniform_box([self.alpha_range[0]], [self.alpha_range[1]], n, generator)
+        return alpha * self.laplacian(state)
 
     def sample_initial_state(self, n: int, generator: torch.Generator) -> Tensor:
-        amplitude = uniform_box([self.amplitude_range[0]], [self.amplitude_range[1]], n, generator)
+        amplitude = sample_joint([self.amplitude], n, generator)
         profile = torch.sin(math.pi * self.grid / 2)
         return (amplitude * profile).unsqueeze(1)
-
-    def extra_repr(self) -> str:
-        return (
-            f"alpha_range={self.alpha_range}, amplitude_range={self.amplitude_range}, n_grid={self.n_grid}, "
-            f"dx={self.dx}, dt={self.dt}, n_obs={self.n_obs}, step_size={self.step_size}, method={self.method!r}"
-        )

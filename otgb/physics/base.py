@@ -1,10 +1,15 @@
 """The physics layer: one abstraction for the incomplete model f_p and the DGP.
 
 A :class:`PhysicsModel` is a vector field f(t, state, theta) observed on a fixed time grid
-and integrated with torchdiffeq's fixed-step solvers. The data-generating process is the
-same model with named :class:`Term` objects added to the field (``with_hidden_effect``):
-DGP = f_p + sum of terms, each term carrying its own latent physics parameters theta'
-(paper, Evaluation: f_c = f_q o f_p with latent theta').
+and integrated with torchdiffeq's fixed-step solvers. A system declares the names of its
+state components (``state_names``), which of them are observed (``observed``) and the names
+of its parameters (``theta_names``); its constructor takes one :class:`Prior` per parameter
+(and, for an ODE, per state component), from which theta and the initial state are drawn.
+:class:`FieldModel` is the base of fields on a uniform grid (PDEs by the method of lines).
+
+The data-generating process is the same model with named :class:`Term` objects added to the
+field (``with_hidden_effect``): DGP = f_p + sum of terms, each term carrying its own latent
+physics parameters theta' (paper, Evaluation: f_c = f_q o f_p with latent theta').
 
 Shapes: state (B, *state_shape), theta (B, P), observed trajectory (B, T, *obs_shape).
 """
@@ -13,52 +18,75 @@ from __future__ import annotations
 
 import copy
 import math
+import numbers
+from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
+from typing import ClassVar
 
 import torch
 from torch import Tensor, nn
 from torchdiffeq import odeint
 
-from otgb.physics.priors import Prior
+from otgb.errors import InputError
+from otgb.physics.arguments import RecordsInitArgs, invalid
+from otgb.physics.priors import Prior, check_prior, sample_joint
+from otgb.physics.stencils import central_difference, laplacian
 
 VectorField = Callable[[Tensor, Tensor], Tensor]
+
+FIXED_STEP_METHODS = ("euler", "midpoint", "heun2", "heun3", "rk4", "explicit_adams", "implicit_adams", "fixed_adams")
+BOUNDARIES = ("dirichlet", "periodic")
+
+
+def _check_declarations(cls: type[PhysicsModel]) -> None:
+    """Validate a system's declared names once, when its class is created."""
+    if getattr(cls, "state_names", None) is None:
+        return  # an abstract base such as FieldModel
+    if "observed" in cls.__dict__:
+        cls._observed_by_default = False
+    elif getattr(cls, "_observed_by_default", True):  # no class declared it: all of this class's states
+        cls.observed, cls._observed_by_default = cls.state_names, True
+    for attr in ("state_names", "observed", "theta_names"):
+        names = getattr(cls, attr, None)
+        if names is None:
+            raise TypeError(f"{cls.__name__} declares state_names but no {attr}")
+        if isinstance(names, str) or not isinstance(names, (tuple, list)) or not all(isinstance(n, str) for n in names):
+            raise TypeError(f"{cls.__name__}.{attr} must be a tuple of names (str), got {names!r}")
+        if len(set(names)) != len(names):
+            raise TypeError(f"{cls.__name__}.{attr} repeats a name: {tuple(names)}")
+        setattr(cls, attr, tuple(names))
+    if not cls.state_names or not cls.observed:
+        raise TypeError(f"{cls.__name__}: state_names and observed need at least one name")
+    unknown = [name for name in cls.observed if name not in cls.state_names]
+    if unknown:
+        raise TypeError(f"{cls.__name__}.observed names {unknown}, which are not in state_names {cls.state_names}")
+    if list(cls.observed) != [name for name in cls.state_names if name in cls.observed]:
+        raise TypeError(f"{cls.__name__}.observed {cls.observed} must follow the order of state_names {cls.state_names}")
+    shared = sorted(set(cls.theta_names) & set(cls.state_names))
+    if shared:
+        raise TypeError(f"{cls.__name__}: {shared} named both in theta_names and in state_names; each name must be unique")
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _is_integer(value: object) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
 class SimulationDiverged(FloatingPointError):
     """A solve produced NaN or Inf."""
 
 
-class Term(nn.Module):
-    """A named additive term of a vector field with its own latent parameters.
-
-    ``priors`` maps each parameter name to the prior it is drawn from, once per trajectory.
-    ``forward(state, params, model)`` returns the term's contribution to d(state)/dt, with params
-    of shape (B, len(priors)) in the order of ``priors``; ``model`` is the physics model the term
-    is part of (spatial terms read its grid: ``dx``, ``boundary``).
-    """
-
-    def __init__(self, priors: dict[str, Prior]) -> None:
-        super().__init__()
-        self.priors = dict(priors)
-
-    @property
-    def n_params(self) -> int:
-        return len(self.priors)
-
-    def sample_params(self, n: int, generator: torch.Generator) -> Tensor:
-        columns = [prior.sample(n, generator) for prior in self.priors.values()]
-        return torch.stack(columns, dim=-1) if columns else torch.zeros(n, 0)
-
-    def extra_repr(self) -> str:
-        return ", ".join(f"{name}={prior!r}" for name, prior in self.priors.items())
-
-
-class PhysicsModel(nn.Module):
+class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
     """A simulator: vector field, observation, priors and a batched fixed-step solve.
 
-    Subclasses define ``state_shape``, ``obs_shape``, ``theta_names``, :meth:`field`
-    (the known physics f_p), :meth:`observe`, :meth:`sample_theta` and
-    :meth:`sample_initial_state`.
+    A subclass declares ``state_names``, ``observed`` (default: all of ``state_names``) and
+    ``theta_names``, takes a :class:`Prior` argument named after each entry of ``theta_names``
+    and ``state_names`` (or overrides :meth:`sample_theta` / :meth:`sample_initial_state`),
+    and writes :meth:`field`, the known physics f_p. Its constructor's arguments are recorded
+    and make its ``repr``, the key of cached data sets.
 
     Args:
         dt: time between two observations.
@@ -70,9 +98,13 @@ class PhysicsModel(nn.Module):
         hidden_effect: terms added to f_p; empty for f_p itself.
     """
 
-    state_shape: tuple[int, ...]
-    obs_shape: tuple[int, ...]
-    theta_names: tuple[str, ...]
+    state_names: ClassVar[tuple[str, ...]]
+    observed: ClassVar[tuple[str, ...]]
+    theta_names: ClassVar[tuple[str, ...]]
+
+    def __init_subclass__(cls, **kwargs: object) -> None:
+        super().__init_subclass__(**kwargs)
+        _check_declarations(cls)
 
     def __init__(
         self,
@@ -84,27 +116,58 @@ class PhysicsModel(nn.Module):
         hidden_effect: Sequence[Term] = (),
     ) -> None:
         super().__init__()
-        if dt <= 0 or n_obs < 1:
-            raise ValueError(f"{type(self).__name__}: need dt > 0 and n_obs >= 1, got dt={dt}, n_obs={n_obs}")
-        self.dt, self.n_obs, self.include_initial = float(dt), int(n_obs), include_initial
+        if getattr(type(self), "state_names", None) is None or getattr(type(self), "theta_names", None) is None:
+            raise TypeError(f"{type(self).__name__} must declare the class attributes state_names and theta_names")
+        if not (_is_number(dt) and dt > 0):
+            raise invalid(self, "dt", dt, "a positive number")
+        if not (_is_integer(n_obs) and n_obs >= 1):
+            raise invalid(self, "n_obs", n_obs, "an integer >= 1")
+        if method not in FIXED_STEP_METHODS:
+            raise invalid(self, "method", method, f"one of torchdiffeq's fixed-step methods {', '.join(FIXED_STEP_METHODS)}")
+        self.dt, self.n_obs, self.include_initial = float(dt), int(n_obs), bool(include_initial)
         self.step_size = self._checked_step(step_size if step_size is not None else dt)
         self.method = method
-        self.terms = nn.ModuleList(hidden_effect)
+        self.terms = nn.ModuleList(self._checked_terms(hidden_effect))
+        self._check_priors()
 
     # --- to be defined by each system -------------------------------------------------
+    @abstractmethod
     def field(self, state: Tensor, theta: Tensor) -> Tensor:
         """The known physics f_p(state, theta), shape of ``state``."""
-        raise NotImplementedError
+
+    # --- declared, with defaults --------------------------------------------------------
+    @property
+    def state_shape(self) -> tuple[int, ...]:
+        """Shape of one state: (number of state components,) for an ODE."""
+        return (len(self.state_names),)
+
+    @property
+    def obs_shape(self) -> tuple[int, ...]:
+        """Shape of one observation: the observed components over the rest of the state's axes."""
+        return (len(self.observed), *self.state_shape[1:])
+
+    @property
+    def priors(self) -> dict[str, Prior]:
+        """The priors of theta and of the state components that the constructor took, by name."""
+        return {name: self.init_args[name] for name in (*self.theta_names, *self.state_names) if name in self.init_args}
 
     def observe(self, state: Tensor) -> Tensor:
-        """Observation of states (..., *state_shape) -> (..., *obs_shape)."""
-        raise NotImplementedError
+        """The ``observed`` components of states (..., *state_shape) -> (..., *obs_shape)."""
+        if self.observed == self.state_names:
+            return state
+        axis = -len(self.state_shape)
+        index = [self.state_names.index(name) for name in self.observed]
+        if index == list(range(index[0], index[0] + len(index))):
+            return state.narrow(axis, index[0], len(index))
+        return state.index_select(axis, torch.tensor(index, device=state.device))
 
     def sample_theta(self, n: int, generator: torch.Generator) -> Tensor:
-        raise NotImplementedError
+        """theta (n, P) from the priors named in ``theta_names`` (one joint uniform draw)."""
+        return sample_joint([self.priors[name] for name in self.theta_names], n, generator)
 
     def sample_initial_state(self, n: int, generator: torch.Generator) -> Tensor:
-        raise NotImplementedError
+        """Initial states (n, S) from the priors named in ``state_names`` (one joint uniform draw)."""
+        return sample_joint([self.priors[name] for name in self.state_names], n, generator)
 
     # --- the learned correction's slot ------------------------------------------------
     @property
@@ -138,18 +201,47 @@ class PhysicsModel(nn.Module):
         return torch.arange(n, device=device, dtype=torch.float32) * self.dt
 
     def with_hidden_effect(self, terms: Sequence[Term], step_size: float | None = None) -> PhysicsModel:
-        """A copy of this model with ``terms`` added to its field (and optionally a finer step)."""
+        """A copy of this model with ``terms`` added to its field (and optionally a finer step).
+
+        The copy's recorded arguments (its repr) show the added terms and the step.
+        """
         model = copy.deepcopy(self)
-        model.terms = nn.ModuleList([*self.terms, *copy.deepcopy(list(terms))])
+        model.terms = nn.ModuleList([*model.terms, *self._checked_terms(copy.deepcopy(list(terms)))])
+        model.init_args = {**model.init_args, "hidden_effect": tuple(model.terms)}
         if step_size is not None:
             model.step_size = model._checked_step(step_size)
+            model.init_args["step_size"] = model.step_size
         return model
 
     def _checked_step(self, step_size: float) -> float:
         """A solver step that is positive and divides the observation interval dt."""
-        if not step_size > 0 or abs(self.dt / step_size - round(self.dt / step_size)) > 1e-6:
-            raise ValueError(f"{type(self).__name__}: step_size={step_size} must be positive and divide dt={self.dt}")
+        if not (_is_number(step_size) and step_size > 0) or abs(self.dt / step_size - round(self.dt / step_size)) > 1e-6:
+            raise invalid(self, "step_size", step_size, f"a positive step that divides dt={self.dt}")
         return float(step_size)
+
+    def _checked_terms(self, terms: Sequence[Term]) -> list[Term]:
+        if isinstance(terms, (Term, str)) or not isinstance(terms, Sequence):
+            raise invalid(self, "hidden_effect", terms, "a list of otgb.physics.Term objects")
+        for i, term in enumerate(terms):
+            if not isinstance(term, Term):
+                raise invalid(self, f"hidden_effect[{i}]", term, "an otgb.physics.Term")
+            term.check_model(self)
+        return list(terms)
+
+    def _check_priors(self) -> None:
+        """The default samplers need a Prior argument named after each parameter / state component."""
+        cls = type(self)
+        needed = [*(cls.theta_names if cls.sample_theta is PhysicsModel.sample_theta else ())]
+        needed += cls.state_names if cls.sample_initial_state is PhysicsModel.sample_initial_state else ()
+        for name in needed:
+            if name not in self.init_args:
+                raise TypeError(
+                    f"{cls.__name__} draws {name!r} from its prior, but its constructor has no argument {name!r}; "
+                    "add one (a Prior) or override sample_theta / sample_initial_state"
+                )
+        for name in (*cls.theta_names, *cls.state_names):
+            if name in self.init_args:
+                check_prior(self, name, self.init_args[name])
 
     def sample_effect_params(self, n: int, generator: torch.Generator) -> Tensor:
         """Latent parameters theta' of every term, (n, effect_dim), drawn once per trajectory."""
@@ -184,19 +276,118 @@ class PhysicsModel(nn.Module):
         name = type(self).__name__
         batch = initial_state.shape[0]
         if tuple(initial_state.shape[1:]) != tuple(self.state_shape):
-            raise ValueError(
+            raise InputError(
                 f"{name}.simulate: initial state has shape {tuple(initial_state.shape)}, "
                 f"expected (B, {', '.join(map(str, self.state_shape))})"
             )
         if tuple(theta.shape) != (batch, self.theta_dim):
-            raise ValueError(
+            raise InputError(
                 f"{name}.simulate: theta has shape {tuple(theta.shape)}, "
                 f"expected ({batch}, {self.theta_dim}) for {self.theta_names}"
             )
         needed = self.effect_dim
         if needed and (effect_params is None or tuple(effect_params.shape) != (batch, needed)):
             got = None if effect_params is None else tuple(effect_params.shape)
-            raise ValueError(f"{name}.simulate: hidden-effect parameters have shape {got}, expected ({batch}, {needed})")
+            raise InputError(f"{name}.simulate: hidden-effect parameters have shape {got}, expected ({batch}, {needed})")
+
+
+class FieldModel(PhysicsModel):
+    """A field on a uniform grid (a PDE by the method of lines): state (channels, *grid_shape).
+
+    The channels are the declared ``state_names``. Spatial terms (:class:`Advection`, ...) act
+    only on a FieldModel and read its grid: :meth:`laplacian` and :meth:`derivative` apply the
+    finite-difference stencils with its spacing and boundary. A field draws its initial state
+    itself (a profile, a random field): :meth:`sample_initial_state` is abstract here.
+
+    Args:
+        grid_shape: points per spatial axis, at least 3 on each.
+        dx: grid spacing, the same on every axis.
+        boundary: "dirichlet" (the field is zero one step outside the grid) or "periodic".
+        dt: time between two frames.
+        n_obs: number of frames.
+        include_initial: whether the frame at t = 0 is part of the trajectory.
+        step_size: solver step; defaults to ``dt``. Must divide ``dt``.
+        method: a torchdiffeq fixed-grid method ("rk4", "euler", "midpoint", ...).
+        hidden_effect: terms added to f_p; empty for f_p itself.
+    """
+
+    def __init__(
+        self,
+        grid_shape: Sequence[int],
+        dx: float,
+        boundary: str,
+        dt: float,
+        n_obs: int,
+        include_initial: bool = True,
+        step_size: float | None = None,
+        method: str = "rk4",
+        hidden_effect: Sequence[Term] = (),
+    ) -> None:
+        if not (isinstance(grid_shape, Sequence) and len(grid_shape) > 0 and all(_is_integer(n) and n >= 3 for n in grid_shape)):
+            raise invalid(self, "grid_shape", grid_shape, "one integer >= 3 per spatial axis")
+        if not (_is_number(dx) and dx > 0):
+            raise invalid(self, "dx", dx, "a positive number")
+        if boundary not in BOUNDARIES:
+            raise invalid(self, "boundary", boundary, f"one of {', '.join(map(repr, BOUNDARIES))}")
+        # set before PhysicsModel.__init__, which checks the hidden-effect terms against the grid
+        self.grid_shape, self.dx, self.boundary = tuple(int(n) for n in grid_shape), float(dx), boundary
+        super().__init__(dt, n_obs, include_initial, step_size, method, hidden_effect)
+
+    @property
+    def state_shape(self) -> tuple[int, ...]:
+        return (len(self.state_names), *self.grid_shape)
+
+    @property
+    def spatial_dims(self) -> int:
+        return len(self.grid_shape)
+
+    def laplacian(self, u: Tensor) -> Tensor:
+        """The 3/5/...-point Laplacian over the trailing ``spatial_dims`` axes of u."""
+        return laplacian(u, self.dx, self.boundary, dims=self.spatial_dims)
+
+    def derivative(self, u: Tensor, axis: int = -1) -> Tensor:
+        """du/ds along a spatial ``axis`` (negative) by central differences."""
+        return central_difference(u, self.dx, self.boundary, axis)
+
+    @abstractmethod
+    def sample_initial_state(self, n: int, generator: torch.Generator) -> Tensor:
+        """Initial fields (n, *state_shape)."""
+
+
+class Term(RecordsInitArgs, nn.Module, ABC):
+    """A named additive term of a vector field with its own latent parameters.
+
+    ``priors`` maps each parameter name to the prior it is drawn from, once per trajectory.
+    ``forward(state, params, model)`` returns the term's contribution to d(state)/dt, with params
+    of shape (B, len(priors)) in the order of ``priors``; ``model`` is the physics model the term
+    is part of. ``model_type`` is the kind of model the term needs (:class:`FieldModel` for
+    spatial terms), checked by :meth:`check_model` when the term is added to a model.
+    """
+
+    model_type: ClassVar[type[PhysicsModel]] = PhysicsModel
+
+    def __init__(self, priors: dict[str, Prior]) -> None:
+        super().__init__()
+        self.priors = {name: check_prior(self, name, prior) for name, prior in priors.items()}
+
+    @abstractmethod
+    def forward(self, state: Tensor, params: Tensor, model: PhysicsModel) -> Tensor:
+        """d(state)/dt of this term for states (B, *state_shape) and its parameters (B, n_params)."""
+
+    def check_model(self, model: PhysicsModel) -> None:
+        """Raise InputError if this term cannot act on ``model``."""
+        if not isinstance(model, self.model_type):
+            raise InputError(
+                f"{type(self).__name__} acts on an otgb.physics.{self.model_type.__name__}; {type(model).__name__} is not one"
+            )
+
+    @property
+    def n_params(self) -> int:
+        return len(self.priors)
+
+    def sample_params(self, n: int, generator: torch.Generator) -> Tensor:
+        columns = [prior.sample(n, generator) for prior in self.priors.values()]
+        return torch.stack(columns, dim=-1) if columns else torch.zeros(n, 0)
 
 
 def raise_if_diverged(trajectories: Tensor, where: str, theta: Tensor) -> None:
@@ -210,16 +401,3 @@ def raise_if_diverged(trajectories: Tensor, where: str, theta: Tensor) -> None:
         f"{where}: the solve produced NaN/Inf in {bad.numel()} of {len(finite)} trajectories "
         f"(first: index {first}, theta={theta[first].tolist()}); reduce the step size or check the parameters"
     )
-
-
-def uniform_box(low: Sequence[float], high: Sequence[float], n: int, generator: torch.Generator) -> Tensor:
-    """(n, len(low)) samples of independent uniforms on [low_i, high_i]."""
-    low_t, high_t = torch.tensor(low, dtype=torch.float32), torch.tensor(high, dtype=torch.float32)
-    return low_t + (high_t - low_t) * torch.rand(n, len(low), generator=generator)
-
-
-def check_range(name: str, bounds: Sequence[float]) -> tuple[float, float]:
-    """Validate a (low, high) pair from a config."""
-    if len(bounds) != 2 or not (math.isfinite(bounds[0]) and math.isfinite(bounds[1])) or bounds[0] > bounds[1]:
-        raise ValueError(f"{name} must be a finite (low, high) pair with low <= high, got {list(bounds)}")
-    return float(bounds[0]), float(bounds[1])

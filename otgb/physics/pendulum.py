@@ -10,27 +10,36 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
+from jsonargparse import lazy_instance
 from torch import Tensor
 
-from otgb.physics.base import PhysicsModel, Term, check_range, uniform_box
+from otgb.physics.base import PhysicsModel, Term
+from otgb.physics.priors import Constant, Prior, Uniform
 
 
 class Pendulum(PhysicsModel):
     """Frictionless pendulum observed through its angle, 50 points at dt = 0.1 by default.
 
     Args:
-        omega_range: prior U(low, high) of the natural frequency omega.
-        angle_range: prior U(low, high) of the initial angle; the initial velocity is 0.
+        omega: prior of the natural frequency omega (rad/s), drawn once per trajectory.
+        angle: prior of the initial angle (rad).
+        velocity: prior of the initial angular velocity (rad/s); at rest by default.
+        dt: time between two observations.
+        n_obs: number of observations, the first at t = 0.
+        step_size: solver step, a divisor of dt; defaults to dt.
+        method: a torchdiffeq fixed-step method ("rk4", "euler", "midpoint", ...).
+        hidden_effect: terms added to f_p; empty for f_p (the data module adds the DGP's).
     """
 
-    state_shape = (2,)
-    obs_shape = (1,)
+    state_names = ("angle", "velocity")
+    observed = ("angle",)
     theta_names = ("omega",)
 
     def __init__(
         self,
-        omega_range: tuple[float, float] = (0.785, 3.14),
-        angle_range: tuple[float, float] = (-1.57, 1.57),
+        omega: Prior = lazy_instance(Uniform, low=0.785, high=3.14),
+        angle: Prior = lazy_instance(Uniform, low=-1.57, high=1.57),
+        velocity: Prior = lazy_instance(Constant, value=0.0),
         dt: float = 0.1,
         n_obs: int = 50,
         step_size: float | None = None,
@@ -38,23 +47,11 @@ class Pendulum(PhysicsModel):
         hidden_effect: Sequence[Term] = (),
     ) -> None:
         super().__init__(dt, n_obs, True, step_size, method, hidden_effect)
-        self.omega_range = check_range("Pendulum.omega_range", omega_range)
-        self.angle_range = check_range("Pendulum.angle_range", angle_range)
 
     def field(self, state: Tensor, theta: Tensor) -> Tensor:
         angle, velocity = state[:, 0], state[:, 1]
         omega = theta[:, 0]
         return torch.stack([velocity, -(omega**2) * torch.sin(angle)], dim=1)
-
-    def observe(self, state: Tensor) -> Tensor:
-        return state[..., :1]
-
-    def sample_theta(self, n: int, generator: torch.Generator) -> Tensor:
-        return uniform_box([self.omega_range[0]], [self.omega_range[1]], n, generator)
-
-    def sample_initial_state(self, n: int, generator: torch.Generator) -> Tensor:
-        angle = uniform_box([self.angle_range[0]], [self.angle_range[1]], n, generator)
-        return torch.cat([angle, torch.zeros_like(angle)], dim=1)
 
     @property
     def correction_shape(self) -> tuple[int, ...]:
@@ -67,9 +64,3 @@ class Pendulum(PhysicsModel):
         """Mechanical energy per unit inertia, 0.5 v^2 + omega^2 (1 - cos angle); (..., ) shape."""
         omega = theta[:, 0].reshape(-1, *([1] * (state.dim() - 2)))
         return 0.5 * state[..., 1] ** 2 + omega**2 * (1 - torch.cos(state[..., 0]))
-
-    def extra_repr(self) -> str:
-        return (
-            f"omega_range={self.omega_range}, angle_range={self.angle_range}, dt={self.dt}, "
-            f"n_obs={self.n_obs}, step_size={self.step_size}, method={self.method!r}"
-        )

@@ -1,69 +1,99 @@
 """Scalar priors that sample with an explicit ``torch.Generator``.
 
 ``torch.distributions`` cannot take a generator, and every otgb data set must be a pure
-function of its seed, so the few distributions the physics layer needs live here.
+function of its seed, so the few distributions the physics layer needs live here. A prior is
+a configurable object: ``{class_path: otgb.physics.Uniform, init_args: {low: 1, high: 2}}``
+in a config; its repr shows its arguments (data sets are cached under it).
 """
 
 from __future__ import annotations
 
+import math
+from abc import ABC, abstractmethod
 from collections.abc import Sequence
 
 import torch
 from torch import Tensor
 
+from otgb.physics.arguments import RecordsInitArgs, invalid
 
-class Prior:
-    """A distribution over one scalar; ``sample(n, generator)`` returns shape (n,)."""
 
-    def sample(self, n: int, generator: torch.Generator) -> Tensor:
-        raise NotImplementedError
+class Prior(RecordsInitArgs, ABC):
+    """A distribution over one scalar, given by its quantile function (inverse CDF).
+
+    ``sample(n, generator)`` returns shape (n,); a constant prior draws no random numbers.
+    """
+
+    @abstractmethod
+    def quantile(self, u: Tensor) -> Tensor:
+        """The values at cumulative probabilities ``u`` in [0, 1), same shape as ``u``."""
 
     @property
     def is_constant(self) -> bool:
         return False
 
+    def sample(self, n: int, generator: torch.Generator) -> Tensor:
+        if self.is_constant:
+            return self.quantile(torch.zeros(n))
+        return self.quantile(torch.rand(n, generator=generator))
+
 
 class Constant(Prior):
-    """The point mass at ``value``."""
+    """The point mass at ``value``.
+
+    Args:
+        value: the value every draw takes.
+    """
 
     def __init__(self, value: float) -> None:
+        if not _finite(value):
+            raise invalid(self, "value", value, "a finite number")
         self.value = float(value)
 
-    def sample(self, n: int, generator: torch.Generator) -> Tensor:
-        return torch.full((n,), self.value)
+    def quantile(self, u: Tensor) -> Tensor:
+        return torch.full_like(u, self.value)
 
     @property
     def is_constant(self) -> bool:
         return True
 
-    def __repr__(self) -> str:
-        return f"Constant({self.value!r})"
-
 
 class Uniform(Prior):
-    """U(low, high)."""
+    """U(low, high).
+
+    Args:
+        low: lower end of the interval.
+        high: upper end of the interval, above ``low``.
+    """
 
     def __init__(self, low: float, high: float) -> None:
-        if not high > low:
-            raise ValueError(f"Uniform prior needs low < high, got low={low}, high={high}")
+        if not (_finite(low) and _finite(high) and high > low):
+            raise invalid(self, "(low, high)", (low, high), "finite numbers with low < high")
         self.low, self.high = float(low), float(high)
 
-    def sample(self, n: int, generator: torch.Generator) -> Tensor:
-        return self.low + (self.high - self.low) * torch.rand(n, generator=generator)
-
-    def __repr__(self) -> str:
-        return f"Uniform({self.low!r}, {self.high!r})"
+    def quantile(self, u: Tensor) -> Tensor:
+        low, high = torch.tensor(self.low), torch.tensor(self.high)
+        return low + (high - low) * u
 
 
 class Choice(Prior):
-    """One of ``values``, each equally likely (a mixture of point masses)."""
+    """One of ``values``, each equally likely (a mixture of point masses).
+
+    Args:
+        values: the possible values, at least one.
+    """
 
     def __init__(self, values: Sequence[float]) -> None:
-        if len(values) == 0:
-            raise ValueError("Choice prior needs at least one value")
+        if isinstance(values, (str, bytes)) or len(values) == 0 or not all(_finite(v) for v in values):
+            raise invalid(self, "values", values, "a non-empty list of finite numbers")
         self.values = [float(v) for v in values]
 
+    def quantile(self, u: Tensor) -> Tensor:
+        index = (u * len(self.values)).long().clamp(max=len(self.values) - 1)
+        return torch.tensor(self.values)[index]
+
     def sample(self, n: int, generator: torch.Generator) -> Tensor:
+        """Uniform indices from ``torch.randint`` (the draws of hidden-effect terms since the first data sets)."""
         index = torch.randint(len(self.values), (n,), generator=generator)
         return torch.tensor(self.values)[index]
 
@@ -71,5 +101,31 @@ class Choice(Prior):
     def is_constant(self) -> bool:
         return len(set(self.values)) == 1
 
-    def __repr__(self) -> str:
-        return f"Choice({self.values!r})"
+
+def sample_joint(priors: Sequence[Prior], n: int, generator: torch.Generator) -> Tensor:
+    """(n, len(priors)) independent draws: one (n, k) uniform draw for the k random priors.
+
+    Each random prior maps its column through its quantile function; constant priors draw
+    nothing. One joint draw (not one per prior) keeps the generator's order of a box of
+    uniforms, ``low + (high - low) * torch.rand(n, k)``.
+    """
+    random = [i for i, prior in enumerate(priors) if not prior.is_constant]
+    u = torch.rand(n, len(random), generator=generator) if random else None
+    columns = [
+        prior.quantile(u[:, random.index(i)] if i in random else torch.zeros(n))  # type: ignore[index]
+        for i, prior in enumerate(priors)
+    ]
+    return torch.stack(columns, dim=-1) if columns else torch.zeros(n, 0)
+
+
+def _finite(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def check_prior(owner: object, name: str, value: object) -> Prior:
+    """``value`` if it is a Prior, else an InputError naming ``owner``'s argument ``name``."""
+    if not isinstance(value, Prior):
+        raise invalid(owner, name, value, "a Prior (otgb.physics.Uniform, Constant or Choice)")
+    if hasattr(value, "lazy_get_init_data"):
+        value.quantile(torch.zeros(0))  # a jsonargparse lazy_instance default: its first method call runs its __init__
+    return value

@@ -21,28 +21,36 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
+from jsonargparse import lazy_instance
 from torch import Tensor
 
-from otgb.physics.base import PhysicsModel, Term, check_range, uniform_box
-from otgb.physics.stencils import laplacian
+from otgb.physics.arguments import invalid
+from otgb.physics.base import FieldModel, Term
+from otgb.physics.priors import Prior, Uniform
 
 
-class ReactionDiffusion(PhysicsModel):
+class ReactionDiffusion(FieldModel):
     """FitzHugh-Nagumo's known part on a periodic square grid, 15 frames at dt = 0.1 by default.
 
     Args:
-        a_range, b_range: priors U(low, high) of the diffusion coefficients of u and v.
+        a: prior of the diffusion coefficient a of u, drawn once per trajectory.
+        b: prior of the diffusion coefficient b of v, drawn once per trajectory.
         u_reaction: whether f_p knows the u-reaction u - u^3 - v (see the module docstring).
-        n_grid: grid points per side of [-1, 1]^2.
+        n_grid: grid points per side of [-1, 1]^2, at least 3; dx = 2 / n_grid.
+        dt: time between two frames.
+        n_obs: number of frames, the first at t = dt.
+        step_size: solver step, a divisor of dt; defaults to dt.
+        method: a torchdiffeq fixed-step method ("rk4", "euler", "midpoint", ...).
+        hidden_effect: terms added to f_p; empty for f_p (the data module adds the DGP's).
     """
 
+    state_names = ("u", "v")
     theta_names = ("a", "b")
-    boundary = "periodic"
 
     def __init__(
         self,
-        a_range: tuple[float, float] = (1e-3, 2e-3),
-        b_range: tuple[float, float] = (3e-3, 7e-3),
+        a: Prior = lazy_instance(Uniform, low=1e-3, high=2e-3),
+        b: Prior = lazy_instance(Uniform, low=3e-3, high=7e-3),
         u_reaction: bool = False,
         n_grid: int = 32,
         dt: float = 0.1,
@@ -51,33 +59,20 @@ class ReactionDiffusion(PhysicsModel):
         method: str = "rk4",
         hidden_effect: Sequence[Term] = (),
     ) -> None:
-        super().__init__(dt, n_obs, False, step_size, method, hidden_effect)
-        if n_grid < 3:
-            raise ValueError(f"ReactionDiffusion: need n_grid >= 3, got {n_grid}")
-        self.a_range = check_range("ReactionDiffusion.a_range", a_range)
-        self.b_range = check_range("ReactionDiffusion.b_range", b_range)
-        self.u_reaction = bool(u_reaction)
-        self.n_grid, self.dx = int(n_grid), 2.0 / n_grid
-        self.state_shape = self.obs_shape = (2, self.n_grid, self.n_grid)
+        if not (isinstance(n_grid, int) and n_grid >= 3):
+            raise invalid(self, "n_grid", n_grid, "an integer >= 3")
+        if not isinstance(u_reaction, bool):
+            raise invalid(self, "u_reaction", u_reaction, "true or false")
+        super().__init__((n_grid, n_grid), 2.0 / n_grid, "periodic", dt, n_obs, False, step_size, method, hidden_effect)
+        self.n_grid, self.u_reaction = n_grid, u_reaction
 
     def field(self, state: Tensor, theta: Tensor) -> Tensor:
-        diffusion = theta.reshape(-1, 2, 1, 1) * laplacian(state, self.dx, self.boundary, dims=2)
+        diffusion = theta.reshape(-1, 2, 1, 1) * self.laplacian(state)
         u, v = state[:, 0], state[:, 1]
         du = diffusion[:, 0] + (u - u**3 - v if self.u_reaction else 0.0)
         dv = diffusion[:, 1] + u - v
         return torch.stack([du, dv], dim=1)
 
-    def observe(self, state: Tensor) -> Tensor:
-        return state
-
-    def sample_theta(self, n: int, generator: torch.Generator) -> Tensor:
-        return uniform_box([self.a_range[0], self.b_range[0]], [self.a_range[1], self.b_range[1]], n, generator)
-
     def sample_initial_state(self, n: int, generator: torch.Generator) -> Tensor:
+        """u(0), v(0) ~ U(0, 1) independently in every cell."""
         return torch.rand(n, *self.state_shape, generator=generator)
-
-    def extra_repr(self) -> str:
-        return (
-            f"a_range={self.a_range}, b_range={self.b_range}, u_reaction={self.u_reaction}, n_grid={self.n_grid}, "
-            f"dt={self.dt}, n_obs={self.n_obs}, step_size={self.step_size}, method={self.method!r}"
-        )

@@ -5,9 +5,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from otgb.physics.base import PhysicsModel, Term
+from otgb.errors import InputError
+from otgb.physics.base import FieldModel, PhysicsModel, Term
 from otgb.physics.priors import Prior
-from otgb.physics.stencils import central_difference
 
 
 class ViscousFriction(Term):
@@ -15,12 +15,17 @@ class ViscousFriction(Term):
 
     Args:
         xi: prior of the friction coefficient, drawn once per trajectory.
-        position_index / velocity_index: where position and velocity sit in the state vector.
+        position_index: where the position sits in the state vector.
+        velocity_index: where the velocity sits in the state vector; the friction acts on it.
     """
 
     def __init__(self, xi: Prior, position_index: int = 0, velocity_index: int = 1) -> None:
         super().__init__({"xi": xi})
         self.position_index, self.velocity_index = position_index, velocity_index
+
+    def check_model(self, model: PhysicsModel) -> None:
+        super().check_model(model)
+        _check_index(self, "velocity_index", self.velocity_index, model)
 
     def forward(self, state: Tensor, params: Tensor, model: PhysicsModel) -> Tensor:
         out = torch.zeros_like(state)
@@ -40,11 +45,13 @@ class Advection(Term):
         beta: prior of the advection speed, drawn once per trajectory.
     """
 
+    model_type = FieldModel
+
     def __init__(self, beta: Prior) -> None:
         super().__init__({"beta": beta})
 
-    def forward(self, state: Tensor, params: Tensor, model: PhysicsModel) -> Tensor:
-        return -_column(params, state) * central_difference(state, _grid_step(model, self), model.boundary)
+    def forward(self, state: Tensor, params: Tensor, model: FieldModel) -> Tensor:
+        return -_column(params, state) * model.derivative(state)
 
 
 class FitzHughNagumoReaction(Term):
@@ -57,6 +64,13 @@ class FitzHughNagumoReaction(Term):
     def __init__(self, k: Prior) -> None:
         super().__init__({"k": k})
 
+    def check_model(self, model: PhysicsModel) -> None:
+        super().check_model(model)
+        if model.state_shape[0] != 2:
+            raise InputError(
+                f"FitzHughNagumoReaction acts on a (u, v) state; {type(model).__name__} has the components {model.state_names}"
+            )
+
     def forward(self, state: Tensor, params: Tensor, model: PhysicsModel) -> Tensor:
         u, v = state[:, 0], state[:, 1]
         reaction = u - u**3 - v - _column(params, u)
@@ -68,12 +82,16 @@ class ConstantDrain(Term):
 
     Args:
         k: prior of the drain rate, drawn once per trajectory.
-        channel: the state channel it acts on.
+        channel: index of the state component (channel) it acts on.
     """
 
     def __init__(self, k: Prior, channel: int = 0) -> None:
         super().__init__({"k": k})
         self.channel = channel
+
+    def check_model(self, model: PhysicsModel) -> None:
+        super().check_model(model)
+        _check_index(self, "channel", self.channel, model)
 
     def forward(self, state: Tensor, params: Tensor, model: PhysicsModel) -> Tensor:
         out = torch.zeros_like(state)
@@ -81,10 +99,11 @@ class ConstantDrain(Term):
         return out
 
 
-def _grid_step(model: PhysicsModel, term: Term) -> float:
-    dx = getattr(model, "dx", None)
-    if dx is None:
-        raise TypeError(
-            f"{type(term).__name__} needs a model with a spatial grid (dx, boundary); {type(model).__name__} has none"
+def _check_index(term: Term, name: str, index: int, model: PhysicsModel) -> None:
+    """``index`` must pick one of the model's state components."""
+    size = len(model.state_names)
+    if not (isinstance(index, int) and 0 <= index < size):
+        raise InputError(
+            f"{type(term).__name__}: {name}={index!r} is invalid; expected an index 0..{size - 1} "
+            f"into the state components {model.state_names} of {type(model).__name__}"
         )
-    return dx
