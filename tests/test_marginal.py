@@ -1,0 +1,84 @@
+"""The energy distance and the marginal evaluation: draws against held-out measurements."""
+
+import math
+
+import pytest
+import torch
+from scipy.spatial.distance import cdist
+
+from otgb.data import generate_joint
+from otgb.metrics.energy import EnergyDistance, batched_energy, energy_distance, energy_per_time
+from otgb.metrics.joint import JointEvaluator, split_half_scores
+from otgb.physics import Pendulum, Uniform, ViscousFriction
+
+
+def test_energy_distance_matches_the_u_statistic_by_hand(generator):
+    p, q = torch.randn(30, 3, generator=generator, dtype=torch.float64), torch.randn(40, 3, generator=generator).double() + 1
+    n, m = len(p), len(q)
+    by_hand = 2 * cdist(p, q).mean() - cdist(p, p).sum() / (n * (n - 1)) - cdist(q, q).sum() / (m * (m - 1))
+    assert float(batched_energy(p[None], q[None])[0]) == pytest.approx(by_hand, rel=1e-7)
+
+
+def test_energy_distance_is_unbiased_and_sees_a_shift(generator):
+    """Equal distributions: 0 on average at any sample size (a V-statistic would sit at ~2 E|X-X'|/n)."""
+    same = torch.stack(
+        [energy_distance(torch.randn(20, 2, generator=generator), torch.randn(20, 2, generator=generator)) for _ in range(400)]
+    )
+    assert abs(float(same.mean())) < 3 * float(same.std()) / math.sqrt(len(same))
+    shifted = energy_distance(torch.randn(200, 2, generator=generator), torch.randn(200, 2, generator=generator) + 1.0)
+    assert shifted > 0.5 > 10 * abs(float(same.mean()))
+
+
+def test_energy_per_time_locates_the_disagreement(generator):
+    """Two samples of trajectories (T=10, C=2) that differ only in component 1 from step 6 on."""
+    p = torch.randn(300, 10, 2, generator=generator)
+    q = torch.randn(300, 10, 2, generator=generator)
+    q[:, 6:, 1] += 1.5
+    cond = torch.zeros(300, 3)
+    per_time = energy_per_time(torch.cat([cond, p.flatten(1)], 1), torch.cat([cond, q.flatten(1)], 1), (10, 2))
+    assert per_time.shape == (10, 2)
+    assert per_time[6:, 1].min() > 10 * per_time[:6].abs().max() and per_time[:, 0].abs().max() < 0.05
+    metric = EnergyDistance(trajectory_shape=(10, 2))
+    metric.update(p.flatten(1), q.flatten(1))
+    assert torch.allclose(metric.compute()["energy_per_time"], energy_per_time(p.flatten(1), q.flatten(1), (10, 2)))
+
+
+@pytest.fixture(scope="module")
+def friction_draws():
+    """Two independent draw sets of the one-to-many friction pendulum on the same 400 inputs."""
+    physics = Pendulum()
+    dgp = physics.with_hidden_effect([ViscousFriction(Uniform(0.6, 1.5))])
+    return generate_joint(physics, dgp, n=400, draws=1, seed=5, split="test")
+
+
+def test_marginal_evaluation_separates_fp_from_the_reference(friction_draws):
+    """Measured: DGP draws of the first 200 inputs; candidates: f_p or DGP draws of 200 other inputs."""
+    measured = {k: v[:200] for k, v in friction_draws.items()}
+    other = {k: v[200:] for k, v in friction_draws.items()}
+    marginal = JointEvaluator((50, 1), inputs=(), paired=False, mmdagg_permutations=200)
+    fp = marginal.evaluate(other["x"].unsqueeze(1), measured, tests=True, candidate=other)
+    same = marginal.evaluate(other["y_ref"], measured, tests=True, candidate=other)
+    reference = split_half_scores(marginal, measured, tests=True, repeats=3)
+    assert "abs_err" not in fp, "nothing is paired in a marginal comparison"
+    assert fp["mmdagg_reject"] == 1 and fp["c2st"] > 0.75 and fp["energy"] > 10 * abs(float(reference["energy"]))
+    assert same["mmdagg_reject"] == 0 and abs(float(same["c2st"]) - 0.5) < 3 * 0.5 / math.sqrt(400)
+    assert reference["mmdagg_reject"] <= 1 / 3 and fp["energy_per_time"].shape == (50, 1)
+    assert fp["energy_per_time"][0, 0] < 0.01 < fp["energy_per_time"][-1, 0], "f_p agrees at t = 0 and drifts away"
+
+
+def test_a_map_that_ignores_theta_is_caught_when_theta_is_recorded(friction_draws):
+    """Right marginal, wrong conditional: the draws of other inputs, given to these thetas."""
+    data = friction_draws
+    ignores_theta = data["y_ref"][torch.randperm(400, generator=torch.Generator().manual_seed(0))]
+    marginal = JointEvaluator((50, 1), inputs=(), paired=False, mmdagg_permutations=200)
+    joint = JointEvaluator((50, 1), inputs=("theta",), paired=True, mmdagg_permutations=200)
+    assert marginal.evaluate(ignores_theta, data, tests=True)["mmdagg_reject"] == 0, "marginally it looks right"
+    caught = joint.evaluate(ignores_theta, data, tests=True)
+    right = joint.evaluate(data["y_ref"], data, tests=True)
+    assert caught["mmdagg_reject"] == 1 and caught["c2st"] > 0.6 and right["mmdagg_reject"] == 0
+    assert "abs_err" not in caught, "x0 not recorded: the pairs are not determined"
+
+
+def test_split_half_scores_need_an_unpaired_evaluator(friction_draws):
+    with pytest.raises(ValueError, match="must be unpaired"):
+        split_half_scores(JointEvaluator((50, 1), inputs=("theta",), paired=True), friction_draws, tests=False)
