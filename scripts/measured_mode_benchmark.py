@@ -1,0 +1,127 @@
+"""Does the measured-data (marginal) mode select as well as the joint mode, and does it tell f_p apart?
+
+Measurements are exported once from a config's DGP (``scripts/export_measured.py``, seed
+``data.seed``, |Y| = ``data.n_measured``) and handed to otgb as a file, with the hidden effect
+removed from the config: otgb is not told the effect. Two experiments:
+
+``selection``: fit the config in joint mode (DGP known) and in marginal mode (the file), same
+budget and seed, each keeping its best checkpoint on its own validation metric; then score
+both selected checkpoints on the joint test set (``otgb test`` with the DGP config) and on the
+file's held-out test part (``otgb test`` in marginal mode).
+
+``separation``: for each config, ``otgb test`` in marginal mode with the untrained map, whose
+report holds the f_p-alone and Reference rows of the marginal metrics.
+
+Every step is skipped when its output exists, and an unfinished fit resumes from its
+``last.ckpt``, so an interrupted benchmark is continued by running the same command again.
+
+    python scripts/measured_mode_benchmark.py selection --config configs/pendulum.yaml --out bench/pendulum
+    python scripts/measured_mode_benchmark.py separation --config configs/*.yaml --out bench/separation
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from itertools import product
+from pathlib import Path
+
+MARGINAL = ["--data.hidden_effect=[]"]
+METRICS = ("abs_err", "nrmse", "mmd", "energy", "c2st", "mmdagg_reject")
+
+
+def otgb(*args: str) -> None:
+    command = [sys.executable, "-m", "otgb.cli", *args]
+    print("+", " ".join(command), flush=True)
+    subprocess.run(command, check=True)
+
+
+def export(config: str, out: Path, record: list[str]) -> Path:
+    path = out / f"measured-{Path(config).stem}{'-' + '-'.join(record) if record else ''}.npz"
+    if not path.exists():
+        script = Path(__file__).with_name("export_measured.py")
+        subprocess.run([sys.executable, str(script), "--config", config, "--out", str(path), "--record", *record], check=True)
+    return path
+
+
+def run_args(out: Path, name: str, config: str) -> list[str]:
+    loggers = ", ".join(
+        f"{{class_path: lightning.pytorch.loggers.{cls}, init_args: {{save_dir: {out}, name: {name}, version: 0}}}}"
+        for cls in ("TensorBoardLogger", "CSVLogger")
+    )
+    return ["--config", config, f"--trainer.logger=[{loggers}]", f"--data.cache_dir={out / 'cache'}"]
+
+
+def fit(out: Path, name: str, config: str, extra: list[str]) -> Path:
+    """Fit (or resume) run ``name``; return its best checkpoint."""
+    run = out / name / "version_0"
+    done = run / "fit.done"
+    if not done.exists():
+        last = run / "checkpoints" / "last.ckpt"
+        resume = [f"--ckpt_path={last}"] if last.exists() else []
+        otgb("fit", *run_args(out, name, config), *extra, *resume)
+        done.write_text("finished\n")
+    return next((run / "checkpoints").glob("best-*.ckpt"))
+
+
+def test(out: Path, name: str, config: str, extra: list[str], ckpt: Path | None) -> dict:
+    report = out / name / "version_0" / "metrics.json"
+    if not report.exists():
+        otgb("test", *run_args(out, name, config), *extra, *([f"--ckpt_path={ckpt}"] if ckpt else []))
+    return json.loads(report.read_text())
+
+
+def row(labels: list[str], report: dict, source: str = "model") -> str:
+    cells = [report[source].get(m, {}).get("mean") for m in METRICS]
+    return "| " + " | ".join([*labels, *("" if c is None else f"{c:.4g}" for c in cells)]) + " |"
+
+
+def header(labels: list[str]) -> list[str]:
+    return ["| " + " | ".join([*labels, *METRICS]) + " |", "|---" * (len(labels) + len(METRICS)) + "|"]
+
+
+def selection(config: str, out: Path, extra: list[str]) -> None:
+    measured = export(config, out, [])
+    marginal = [*MARGINAL, f"--data.measured_path={measured}"]
+    selected = {"joint": fit(out, "fit-joint", config, extra), "marginal": fit(out, "fit-marginal", config, [*extra, *marginal])}
+    scored_on = {"joint": ("joint test set (DGP known)", extra), "heldout": ("held-out measurements", [*extra, *marginal])}
+    lines = header(["selected by", "scored on"])
+    reports = {}
+    for (mode, ckpt), (on, (where, args)) in product(selected.items(), scored_on.items()):
+        reports[on] = test(out, f"test-{mode}-on-{on}", config, args, ckpt)
+        lines.append(row([f"{mode} mode ({ckpt.name})", where], reports[on]))
+    for on, (where, _) in scored_on.items():  # f_p and the Reference do not depend on the checkpoint
+        lines += [row(["f_p alone", where], reports[on], "fp"), row(["Reference", where], reports[on], "reference")]
+    (out / "selection.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+def separation(configs: list[str], out: Path, extra: list[str]) -> None:
+    lines = header(["config", "source"])
+    for config in configs:
+        name = Path(config).stem
+        measured = export(config, out, [])
+        report = test(out, f"separation-{name}", config, [*extra, *MARGINAL, f"--data.measured_path={measured}"], None)
+        lines += [row([name, "f_p alone"], report, "fp"), row([name, "Reference"], report, "reference")]
+        (out / "separation.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("experiment", choices=["selection", "separation"])
+    parser.add_argument("--config", nargs="+", required=True)
+    parser.add_argument("--out", type=Path, required=True)
+    args, extra = parser.parse_known_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    if args.experiment == "selection":
+        for config in args.config:
+            selection(config, args.out / Path(config).stem if len(args.config) > 1 else args.out, extra)
+    else:
+        separation(args.config, args.out, extra)
+
+
+if __name__ == "__main__":
+    main()
