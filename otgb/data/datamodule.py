@@ -173,6 +173,11 @@ class SimulationDataModule(LightningDataModule):
         return batch
 
     @property
+    def selection_metric(self) -> str:
+        """The validation metric ``checkpoint.monitor: auto`` selects on: pointwise error one-to-one, else MMD."""
+        return "val/abs_err" if not self.dgp.is_stochastic else "val/mmd"
+
+    @property
     def simulations(self) -> int:
         """f_p simulations spent on training so far, over all ranks."""
         world = self.trainer.world_size if self.trainer is not None else 1
