@@ -3,33 +3,107 @@
     otgb fit --config configs/pendulum.yaml [--model.gamma 0.5 --trainer.max_steps 2000 ...]
     otgb validate|test --config configs/pendulum.yaml --ckpt_path runs/.../best.ckpt
 
-The data module's f_p is handed to the model at instantiation, and the model's T_max sets
-how many source batches each training item holds. The joint evaluation callback
-(:class:`otgb.callbacks.Evaluation`) is always present; its settings are the config's
-``evaluation:`` section (e.g. ``--evaluation.reference_repeats 10``). ``otgb test`` writes
-``metrics.json`` and ``metrics.md`` into its run directory.
+Every subcommand first loads ``otgb/configs/defaults.yaml`` (trainer, loggers, checkpointing,
+optimisers), then the ``--config`` files in order, then the command-line overrides. The data
+module's f_p is handed to the model at instantiation, and the model's T_max sets how many
+source batches each training item holds. Two callbacks are always present, each with its own
+config section: :class:`otgb.callbacks.Evaluation` (``evaluation:``, e.g.
+``--evaluation.reference_repeats 10``) and a :class:`BestAndLastCheckpoint` (``checkpoint:``, e.g.
+``--checkpoint.monitor val/mmd``). ``otgb test`` writes ``metrics.json`` and ``metrics.md``
+into its run directory. Bad user input (:class:`otgb.errors.InputError`) ends the command
+with one line ``otgb: error: <message>`` and exit status 2.
 """
 
 from __future__ import annotations
 
+import logging
+import shutil
+import sys
 from pathlib import Path
+from typing import Any
 
+from lightning import LightningModule, Trainer
+from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
 
 from otgb.callbacks import Evaluation
 from otgb.data import SimulationDataModule
+from otgb.errors import InputError
 from otgb.training import KernelWeakOT
+
+DEFAULTS = Path(__file__).parent / "configs" / "defaults.yaml"
+AUTO = "auto"  # logger name / checkpoint monitor chosen from the run (see OTGBCLI)
+
+
+class BestAndLastCheckpoint(ModelCheckpoint):
+    """A ModelCheckpoint whose ``save_last`` writes ``last.ckpt`` at every validation, to resume from.
+
+    Lightning 2.6 writes ``last.ckpt`` only at the validations that also save a best checkpoint,
+    which would make it a copy of the best one rather than the latest state.
+    """
+
+    def on_validation_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        super().on_validation_end(trainer, pl_module)
+        skip = self._should_skip_saving_checkpoint(trainer)  # also true when a best checkpoint was just saved
+        if self.save_last is True and not skip and not self._should_save_on_train_epoch_end(trainer):
+            self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
 
 
 class OTGBCLI(LightningCLI):
+    """LightningCLI with otgb's shared defaults, a checkpoint section and two ``auto`` settings.
+
+    - ``trainer.logger[*].init_args.name: auto``: the stem of the last ``--config`` file
+      (``lightning_logs`` without one), so runs go to ``runs/<stem>/version_N``.
+    - ``checkpoint.monitor: auto``: the data module's ``selection_metric``.
+
+    A run that stops on bad input (:class:`InputError`) removes the log directory it made,
+    unless that already holds a checkpoint.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        self.new_log_dirs: list[Path] = []
+        try:
+            super().__init__(*args, **kwargs)
+        except InputError:
+            for log_dir in self.new_log_dirs:
+                if log_dir.is_dir() and not (log_dir / "checkpoints").exists():
+                    shutil.rmtree(log_dir)
+            raise
+
+    def setup_parser(self, add_subcommands: bool, main_kwargs: dict[str, Any], subparser_kwargs: dict[str, Any]) -> None:
+        defaults = {"default_config_files": [str(DEFAULTS)]}
+        if add_subcommands:
+            subparser_kwargs = {name: {**defaults, **subparser_kwargs.get(name, {})} for name in self.subcommands()}
+        else:
+            main_kwargs = {**defaults, **main_kwargs}
+        super().setup_parser(add_subcommands, main_kwargs, subparser_kwargs)
+
     def add_arguments_to_parser(self, parser) -> None:
         parser.link_arguments("model.t_max", "data.batches_per_step")
         parser.link_arguments("data.physics", "model.physics", apply_on="instantiate")
         parser.add_lightning_class_args(Evaluation, "evaluation")
+        parser.add_lightning_class_args(BestAndLastCheckpoint, "checkpoint")
 
     def before_instantiate_classes(self) -> None:
         config = self.config[self.subcommand] if self.subcommand else self.config
-        share_logger_version(config.trainer.logger)
+        name_loggers_after_config(config.trainer.logger, config.get("config"))
+        self.new_log_dirs = share_logger_version(config.trainer.logger)
+
+    def instantiate_classes(self) -> None:
+        super().instantiate_classes()
+        config = self.config[self.subcommand] if self.subcommand else self.config
+        checkpoint = self._get(self.config_init, "checkpoint")
+        if checkpoint.monitor == AUTO:
+            checkpoint.monitor = config.checkpoint.monitor = self.datamodule.selection_metric
+
+
+def name_loggers_after_config(loggers: object, config_files: list | None) -> None:
+    """Replace logger name ``auto`` by the stem of the last config file (``lightning_logs`` without one)."""
+    name = Path(str(config_files[-1])).stem if config_files else "lightning_logs"
+    for logger in loggers if isinstance(loggers, list) else [loggers]:
+        args = getattr(logger, "init_args", None)
+        if args is not None and getattr(args, "name", None) == AUTO:
+            args.name = name
 
 
 def logger_override(save_dir: str, name: str) -> str:
@@ -41,31 +115,40 @@ def logger_override(save_dir: str, name: str) -> str:
     return f"--trainer.logger=[{', '.join(loggers)}]"
 
 
-def share_logger_version(loggers: object) -> None:
+def share_logger_version(loggers: object) -> list[Path]:
     """Give every configured logger that writes to the same <save_dir>/<name> one version.
 
     TensorBoard and CSV loggers each pick the next free ``version_N`` on their own, so the
     second one to start lands in a different folder; this picks N once for all of them.
+    Returns the ``<save_dir>/<name>/version_N`` directories chosen (none of them exists yet).
     """
     if not isinstance(loggers, list):
-        return
+        return []
     groups: dict[Path, list] = {}
     for logger in loggers:
         args = getattr(logger, "init_args", None)
         if args is None or getattr(args, "version", None) is not None or getattr(args, "save_dir", None) is None:
             continue
         groups.setdefault(Path(args.save_dir) / (getattr(args, "name", None) or "lightning_logs"), []).append(args)
+    chosen: dict[Path, int] = {}
     for root, members in groups.items():
         taken = (
             [int(p.name.split("_")[1]) for p in root.glob("version_*") if p.name.split("_")[1].isdigit()] if root.is_dir() else []
         )
-        version = max(taken, default=-1) + 1
+        version = chosen[root] = max(taken, default=-1) + 1
         for args in members:
             args.version = version
+    return [root / f"version_{version}" for root, version in chosen.items()]
 
 
 def main(args: list[str] | None = None) -> None:
-    OTGBCLI(KernelWeakOT, SimulationDataModule, args=args)
+    """Run the ``otgb`` command; bad user input ends it with one line on stderr and status 2."""
+    logging.getLogger("lightning.fabric.utilities.seed").setLevel(logging.WARNING)  # the seed is in config.yaml
+    try:
+        OTGBCLI(KernelWeakOT, SimulationDataModule, args=args)
+    except InputError as error:
+        print(f"otgb: error: {error}", file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 if __name__ == "__main__":

@@ -28,6 +28,7 @@ from lightning.pytorch.cli import LRSchedulerCallable, OptimizerCallable
 from torch import Tensor, nn
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
+from otgb.errors import InputError
 from otgb.ot import KERNELS, critic_loss, kernel_weak_cost
 from otgb.physics.base import PhysicsModel
 
@@ -90,7 +91,7 @@ class KernelWeakOT(LightningModule):
         super().__init__()
         self._check_settings(z_dim, latent, n_z, gamma, t_max, gp_weight, grad_clip)
         if kernel not in KERNELS:
-            raise ValueError(f"model.kernel={kernel!r}: expected one of {sorted(KERNELS)}")
+            raise InputError(f"model.kernel={kernel!r}: expected one of {sorted(KERNELS)}")
         self.save_hyperparameters(
             ignore=[
                 "physics",
@@ -107,7 +108,7 @@ class KernelWeakOT(LightningModule):
         self.transport_map = transport_map(physics, z_dim)
         self.critic = critic(tuple(physics.trajectory_shape))
         if ema_decay is not None and not 0.0 < ema_decay < 1.0:
-            raise ValueError(f"model.ema_decay={ema_decay}: expected a value in (0, 1) or None")
+            raise InputError(f"model.ema_decay={ema_decay}: expected a value in (0, 1) or None")
         self.map_average = (
             AveragedModel(self.transport_map, multi_avg_fn=get_ema_multi_avg_fn(ema_decay)) if ema_decay is not None else None
         )
@@ -127,19 +128,19 @@ class KernelWeakOT(LightningModule):
         z_dim: int, latent: str, n_z: int, gamma: float, t_max: int, gp_weight: float, grad_clip: float | None
     ) -> None:
         if z_dim < 0 or n_z < 1 or t_max < 1:
-            raise ValueError(f"model: need z_dim >= 0, n_z >= 1, t_max >= 1; got z_dim={z_dim}, n_z={n_z}, t_max={t_max}")
+            raise InputError(f"model: need z_dim >= 0, n_z >= 1, t_max >= 1; got z_dim={z_dim}, n_z={n_z}, t_max={t_max}")
         if latent not in LATENTS:
-            raise ValueError(f"model.latent={latent!r}: expected one of {LATENTS}")
+            raise InputError(f"model.latent={latent!r}: expected one of {LATENTS}")
         if latent == "categorical" and z_dim < 2:
-            raise ValueError(f"model.latent='categorical' draws one of z_dim categories: needs z_dim >= 2, got {z_dim}")
+            raise InputError(f"model.latent='categorical' draws one of z_dim categories: needs z_dim >= 2, got {z_dim}")
         if not 0.0 <= gamma <= 1.0:
-            raise ValueError(f"model.gamma={gamma}: expected a value in [0, 1]")
+            raise InputError(f"model.gamma={gamma}: expected a value in [0, 1]")
         if gamma > 0 and n_z < 2:
-            raise ValueError(f"model.gamma={gamma} > 0 needs n_z >= 2 latent draws per source (got n_z={n_z})")
+            raise InputError(f"model.gamma={gamma} > 0 needs n_z >= 2 latent draws per source (got n_z={n_z})")
         if n_z > 1 and z_dim == 0:
-            raise ValueError(f"model.n_z={n_z} draws of a deterministic map (z_dim=0) are all equal: set z_dim > 0 or n_z = 1")
+            raise InputError(f"model.n_z={n_z} draws of a deterministic map (z_dim=0) are all equal: set z_dim > 0 or n_z = 1")
         if gp_weight < 0 or (grad_clip is not None and grad_clip <= 0):
-            raise ValueError(f"model: need gp_weight >= 0 and grad_clip > 0 or None; got {gp_weight}, {grad_clip}")
+            raise InputError(f"model: need gp_weight >= 0 and grad_clip > 0 or None; got {gp_weight}, {grad_clip}")
 
     # --- the map ------------------------------------------------------------------------
     @property

@@ -2,18 +2,24 @@
 
 import csv
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 import torch
+import yaml
+from lightning import Callback
 
 from otgb.cli import OTGBCLI, logger_override, main
 from otgb.data import SimulationDataModule
+from otgb.errors import InputError
 from otgb.training import KernelWeakOT
 
-CONFIG = str(Path(__file__).parents[1] / "configs" / "pendulum.yaml")
+ROOT = Path(__file__).parents[1]
+CONFIG = str(ROOT / "configs" / "pendulum.yaml")
+CONFIGS = sorted((ROOT / "configs").glob("*.yaml"))
 
 
 def _args(tmp_path: Path, *extra: str, config: str = CONFIG) -> list[str]:
@@ -123,7 +129,38 @@ def test_test_subcommand_and_overrides(tmp_path):
 )
 def test_bad_config_value_is_named(tmp_path, override, message):
     with pytest.raises(ValueError, match=message):
-        main(["fit", *_args(tmp_path, *override)])
+        OTGBCLI(KernelWeakOT, SimulationDataModule, args=["fit", *_args(tmp_path, *override)])
+
+
+def _otgb(cwd: Path, *args: str) -> subprocess.CompletedProcess:
+    """``python -m otgb.cli ...`` in ``cwd``, importing this checkout's otgb."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    return subprocess.run([sys.executable, "-m", "otgb.cli", *args], cwd=cwd, env=env, capture_output=True, text=True)
+
+
+def test_bad_input_is_one_line_status_2_and_no_run_directory(tmp_path):
+    done = _otgb(tmp_path, "fit", "--config", CONFIG, "--model.gamma=1.0", f"--data.cache_dir={tmp_path / 'cache'}")
+    assert done.returncode == 2
+    assert done.stderr.splitlines() == ["otgb: error: model.gamma=1.0 > 0 needs n_z >= 2 latent draws per source (got n_z=1)"]
+    assert not (tmp_path / "runs").exists()
+
+
+class BadInputAtSetup(Callback):
+    """Raises InputError once the trainer has started, as a bad measured-data file would."""
+
+    def setup(self, trainer, pl_module, stage) -> None:
+        raise InputError("bad input found at setup")
+
+
+def test_bad_input_after_the_logger_started_removes_its_run_directory(tmp_path, capsys):
+    (tmp_path / "run" / "version_0").mkdir(parents=True)  # an earlier run stays
+    callback = '--trainer.callbacks+={"class_path": "test_cli.BadInputAtSetup"}'
+    with pytest.raises(SystemExit) as exit_info:
+        main(["fit", *_args(tmp_path, callback)])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.splitlines()  # after the trainer started, Lightning's own warnings may come first
+    assert err[-1] == "otgb: error: bad input found at setup" and sum(line.startswith("otgb:") for line in err) == 1
+    assert [p.name for p in (tmp_path / "run").iterdir()] == ["version_0"]
 
 
 def test_console_script_print_config():
@@ -138,6 +175,7 @@ def test_console_script_print_config():
     assert "class_path: otgb.physics.Pendulum" in out
 
 
+@pytest.mark.slow
 def test_one_to_many_config_selects_on_joint_c2st(tmp_path):
     config = str(Path(CONFIG).with_name("pendulum_mm.yaml"))
     evaluation = ["--evaluation.reference_repeats=2", "--evaluation.mmdagg_permutations=200"]
@@ -175,33 +213,82 @@ def test_checkpoint_on_a_test_metric_needs_tests_at_every_validation(tmp_path):
         main(["fit", *_args(tmp_path, "--trainer.max_steps=3", "--evaluation.tests_every=2", config=config)])
 
 
-PDE_RUNS = {  # config: (selection metric, trajectory shape, tiny-run overrides)
-    "advdiff": ("val/abs_err", (50, 1, 20), []),
-    "advdiff_mm": ("val/mmd", (50, 1, 20), ["--data.draws_per_input=3", "--evaluation.mmdagg_permutations=200"]),
-    "reactdiff": ("val/abs_err", (15, 2, 32, 32), ["--data.measured_step_size=0.01"]),
-    "reactdiff_k": ("val/abs_err", (15, 2, 32, 32), ["--data.measured_step_size=0.01"]),
-}
+def _tiny(config: Path, cache: Path) -> list[str]:
+    """Overrides that make any config a seconds-long run: 4 steps, validation at 2 and 4, small sets."""
+    tiny = ["--trainer.enable_progress_bar=false", "--trainer.max_steps=4", "--trainer.val_check_interval=2"]
+    tiny += ["--trainer.log_every_n_steps=1", "--data.batch_size=4", "--data.n_measured=24", "--data.n_val=12"]
+    tiny += ["--data.n_test=12", f"--data.cache_dir={cache}", "--evaluation.reference_repeats=1"]
+    tiny += ["--evaluation.c2st_folds=2", "--evaluation.mmdagg_permutations=200"]
+    data = yaml.safe_load(config.read_text()).get("data") or {}
+    if data.get("measured_step_size") is not None:
+        tiny.append("--data.measured_step_size=0.01")  # the same fields to 2e-6 (README), 10x fewer steps
+    if data.get("draws_per_input", 1) > 1:
+        tiny.append("--data.draws_per_input=2")
+    return tiny
 
 
-@pytest.mark.parametrize("name", sorted(PDE_RUNS))
-def test_pde_config_fits_and_tests(tmp_path, name):
-    """Each PDE config trains through the CLI, logs its fields figure and writes a test report."""
-    monitor, shape, extra = PDE_RUNS[name]
-    tiny = ["--trainer.max_steps=4", "--trainer.val_check_interval=2", "--data.batch_size=4", "--data.n_measured=24"]
-    tiny += ["--data.n_val=12", "--data.n_test=12", "--evaluation.reference_repeats=1", "--evaluation.c2st_folds=2"]
-    config = str(Path(CONFIG).with_name(f"{name}.yaml"))
-    main(["fit", *_args(tmp_path, *tiny, *extra, config=config)])
-    run = tmp_path / "run" / "version_0"
+@pytest.mark.parametrize("config", CONFIGS, ids=lambda path: path.stem)
+def test_config_fits_and_tests(tmp_path, monkeypatch, config):
+    """Every config in configs/ trains and tests through the CLI on a tiny budget, with its own run name."""
+    monkeypatch.chdir(tmp_path)
+    tiny = _tiny(config, tmp_path / "cache")
+    main(["fit", "--config", str(config), *tiny])
+    run = tmp_path / "runs" / config.stem / "version_0"
+    assert {"metrics.csv", "config.yaml", "hparams.yaml"} <= {p.name for p in run.iterdir()}
+    assert list(run.glob("events.out.tfevents.*")), "TensorBoard events next to the CSV log"
+    figures = sorted(p.name.split("_", 1)[1] for p in (run / "figures").iterdir())
+    assert figures == ["step0000002.png", "step0000004.png"]
+    monitor = yaml.safe_load((run / "config.yaml").read_text())["checkpoint"]["monitor"]
+    assert monitor.startswith("val/"), "checkpoint.monitor: auto is resolved in the saved config"
     rows = _rows(run)
-    assert len([r for r in rows if r.get(monitor)]) == 2 and _last(rows, "val/fp_mmd") > 0
-    assert sorted(p.name for p in (run / "figures").iterdir()) == ["fields_step0000002.png", "fields_step0000004.png"]
+    scores = {int(float(r["step"])) + 1: float(r[monitor]) for r in rows if r.get(monitor)}
+    assert sorted(scores) == [2, 4] and _last(rows, "val/fp_mmd") > 0
+    best = [p.name for p in run.glob("checkpoints/best-*.ckpt")]
+    assert best == [f"best-step={min(scores, key=scores.get)}.ckpt"], "the best checkpoint is chosen on the monitor"
     ckpt = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)
-    assert ckpt["global_step"] == 4
-    main(["test", *_args(tmp_path, *tiny, *extra, config=config), f"--ckpt_path={run / 'checkpoints' / 'last.ckpt'}"])
-    report = json.loads((tmp_path / "run" / "version_1" / "metrics.json").read_text())
-    assert report["run"]["n_inputs"] == 12 and report["model"]["c2st"]["mean"] >= 0
+    assert ckpt["global_step"] == 4, "last.ckpt is the latest validation, whether best or not"
+    checkpoints = [state for key, state in ckpt["callbacks"].items() if key.startswith("BestAndLastCheckpoint")]
+    assert [state["monitor"] for state in checkpoints] == [monitor], "the checkpoint used the resolved monitor"
+    main(["test", "--config", str(config), *tiny, f"--ckpt_path={run / 'checkpoints' / 'last.ckpt'}"])
+    report = json.loads((tmp_path / "runs" / config.stem / "version_1" / "metrics.json").read_text())
+    assert report["run"]["n_inputs"] == 12 and report["run"]["global_step"] == 4 and report["model"]["c2st"]["mean"] >= 0
     data = torch.load(next((tmp_path / "cache").glob("test-*.pt")), weights_only=True)
-    assert data["y"].shape[2:] == shape and data["x"].shape[1:] == shape
+    assert data["y"].shape[0] == 12 and data["y"].shape[2:] == data["x"].shape[1:]
+
+
+@pytest.mark.parametrize(
+    "config, override, monitor",
+    [
+        ("pendulum", [], "val/abs_err"),  # deterministic DGP: pointwise error
+        ("advdiff_mm", [], "val/mmd"),  # stochastic DGP: MMD on joint samples
+        ("pendulum", ["--checkpoint.monitor=val/mmd"], "val/mmd"),
+        ("pendulum_mm", [], "val/c2st"),  # set in the task file
+    ],
+)
+def test_checkpoint_monitor_auto_follows_the_measured_process(tmp_path, config, override, monitor):
+    args = _args(tmp_path, *override, config=str(ROOT / "configs" / f"{config}.yaml"))
+    cli = OTGBCLI(KernelWeakOT, SimulationDataModule, run=False, args=args)
+    assert cli.trainer.checkpoint_callback.monitor == monitor and cli.config.checkpoint.monitor == monitor
+    assert cli.datamodule.selection_metric == ("val/mmd" if config != "pendulum" else "val/abs_err")
+    assert cli.trainer.checkpoint_callback.save_last is True and cli.trainer.checkpoint_callback.filename == "best-{step}"
+
+
+def test_own_config_gets_the_defaults_and_names_the_run(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    own = tmp_path / "elsewhere" / "my_pendulum.yaml"
+    own.parent.mkdir()
+    own.write_text(Path(CONFIG).read_text())
+    delta = tmp_path / "slow_critic.yaml"
+    delta.write_text("model:\n  critic_optimizer:\n    init_args: {lr: 1.0e-4}\n")
+    for configs, name in [([own], "my_pendulum"), ([own, delta], "slow_critic")]:
+        args = [arg for path in configs for arg in ("--config", str(path))]
+        cli = OTGBCLI(KernelWeakOT, SimulationDataModule, run=False, args=args)
+        assert cli.model.map_average is not None and cli.model.t_max == 1, "model settings of the defaults file"
+        assert [(logger.name, logger.version) for logger in cli.trainer.loggers] == [(name, 0), (name, 0)]
+        assert Path(cli.trainer.loggers[0].log_dir) == Path("runs") / name / "version_0"
+    assert cli.config.model.critic_optimizer.init_args.lr == 1.0e-4 and cli.config.model.map_optimizer.init_args.lr == 1.0e-3
+    named = OTGBCLI(KernelWeakOT, SimulationDataModule, run=False, args=["--config", str(own), logger_override("logs", "mine")])
+    assert [logger.name for logger in named.trainer.loggers] == ["mine", "mine"], "a logger named by the user keeps its name"
 
 
 def test_categorical_latent_draws_equally_likely_one_hot_codes(tmp_path):

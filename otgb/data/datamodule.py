@@ -253,6 +253,18 @@ class SimulationDataModule(LightningDataModule):
         return batch
 
     @property
+    def selection_metric(self) -> str:
+        """The validation metric ``checkpoint.monitor: auto`` selects on.
+
+        Joint mode: the pointwise error one-to-one, else the MMD. Marginal mode: the energy
+        distance between the map's draws and the held-out measurements (smooth, unbiased, no
+        bandwidth), or its joint version when the file recorded the map's inputs.
+        """
+        if self.mode == "marginal":
+            return "val/joint_energy" if self.recorded_inputs else "val/energy"
+        return "val/abs_err" if not self.dgp.is_stochastic else "val/mmd"
+
+    @property
     def simulations(self) -> int:
         """f_p simulations spent on training so far, over all ranks."""
         world = self.trainer.world_size if self.trainer is not None else 1
