@@ -196,7 +196,7 @@ class Evaluation(Callback):
     @staticmethod
     def mode_facts(datamodule: Any) -> dict[str, Any]:
         """What produced the numbers: the mode, and the measured file and its split when marginal."""
-        facts: dict[str, Any] = {"mode": datamodule.mode, "description": datamodule.describe().removeprefix("otgb: ")}
+        facts: dict[str, Any] = {"mode": datamodule.mode, "description": datamodule.describe()}
         if datamodule.mode == "marginal":
             facts["measured_path"] = datamodule.measured_path
             facts["split"] = {part: len(index) for part, index in datamodule.parts.items()}
