@@ -1,0 +1,130 @@
+"""The measured-data mode through the real `otgb` command: a file in, marginal scores and reports out."""
+
+import csv
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from otgb.cli import logger_override, main
+
+ROOT = Path(__file__).parents[1]
+CONFIG = str(ROOT / "configs" / "pendulum.yaml")
+
+
+def export(tmp_path: Path, name: str, *record: str, n: int = 200) -> Path:
+    """The friction pendulum's measurements written to a file by scripts/export_measured.py."""
+    out = tmp_path / name
+    script = str(ROOT / "scripts" / "export_measured.py")
+    subprocess.run(
+        [sys.executable, script, "--config", CONFIG, "--out", str(out), "--n", str(n), "--record", *record], check=True
+    )
+    return out
+
+
+def marginal_args(tmp_path: Path, measured: Path, *extra: str) -> list[str]:
+    return [
+        "--config",
+        CONFIG,
+        logger_override(str(tmp_path), "run"),
+        "--trainer.enable_progress_bar=false",
+        "--trainer.val_check_interval=3",
+        "--data.simulation_budget=3200",
+        "--data.batch_size=16",
+        "--data.hidden_effect=[]",
+        f"--data.measured_path={measured}",
+        "--evaluation.reference_repeats=2",
+        "--evaluation.mmdagg_permutations=200",
+        f"--data.cache_dir={tmp_path / 'cache'}",
+        *extra,
+    ]
+
+
+def _rows(run_dir: Path) -> list[dict]:
+    with open(run_dir / "metrics.csv") as f:
+        return list(csv.DictReader(f))
+
+
+def test_fit_and_test_on_a_measured_file(tmp_path):
+    measured = export(tmp_path, "friction.npz")
+    before = measured.read_bytes()
+    main(["fit", *marginal_args(tmp_path, measured, "--trainer.max_steps=6", "--evaluation.tests_every=2")])
+    run = tmp_path / "run" / "version_0"
+    rows = _rows(run)
+    energies = {int(float(r["step"])) + 1: float(r["val/energy"]) for r in rows if r.get("val/energy")}
+    assert sorted(energies) == [3, 6] and not any(r.get("val/abs_err") for r in rows), "nothing paired to score pointwise"
+    assert next(run.glob("checkpoints/best-*.ckpt")).name == f"best-step={min(energies, key=energies.get)}.ckpt"
+    assert "monitor: val/energy" in (run / "config.yaml").read_text(), "checkpoint.monitor auto -> the marginal energy"
+    assert sorted(p.name for p in (run / "figures").iterdir()) == [
+        "distributions_step0000003.png",
+        "distributions_step0000006.png",
+    ]
+    fp, ref, ref_std = (
+        float(next(r[f"val/{k}"] for r in rows if r.get(f"val/{k}"))) for k in ("fp_energy", "ref_energy", "ref_energy_std")
+    )
+    assert fp > ref + 3 * ref_std, "f_p alone is far from the measurements, two halves of them are not"
+
+    main(["test", *marginal_args(tmp_path, measured), f"--ckpt_path={run / 'checkpoints' / 'last.ckpt'}"])
+    report_dir = tmp_path / "run" / "version_1"
+    report = json.loads((report_dir / "metrics.json").read_text())
+    assert report["run"]["mode"] == "marginal" and report["run"]["measured_path"] == str(measured)
+    assert report["run"]["split"] == {"train": 140, "val": 30, "test": 30} and report["run"]["n_inputs"] == 30
+    assert {"mmd", "mmd2_median", "energy", "mmdagg_reject", "c2st"} <= set(report["fp"]) and "abs_err" not in report["model"]
+    reference = report["reference"]["energy"]
+    assert report["fp"]["energy"]["mean"] > reference["mean"] + 3 * reference["std"]
+    per_time = report["per_time"]
+    assert per_time["components"] == ["angle"] and len(per_time["times"]) == 50 and len(per_time["fp"]) == 50
+    assert per_time["fp"][0][0] < 0.01 < per_time["fp"][-1][0], "f_p starts where the measurements start, then drifts"
+    table = (report_dir / "metrics.md").read_text()
+    assert "Evaluation mode **marginal**" in table and "two halves" in table and "| Energy distance" in table
+    assert measured.read_bytes() == before, "the user's file is never modified"
+    assert not (tmp_path / "cache").exists(), "nothing is generated or cached for a file"
+
+
+def test_recorded_inputs_give_joint_metrics_on_real_data(tmp_path):
+    measured = export(tmp_path, "friction.csv", "theta", "x0")
+    main(["fit", *marginal_args(tmp_path, measured, "--trainer.max_steps=3", "--evaluation.tests_every=0")])
+    run = tmp_path / "run" / "version_0"
+    assert "monitor: val/joint_energy" in (run / "config.yaml").read_text()
+    main(["test", *marginal_args(tmp_path, measured), f"--ckpt_path={run / 'checkpoints' / 'last.ckpt'}"])
+    report = json.loads((tmp_path / "run" / "version_1" / "metrics.json").read_text())
+    assert report["run"]["recorded_inputs"] == ["theta", "x0"]
+    model, fp = report["model"], report["fp"]
+    assert {"joint_abs_err", "joint_nrmse", "joint_c2st", "joint_energy", "energy"} <= set(model)
+    assert fp["joint_abs_err"]["mean"] > 0.1, "f_p alone on the recorded inputs misses the friction"
+    assert "joint_abs_err" not in report["reference"], "no repeated measurement of one input: no pointwise floor"
+    assert "joint with recorded inputs: ABS ERR" in (tmp_path / "run" / "version_1" / "metrics.md").read_text()
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        ({"y": np.zeros((200, 40, 1))}, r"'y': measured trajectories have shape \(200, 40, 1\), expected \(N, 50, 1\)"),
+        ({"y": np.zeros((30, 50, 1))}, r"30 trajectories split .* 22 train / 4 validation / 4 test"),
+        (
+            {"y": np.zeros((200, 50, 1)), "t": np.arange(50) * 0.2},
+            r"the time grid \[0, 0.2, 0.4, ..., 9.8\] \(50 points\) differs",
+        ),
+    ],
+)
+def test_a_bad_file_is_one_line_before_anything_is_written(tmp_path, content, message):
+    path = tmp_path / "bad.npz"
+    np.savez(path, **content)
+    command = [
+        sys.executable,
+        "-m",
+        "otgb.cli",
+        "fit",
+        "--config",
+        CONFIG,
+        "--data.hidden_effect=[]",
+        f"--data.measured_path={path}",
+    ]
+    result = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True)
+    assert result.returncode == 2 and result.stderr.strip().splitlines() == [result.stderr.strip()]
+    assert result.stderr.startswith(f"otgb: error: {path}") and re.search(message, result.stderr)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.npz"], "no run directory, no cache"
