@@ -1,0 +1,163 @@
+"""docs/own-physics.md done as written: its files in a fresh folder, its commands as real subprocesses.
+
+The document's files are its fenced blocks with a title (```python title="my_oscillator.py"),
+its commands the lines of its ```bash blocks, run in order from that folder. What the test
+changes, and only that: ``otgb`` is ``python -m otgb.cli`` with this checkout first on the path,
+``/path/to/otgb`` is this checkout, and every ``otgb`` command gets the overrides in ``TINY``.
+"""
+
+import ast
+import csv
+import json
+import os
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+
+ROOT = Path(__file__).parents[1]
+DOC = ROOT / "docs" / "own-physics.md"
+TINY = [  # a seconds-long run of the same config: 6 steps, validation at 3 and 6, small sets
+    "--trainer.enable_progress_bar=false",
+    "--trainer.max_steps=6",
+    "--trainer.val_check_interval=3",
+    "--trainer.log_every_n_steps=1",
+    "--data.batch_size=16",
+    "--data.n_measured=64",
+    "--data.n_val=24",
+    "--data.n_test=20",
+    "--evaluation.reference_repeats=1",
+    "--evaluation.c2st_folds=2",
+    "--evaluation.mmdagg_permutations=200",
+]
+
+
+def _files(text: str) -> dict[str, str]:
+    """The titled code blocks: file name -> content."""
+    return {name: body + "\n" for name, body in re.findall(r'```\w+ title="([^"]+)"\n(.*?)\n```', text, re.S)}
+
+
+def _blocks(text: str, language: str) -> list[str]:
+    return re.findall(rf"```{language}\n(.*?)\n```", text, re.S)
+
+
+def _commands(text: str) -> list[str]:
+    return [line for block in _blocks(text, "bash") for line in block.splitlines() if line.strip()]
+
+
+def _run(command: str, cwd: Path) -> subprocess.CompletedProcess:
+    """One documented command line, as a shell would run it in ``cwd`` (see the module docstring)."""
+    env_assignment, program, *args = shlex.split(command)
+    assert env_assignment == "PYTHONPATH=.", command
+    args = [str(ROOT) + arg.removeprefix("/path/to/otgb") if arg.startswith("/path/to/otgb") else arg for arg in args]
+    expanded = []
+    for arg in args:  # the shell's glob, e.g. --ckpt_path runs/.../best-step=*.ckpt
+        matches = sorted(cwd.glob(arg)) if "*" in arg else [arg]
+        assert len(matches) == 1, f"{arg} matches {matches}"
+        expanded.append(str(matches[0]))
+    if program == "otgb":
+        argv = [sys.executable, "-m", "otgb.cli", *expanded, *TINY]
+    else:
+        assert program == "python", command
+        argv = [sys.executable, *expanded]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), str(cwd)]), "OMP_NUM_THREADS": "1"}
+    return subprocess.run(argv, cwd=cwd, env=env, capture_output=True, text=True)
+
+
+def _written(tmp_path: Path, text: str, **edits: str) -> dict[str, str]:
+    files = _files(text)
+    assert sorted(files) == ["my_oscillator.py", "oscillator.yaml"]
+    for name, content in files.items():
+        (tmp_path / name).write_text(edits.get(name, content))
+    return files
+
+
+def _rows(run: Path) -> list[dict]:
+    with open(run / "metrics.csv") as handle:
+        return list(csv.DictReader(handle))
+
+
+def test_the_documented_oscillator_trains_and_tests_from_the_users_folder(tmp_path):
+    text = DOC.read_text()
+    _written(tmp_path, text)
+    commands = _commands(text)
+    assert [shlex.split(c)[1:3] for c in commands] == [
+        ["otgb", "fit"],
+        ["otgb", "test"],
+        ["python", "/path/to/otgb/scripts/export_measured.py"],
+        ["otgb", "fit"],
+        ["otgb", "test"],
+    ]
+    for command in commands:
+        done = _run(command, tmp_path)
+        assert done.returncode == 0, f"{command}\n{done.stderr[-3000:]}"
+
+    runs = tmp_path / "runs" / "oscillator"
+    fit = runs / "version_0"
+    assert {"metrics.csv", "config.yaml", "hparams.yaml"} <= {p.name for p in fit.iterdir()}
+    assert list(fit.glob("events.out.tfevents.*")) and (fit / "checkpoints" / "last.ckpt").is_file()
+    assert len(list(fit.glob("checkpoints/best-step=*.ckpt"))) == 1
+    assert sorted(p.name for p in (fit / "figures").iterdir()) == ["trajectories_step0000003.png", "trajectories_step0000006.png"]
+    rows = _rows(fit)
+    assert [float(r["val/fp_abs_err"]) for r in rows if r.get("val/fp_abs_err")][0] > 0.05, "f_p misses the friction"
+    assert len([r for r in rows if r.get("val/abs_err")]) == 2
+    assert sorted(p.name for p in (tmp_path / "data").iterdir())[0].startswith("measured-"), "generated sets cached in data/"
+
+    report = json.loads((runs / "version_1" / "metrics.json").read_text())
+    assert report["fp"]["abs_err"]["mean"] > 0.05 and report["reference"]["abs_err"]["mean"] == 0.0
+    assert report["model"]["abs_err"]["mean"] > 0 and report["run"]["n_inputs"] == 20
+    table = (runs / "version_1" / "metrics.md").read_text()
+    assert "| metric | model | f_p alone | Reference |" in table and "| ABS ERR |" in table
+
+    exported = (tmp_path / "measurements.csv").read_text().splitlines()
+    assert len(exported) == 1 + 200 * 40
+    assert exported[:3] == _blocks(text, "text")[0].splitlines(), "the CSV begins as the document shows"
+    marginal = runs / "version_2"
+    assert yaml.safe_load((marginal / "config.yaml").read_text())["checkpoint"]["monitor"] == "val/joint_energy"
+    assert len([r for r in _rows(marginal) if r.get("val/joint_energy")]) == 2
+    assert len(list(marginal.glob("checkpoints/best-step=*.ckpt"))) == 1
+    report = json.loads((runs / "version_3" / "metrics.json").read_text())
+    assert report["run"]["n_inputs"] == 30, "30 of the 200 trajectories held out for the test"
+    assert "**marginal**" in (runs / "version_3" / "metrics.md").read_text()
+
+
+def test_the_documented_errors_are_what_a_run_prints(tmp_path):
+    text = DOC.read_text()
+    section = text[text.index("## When a declaration is wrong") :]
+    observed_error, prior_error = _blocks(section, "text")[:2]
+    fit = _commands(text)[0]
+    module = _files(text)["my_oscillator.py"]
+
+    wrong_name = module.replace('observed = ("position",)', 'observed = ("x",)')
+    assert wrong_name != module and 'With `observed = ("x",)` in `my_oscillator.py`' in section
+    _written(tmp_path, text, **{"my_oscillator.py": wrong_name})
+    done = _run(fit, tmp_path)
+    assert done.returncode == 2 and done.stderr.rstrip().endswith(observed_error), done.stderr[-2000:]
+
+    no_velocity = re.sub(r"\n *velocity: Prior = .*", "", module)
+    assert no_velocity != module and "Without the `velocity` argument in `__init__`" in section
+    (tmp_path / "my_oscillator.py").write_text(no_velocity)
+    done = _run(fit, tmp_path)
+    assert done.returncode == 1 and done.stderr.rstrip().splitlines()[-1] == prior_error, done.stderr[-2000:]
+    assert not (tmp_path / "runs").exists()
+
+
+def test_the_stated_line_counts_are_true():
+    text = DOC.read_text()
+    files = _files(text)
+    module = files["my_oscillator.py"]
+    code = {i for i, line in enumerate(module.splitlines(), 1) if line.strip() and not line.strip().startswith("#")}
+    docstrings = set()
+    for node in ast.walk(ast.parse(module)):
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef)) and ast.get_docstring(node) is not None:
+            docstrings |= set(range(node.body[0].lineno, node.body[0].end_lineno + 1))
+    config = files["oscillator.yaml"].splitlines()
+    config_code = [line for line in config if line.strip() and not line.strip().startswith("#")]
+    stated = " ".join(text[text.index("## Size") :].split())
+    assert f"`my_oscillator.py`: {len(code)} lines that are neither blank nor comments" in stated
+    assert f"({len(code - docstrings)} without the docstrings)" in stated
+    assert f"`oscillator.yaml`: {len(config_code)} such lines, {len(config)} in all" in stated
+    assert len(config) <= 25
