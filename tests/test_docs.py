@@ -141,7 +141,7 @@ def test_the_documented_errors_are_what_a_run_prints(tmp_path):
     assert no_velocity != module and "Without the `velocity` argument in `__init__`" in section
     (tmp_path / "my_oscillator.py").write_text(no_velocity)
     done = _run(fit, tmp_path)
-    assert done.returncode == 1 and done.stderr.rstrip().splitlines()[-1] == prior_error, done.stderr[-2000:]
+    assert done.returncode == 2 and done.stderr.rstrip().splitlines()[-1] == prior_error, done.stderr[-2000:]
     assert not (tmp_path / "runs").exists()
 
 

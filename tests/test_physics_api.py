@@ -8,6 +8,7 @@ import torch
 from jsonargparse import lazy_instance
 
 from otgb.data import SimulationDataModule
+from otgb.errors import InputError
 from otgb.physics import (
     Advection,
     AdvectionDiffusion,
@@ -138,7 +139,7 @@ def test_required_methods_are_abstract_and_default_samplers_need_priors():
         def __init__(self, position: Prior = Constant(0.0), velocity: Prior = Constant(0.0)) -> None:
             super().__init__(position=position, velocity=velocity)
 
-    with pytest.raises(TypeError, match="NoPrior draws 'k' from its prior, but its constructor has no argument 'k'"):
+    with pytest.raises(InputError, match="NoPrior draws 'k' from its prior, but its constructor has no argument 'k'"):
         NoPrior()
 
 

@@ -235,7 +235,7 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
         needed += cls.state_names if cls.sample_initial_state is PhysicsModel.sample_initial_state else ()
         for name in needed:
             if name not in self.init_args:
-                raise TypeError(
+                raise InputError(
                     f"{cls.__name__} draws {name!r} from its prior, but its constructor has no argument {name!r}; "
                     "add one (a Prior) or override sample_theta / sample_initial_state"
                 )
