@@ -1,4 +1,4 @@
-"""docs/own-physics.md done as written: its files in a fresh folder, its commands as real subprocesses.
+"""docs/own-physics.md and docs/own-data.md done as written: files in a fresh folder, commands as real subprocesses.
 
 The document's files are its fenced blocks with a title (```python title="my_oscillator.py"),
 its commands the lines of its ```bash blocks, run in order from that folder. What the test
@@ -20,6 +20,7 @@ import yaml
 
 ROOT = Path(__file__).parents[1]
 DOC = ROOT / "docs" / "own-physics.md"
+OWN_DATA = ROOT / "docs" / "own-data.md"
 TINY = [  # a seconds-long run of the same config: 6 steps, validation at 3 and 6, small sets
     "--trainer.enable_progress_bar=false",
     "--trainer.max_steps=6",
@@ -50,8 +51,10 @@ def _commands(text: str) -> list[str]:
 
 def _run(command: str, cwd: Path) -> subprocess.CompletedProcess:
     """One documented command line, as a shell would run it in ``cwd`` (see the module docstring)."""
-    env_assignment, program, *args = shlex.split(command)
-    assert env_assignment == "PYTHONPATH=.", command
+    words = shlex.split(command)
+    if "=" in words[0]:  # the user's folder on the path, for a module of their own
+        assert words.pop(0) == "PYTHONPATH=.", command
+    program, *args = words
     args = [str(ROOT) + arg.removeprefix("/path/to/otgb") if arg.startswith("/path/to/otgb") else arg for arg in args]
     expanded = []
     for arg in args:  # the shell's glob, e.g. --ckpt_path runs/.../best-step=*.ckpt
@@ -161,3 +164,41 @@ def test_the_stated_line_counts_are_true():
     assert f"({len(code - docstrings)} without the docstrings)" in stated
     assert f"`oscillator.yaml`: {len(config_code)} such lines, {len(config)} in all" in stated
     assert len(config) <= 25
+
+
+def test_own_data_walkthrough_as_written(tmp_path):
+    """docs/own-data.md: the stand-in CSV, the config, fit and test, the log line, the report, a bad file."""
+    text = OWN_DATA.read_text()
+    files = _files(text)
+    assert sorted(files) == ["my_pendulum.yaml"]
+    (tmp_path / "my_pendulum.yaml").write_text(files["my_pendulum.yaml"])
+    commands = _commands(text)
+    assert [shlex.split(c)[:2] for c in commands] == [
+        ["python", "/path/to/otgb/scripts/export_measured.py"],
+        ["otgb", "fit"],
+        ["otgb", "test"],
+    ]
+    outputs = []
+    for command in commands:
+        done = _run(command, tmp_path)
+        assert done.returncode == 0, f"{command}\n{done.stderr[-3000:]}"
+        outputs.append(done.stderr)
+    csv_head, log_line, table, recorded_head, error_line = _blocks(text, "text")
+    assert (tmp_path / "measurements.csv").read_text().splitlines()[:3] == csv_head.splitlines()
+    assert log_line in outputs[1].splitlines(), "the fit names the mode as the document shows"
+    fit = tmp_path / "runs" / "my_pendulum" / "version_0"
+    assert next(fit.glob("figures/distributions_step*.png")) and (fit / "checkpoints" / "last.ckpt").is_file()
+    report = (tmp_path / "runs" / "my_pendulum" / "version_1" / "metrics.md").read_text()
+    labels = lambda t: [line.split(" | ")[0] for line in t.splitlines() if line.startswith("| ")]  # noqa: E731
+    assert labels(table) == labels(report[report.index("| metric |") :].split("\n\n")[0])
+
+    exported = tmp_path / "recorded.csv"
+    export = [sys.executable, str(ROOT / "scripts" / "export_measured.py"), "--config", str(ROOT / "configs" / "pendulum.yaml")]
+    subprocess.run([*export, "--out", str(exported), "--record", "theta", "x0"], check=True, capture_output=True)
+    assert exported.read_text().splitlines()[:2] == recorded_head.splitlines()
+
+    (tmp_path / "bad.csv").write_text("trajectory,t,angle\n0,0,0.1\n0,0.2,0.1\n")
+    before = sorted(p.name for p in (tmp_path / "runs" / "my_pendulum").iterdir())
+    done = _run("otgb fit --config my_pendulum.yaml --data.measured_path bad.csv", tmp_path)
+    assert done.returncode == 2 and done.stderr.strip().splitlines()[-1] == error_line
+    assert sorted(p.name for p in (tmp_path / "runs" / "my_pendulum").iterdir()) == before, "nothing written"

@@ -78,9 +78,9 @@ def read_measured(path: str | os.PathLike, physics: PhysicsModel) -> MeasuredFil
     if "y" not in content:
         raise InputError(f"{path}: no entry 'y' (the measured trajectories); found {sorted(content)}")
     tensors = {key: _as_tensor(path, key, value) for key, value in content.items()}
-    y = check_trajectories(tensors["y"], tuple(physics.trajectory_shape), f"{path}: 'y'")
-    if "t" in tensors:
+    if "t" in tensors:  # first: a wrong grid also explains a wrong number of steps
         check_time_grid(tensors["t"], physics, str(path))
+    y = check_trajectories(tensors["y"], tuple(physics.trajectory_shape), f"{path}: 'y'")
     theta = _per_trajectory(path, tensors, "theta", (physics.theta_dim,), len(y), f"theta_names {tuple(physics.theta_names)}")
     x0 = _per_trajectory(path, tensors, "x0", tuple(physics.state_shape), len(y), "the model's full initial state")
     return MeasuredFile(str(path), y, theta, x0)
