@@ -38,7 +38,7 @@ def main() -> None:
     cli = OTGBCLI(KernelWeakOT, SimulationDataModule, run=False, args=["--config", args.config, *overrides])
     data = cli.datamodule
     sets = generate_measured(data.dgp, args.n or data.n_measured, data.seed)
-    times = data.physics.times()[-data.physics.n_obs :].double().numpy().round(9)
+    times = data.physics.observation_times().double().numpy().round(9)
     content = {"y": sets["y"].numpy(), "t": times}
     content.update({name: sets[name].numpy() for name in args.record})
     args.out.parent.mkdir(parents=True, exist_ok=True)

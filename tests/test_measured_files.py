@@ -180,3 +180,31 @@ def test_mode_settings_are_checked(tmp_path, measurements):
     with pytest.raises(InputError, match="no measured data: set data.measured_path"):
         _module(tmp_path)
     assert _module(tmp_path, hidden_effect=friction).mode == "joint"
+
+
+@pytest.mark.parametrize(
+    "write, match",
+    [
+        (lambda p: p.write_text("\ufefftrajectory,t,angle\n" + "".join(f"0,{k / 10},0.1\n" for k in range(50)) + "\n\n"), None),
+        (lambda p: p.write_text("trajectory,t,angle\nnan,0,0.1\n"), "line 2: the 'trajectory' column holds NaN/Inf"),
+        (lambda p: p.write_text("trajectory,t,angle\nrun0,0,0.1\n"), "a field is not a number"),
+    ],
+)
+def test_csv_variants(tmp_path, pendulum, write, match):
+    """A byte-order mark and trailing blank lines are fine; a NaN or a word as an id is named."""
+    write(tmp_path / "m.csv")
+    if match is None:
+        assert read_measured(tmp_path / "m.csv", pendulum).y.shape == (1, 50, 1)
+    else:
+        with pytest.raises(InputError, match=match):
+            read_measured(tmp_path / "m.csv", pendulum)
+
+
+def test_npy_under_an_npz_name_and_a_folder(tmp_path, pendulum):
+    with open(tmp_path / "m.npz", "wb") as handle:
+        np.save(handle, np.zeros((3, 50, 1)))
+    with pytest.raises(InputError, match="holds a single array"):
+        read_measured(tmp_path / "m.npz", pendulum)
+    (tmp_path / "folder.csv").mkdir()
+    with pytest.raises(InputError, match="is not a file"):
+        read_measured(tmp_path / "folder.csv", pendulum)

@@ -108,9 +108,10 @@ class Evaluation(Callback):
     def validation_metrics(self, datamodule: Any) -> list[str]:
         """The ``val/<name>`` scalars every validation logs for this data module (tests included if every time)."""
         names = list(EVERY_VALIDATION) + (list(TESTS) if self.tests_every == 1 else [])
+        one_draw = datamodule.mode == "marginal" or datamodule.draws_per_input == 1  # a file holds one draw per input
         metrics = []
         for prefix, (inputs, paired) in self.evaluation_plan(datamodule.mode, datamodule.recorded_inputs).items():
-            pointwise = paired and set(inputs) == {"theta", "x0"} and datamodule.draws_per_input == 1
+            pointwise = one_draw and JointEvaluator.is_pointwise(inputs, paired)
             metrics += [f"val/{prefix}{name}" for name in (list(POINTWISE) if pointwise else []) + names]
         return metrics
 
@@ -119,13 +120,18 @@ class Evaluation(Callback):
         self._check_monitors(trainer, datamodule)
         shape = tuple(pl_module.physics.trajectory_shape)
         self.plan = self.evaluation_plan(datamodule.mode, datamodule.recorded_inputs)
-        make = lambda inputs, paired, sync: JointEvaluator(  # noqa: E731
-            shape, inputs=inputs, paired=paired, device=pl_module.device, sync=sync, **self.options
-        )
-        self.evaluators = {prefix: make(inputs, paired, True) for prefix, (inputs, paired) in self.plan.items()}
+        def make(prefix: str, paired: bool, sync: bool) -> JointEvaluator:
+            per_time = prefix == ""  # the per-time statistic reads the trajectories alone: once per set
+            inputs = self.plan[prefix][0]
+            return JointEvaluator(
+                shape, inputs=inputs, paired=paired, per_time=per_time, device=pl_module.device, sync=sync, **self.options
+            )
+
+        self.evaluators = {prefix: make(prefix, paired, True) for prefix, (_, paired) in self.plan.items()}
         # f_p and the Reference are scored on the whole set on every rank: no cross-process sync
-        self.baselines = {prefix: make(inputs, paired, False) for prefix, (inputs, paired) in self.plan.items()}
-        self.references = {prefix: make(inputs, False, False) for prefix, (inputs, _) in self.plan.items()}
+        self.baselines = {prefix: make(prefix, paired, False) for prefix, (_, paired) in self.plan.items()}
+        if datamodule.mode == "marginal":  # halves of the measurements have different inputs: unpaired
+            self.references = {prefix: make(prefix, False, False) for prefix in self.plan}
 
     def _check_monitors(self, trainer: Trainer, datamodule: Any) -> None:
         """A checkpoint must monitor a metric that every validation of this mode logs."""
@@ -206,7 +212,7 @@ class Evaluation(Callback):
     @staticmethod
     def _labels(pl_module: LightningModule) -> dict[str, list]:
         physics = pl_module.physics
-        return {"times": physics.times()[-physics.n_obs :].tolist(), "components": list(physics.observed)}
+        return {"times": physics.observation_times().tolist(), "components": list(physics.observed)}
 
     def _model_results(self, tests: bool) -> dict[str, Tensor]:
         start = time.perf_counter()

@@ -49,6 +49,7 @@ class ValidationFigure(Callback):
         if trainer.sanity_checking or not trainer.is_global_zero:
             return
         datamodule = trainer.datamodule
+        rng = pl_module.generator.get_state()  # the figure's latent draws must not move training's
         if datamodule.mode == "marginal":
             tag, figure = "distributions", self._distributions(datamodule, pl_module)
         else:
@@ -56,6 +57,7 @@ class ValidationFigure(Callback):
             y_hat = pl_module.generate(data["x"], data["x0"], data["theta"], data["y"].shape[1]).cpu()
             data = {k: v.cpu() for k, v in data.items()}
             tag, figure = self.tag, self.draw(data, y_hat, datamodule.physics)
+        pl_module.generator.set_state(rng)
         for logger in trainer.loggers:
             if isinstance(logger, TensorBoardLogger):
                 logger.experiment.add_figure(f"val/{tag}", figure, global_step=trainer.global_step, close=False)
@@ -76,7 +78,7 @@ class ValidationFigure(Callback):
         )
         physics = datamodule.physics
         samples = {"measured": data["y"][:, 0], "generated": y_hat[:, 0], "f_p": data["x"]}
-        return distribution_figure(samples, physics.times()[-physics.n_obs :], list(physics.observed))
+        return distribution_figure(samples, physics.observation_times(), list(physics.observed))
 
     def draw(self, data: dict[str, torch.Tensor], y_hat: torch.Tensor, physics: PhysicsModel) -> plt.Figure:
         """data: the joint set's rows (x (N, T, *obs), y (N, M, T, *obs), theta, x0); y_hat (N, M, T, *obs)."""
@@ -156,7 +158,7 @@ class TrajectoryFigure(ValidationFigure):
         cols = min(n, 3)
         rows = -(-n // cols)
         figure, axes = plt.subplots(rows, cols, figsize=(4 * cols, 2.6 * rows), squeeze=False)
-        t = physics.times()[-physics.n_obs :].numpy()
+        t = physics.observation_times().numpy()
         c = self.component
         for i, ax in enumerate(axes.flat):
             if i >= n:
@@ -231,7 +233,7 @@ class FieldFigure(ValidationFigure):
         frames = self.frames if self.frames is not None else sorted({0, steps // 3, 2 * steps // 3, steps - 1})
         if any(not 0 <= f < steps for f in frames):
             raise ValueError(f"FieldFigure.frames={frames}: expected indices in [0, {steps})")
-        times = physics.times()[-physics.n_obs :]
+        times = physics.observation_times()
         n = len(theta)
         figure, axes = plt.subplots(3 * n, len(frames), figsize=(2.2 * len(frames), 2.2 * 3 * n), squeeze=False)
         for i in range(n):

@@ -165,11 +165,10 @@ class SimulationDataModule(LightningDataModule):
                 f"{', '.join(type(t).__name__ for t in self.dgp.terms)}); the map is scored against DGP draws for the same inputs"
             )
         sizes = " / ".join(f"{len(self.parts[p])} {p}" for p in ("train", "val", "test"))
-        inputs = (
-            f"the inputs the file recorded ({', '.join(self.recorded_inputs)})"
-            if self.recorded_inputs
-            else "inputs drawn from the priors"
-        )
+        recorded = self.recorded_inputs
+        drawn = [name for name in ("theta", "x0") if name not in recorded]
+        parts = [f"{' and '.join(recorded)} as the file recorded {'it' if len(recorded) == 1 else 'them'}"] if recorded else []
+        inputs = ", ".join(parts + ([f"{' and '.join(drawn)} drawn from the priors"] if drawn else []))
         return (
             f"{len(self.measured_file)} measured trajectories from "
             f"{self.measured_path} ({sizes}); no DGP is known: the map's draws ({inputs}) are compared with held-out "

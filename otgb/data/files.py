@@ -68,10 +68,11 @@ def read_measured(path: str | os.PathLike, physics: PhysicsModel) -> MeasuredFil
     path = Path(path)
     if path.suffix not in SUFFIXES:
         raise InputError(f"measured data file {str(path)!r}: unsupported suffix {path.suffix!r}, expected one of {SUFFIXES}")
-    if not path.is_file():
+    if not path.exists():
         raise InputError(f"measured data file {str(path)!r} does not exist (expected a {'/'.join(SUFFIXES)} file)")
-    reader = {".pt": _read_pt, ".npz": _read_npz, ".csv": _read_csv}[path.suffix]
-    content = reader(path, physics)
+    if not path.is_file():
+        raise InputError(f"measured data file {str(path)!r} is not a file (expected a {'/'.join(SUFFIXES)} file)")
+    content = _read_csv(path, physics) if path.suffix == ".csv" else {".pt": _read_pt, ".npz": _read_npz}[path.suffix](path)
     unknown = sorted(set(content) - set(KEYS))
     if unknown:
         raise InputError(f"{path}: unknown entries {unknown}; a measurement file holds {list(KEYS)} (only 'y' is required)")
@@ -99,8 +100,10 @@ def check_trajectories(y: Tensor, trajectory_shape: tuple[int, ...], where: str)
 
 def check_time_grid(t: Tensor, physics: PhysicsModel, where: str) -> None:
     """The file's observation times must be the model's (T,) grid (to 1e-6 relative)."""
-    expected = physics.times()[-physics.n_obs :].double()
-    t = t.double().flatten()
+    expected = physics.observation_times().double()
+    if t.dim() != 1:
+        raise InputError(f"{where}: 't' has shape {tuple(t.shape)}, expected ({physics.n_obs},): one time per step")
+    t = t.double()
     if t.shape != expected.shape or not torch.allclose(t, expected, rtol=1e-6, atol=1e-6 * float(expected.abs().max())):
         raise InputError(
             f"{where}: the time grid {_grid(t)} differs from the model's {_grid(expected)} "
@@ -146,11 +149,15 @@ def _per_trajectory(
     return value.float()
 
 
-def _read_pt(path: Path, physics: PhysicsModel) -> dict[str, Any]:
+def _first_line(error: Exception) -> str:
+    return f"{type(error).__name__}: {str(error).strip().splitlines()[0] if str(error).strip() else ''}"
+
+
+def _read_pt(path: Path) -> dict[str, Any]:
     try:
         content = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # a corrupt or non-tensor file: say which and why, in one line
-        raise InputError(f"{path}: cannot be read as a PyTorch file of tensors ({type(error).__name__}: {error})") from None
+        raise InputError(f"{path}: cannot be read as a PyTorch file of tensors ({_first_line(error)})") from None
     if isinstance(content, Tensor):
         return {"y": content}
     if not isinstance(content, dict):
@@ -158,12 +165,18 @@ def _read_pt(path: Path, physics: PhysicsModel) -> dict[str, Any]:
     return dict(content)
 
 
-def _read_npz(path: Path, physics: PhysicsModel) -> dict[str, Any]:
+def _read_npz(path: Path) -> dict[str, Any]:
     try:
-        with np.load(path, allow_pickle=False) as archive:
-            return {key: archive[key] for key in archive.files}
+        archive = np.load(path, allow_pickle=False)
     except (ValueError, OSError) as error:
-        raise InputError(f"{path}: cannot be read as an .npz archive of numeric arrays ({error})") from None
+        raise InputError(f"{path}: cannot be read as an .npz archive of numeric arrays ({_first_line(error)})") from None
+    if not isinstance(archive, np.lib.npyio.NpzFile):
+        raise InputError(f"{path}: holds a single array (.npy), expected an .npz archive with named arrays ('y', ...)")
+    with archive:
+        try:
+            return {key: archive[key] for key in archive.files}
+        except ValueError as error:
+            raise InputError(f"{path}: cannot be read as an .npz archive of numeric arrays ({_first_line(error)})") from None
 
 
 def _read_csv(path: Path, physics: PhysicsModel) -> dict[str, Any]:
@@ -175,8 +188,8 @@ def _read_csv(path: Path, physics: PhysicsModel) -> dict[str, Any]:
         )
     observed, thetas = list(physics.observed), list(physics.theta_names)
     initial = [f"x0_{name}" for name in physics.state_names]
-    with open(path, newline="") as handle:
-        rows = list(csv.reader(handle))
+    with open(path, newline="", encoding="utf-8-sig") as handle:  # -sig: a byte-order mark is not part of a name
+        rows = [row for row in csv.reader(handle) if any(field.strip() for field in row)]
     if not rows:
         raise InputError(f"{path}: the file is empty, expected a header 'trajectory,t,{','.join(observed)}' and rows")
     header = [name.strip() for name in rows[0]]
@@ -190,6 +203,10 @@ def _read_csv(path: Path, physics: PhysicsModel) -> dict[str, Any]:
         )
     values = _numeric_rows(path, rows[1:], len(header))
     column = {name: values[:, i] for i, name in enumerate(header)}
+    for name in ("trajectory", "t"):
+        if not np.isfinite(column[name]).all():
+            line = int(np.flatnonzero(~np.isfinite(column[name]))[0]) + 2
+            raise InputError(f"{path}, line {line}: the '{name}' column holds NaN/Inf, expected a number in every row")
     ids, starts, counts = np.unique(column["trajectory"], return_index=True, return_counts=True)
     order = np.argsort(starts)  # trajectories in the order they appear in the file
     ids, counts = ids[order], counts[order]
@@ -228,7 +245,7 @@ def _numeric_rows(path: Path, rows: list[list[str]], width: int) -> np.ndarray:
         try:
             values[line - 2] = [float(field) for field in row]
         except ValueError:
-            raise InputError(f"{path}, line {line}: a field is not a number: {row}") from None
+            raise InputError(f"{path}, line {line}: a field is not a number (trajectory ids are numbers too): {row}") from None
     return values
 
 

@@ -28,8 +28,7 @@ def generate_measured(dgp: PhysicsModel, n: int, seed: int) -> dict[str, Tensor]
     """|Y| = n trajectories of the DGP from its priors: y (n, T, *obs) and the inputs x0, theta they came from."""
     g = generator_for(seed, "measured")
     x0, theta, effect = dgp.sample_initial_state(n, g), dgp.sample_theta(n, g), dgp.sample_effect_params(n, g)
-    y = torch.cat([dgp.simulate(x0[i : i + CHUNK], theta[i : i + CHUNK], effect[i : i + CHUNK]) for i in range(0, n, CHUNK)])
-    return {"y": y, "x0": x0, "theta": theta}
+    return {"y": simulate_in_chunks(dgp, x0, theta, effect), "x0": x0, "theta": theta}
 
 
 @torch.no_grad()
@@ -43,13 +42,14 @@ def generate_joint(physics: PhysicsModel, dgp: PhysicsModel, n: int, draws: int,
     x0, theta = physics.sample_initial_state(n, g), physics.sample_theta(n, g)
     effect = dgp.sample_effect_params(n * draws, g).reshape(n, draws, -1)
     effect_ref = dgp.sample_effect_params(n * draws, g).reshape(n, draws, -1)
-    x, y, y_ref = [], [], []
-    for i in range(0, n, CHUNK):
-        s = slice(i, i + CHUNK)
-        x.append(physics.simulate(x0[s], theta[s]))
-        y.append(torch.stack([dgp.simulate(x0[s], theta[s], effect[s, j]) for j in range(draws)], dim=1))
-        y_ref.append(torch.stack([dgp.simulate(x0[s], theta[s], effect_ref[s, j]) for j in range(draws)], dim=1))
-    return {"x0": x0, "theta": theta, "x": torch.cat(x), "y": torch.cat(y), "y_ref": torch.cat(y_ref)}
+    dgp_draws = lambda e: torch.stack([simulate_in_chunks(dgp, x0, theta, e[:, j]) for j in range(draws)], dim=1)  # noqa: E731
+    return {
+        "x0": x0,
+        "theta": theta,
+        "x": simulate_in_chunks(physics, x0, theta),
+        "y": dgp_draws(effect),
+        "y_ref": dgp_draws(effect_ref),
+    }
 
 
 def cache_key(*parts: object) -> str:
@@ -95,6 +95,8 @@ def split_indices(n: int, val_fraction: float, test_fraction: float, seed: int, 
 
 
 @torch.no_grad()
-def simulate_in_chunks(physics: PhysicsModel, x0: Tensor, theta: Tensor) -> Tensor:
-    """f_p trajectories (n, T, *obs) for the inputs x0 (n, *state), theta (n, P)."""
-    return torch.cat([physics.simulate(x0[i : i + CHUNK], theta[i : i + CHUNK]) for i in range(0, len(x0), CHUNK)])
+def simulate_in_chunks(model: PhysicsModel, x0: Tensor, theta: Tensor, effect: Tensor | None = None) -> Tensor:
+    """Trajectories (n, T, *obs) of ``model`` for the inputs x0 (n, *state), theta (n, P) [and effect parameters]."""
+    chunks = range(0, len(x0), CHUNK)
+    part = lambda v, i: None if v is None else v[i : i + CHUNK]  # noqa: E731
+    return torch.cat([model.simulate(x0[i : i + CHUNK], theta[i : i + CHUNK], part(effect, i)) for i in chunks])

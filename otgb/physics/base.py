@@ -197,8 +197,13 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
         return any(not p.is_constant for term in self.terms for p in term.priors.values())
 
     def times(self, device: torch.device | None = None) -> Tensor:
+        """The solver's output grid from t = 0, (n_obs,) or (n_obs + 1,) when t = 0 is not observed."""
         n = self.n_obs if self.include_initial else self.n_obs + 1
         return torch.arange(n, device=device, dtype=torch.float32) * self.dt
+
+    def observation_times(self, device: torch.device | None = None) -> Tensor:
+        """The times of the observed trajectory, (n_obs,)."""
+        return self.times(device)[-self.n_obs :]
 
     def with_hidden_effect(self, terms: Sequence[Term], step_size: float | None = None) -> PhysicsModel:
         """A copy of this model with ``terms`` added to its field (and optionally a finer step).
