@@ -120,6 +120,7 @@ class Evaluation(Callback):
         self._check_monitors(trainer, datamodule)
         shape = tuple(pl_module.physics.trajectory_shape)
         self.plan = self.evaluation_plan(datamodule.mode, datamodule.recorded_inputs)
+
         def make(prefix: str, paired: bool, sync: bool) -> JointEvaluator:
             per_time = prefix == ""  # the per-time statistic reads the trajectories alone: once per set
             inputs = self.plan[prefix][0]

@@ -149,7 +149,7 @@ class SimulationDataModule(LightningDataModule):
     # --- the mode -------------------------------------------------------------------------
     @property
     def mode(self) -> str:
-        """"joint" (a known DGP generates the measured data) or "marginal" (measurements from a file)."""
+        """ "joint" (a known DGP generates the measured data) or "marginal" (measurements from a file)."""
         return "joint" if self.measured_file is None else "marginal"
 
     @property
