@@ -42,8 +42,9 @@ def main() -> None:
     data.setup("validate")
     data.setup("test")
     scores = {}
-    for path in sorted((args.run / "checkpoints").glob("*step=*.ckpt")):
-        step = int(re.search(r"step=(\d+)", path.name).group(1))
+    step_of = lambda path: int(re.search(r"step=(\d+)", path.name).group(1))  # noqa: E731
+    for path in sorted((args.run / "checkpoints").glob("*step=*.ckpt"), key=step_of):
+        step = step_of(path)
         model.load_state_dict(torch.load(path, map_location="cpu", weights_only=False)["state_dict"])
         model.eval()
         scores[step] = {"val": joint_abs_err(model, data.val_set), "test": joint_abs_err(model, data.test_set)}
