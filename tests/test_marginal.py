@@ -82,3 +82,14 @@ def test_a_map_that_ignores_theta_is_caught_when_theta_is_recorded(friction_draw
 def test_split_half_scores_need_an_unpaired_evaluator(friction_draws):
     with pytest.raises(ValueError, match="must be unpaired"):
         split_half_scores(JointEvaluator((50, 1), inputs=("theta",), paired=True), friction_draws, tests=False)
+
+
+def test_paired_energy_is_zero_for_identical_samples_and_unbiased_for_paired_draws(generator):
+    """Paired rows (same inputs): the cross mean skips i = j, so identical samples score exactly 0."""
+    x = torch.randn(50, 4, generator=generator, dtype=torch.float64)
+    assert float(batched_energy(x[None], x[None], paired=True)[0]) == pytest.approx(0.0, abs=1e-9)
+    assert float(batched_energy(x[None], x[None])[0]) < -0.05, "the unpaired form is biased low for paired samples"
+    shared = torch.randn(400, 30, 4, generator=generator)  # each pair shares its input, draws differ
+    draws = [shared + 0.5 * torch.randn(400, 30, 4, generator=generator) for _ in range(2)]
+    paired = torch.stack([batched_energy(a[None], b[None], paired=True)[0] for a, b in zip(draws[0], draws[1])])
+    assert abs(float(paired.mean())) < 3 * float(paired.std()) / math.sqrt(len(paired))

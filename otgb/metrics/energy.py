@@ -30,28 +30,35 @@ from otgb.metrics.samples import TwoSampleMetric
 MAX_BLOCK_ENTRIES = 2**25  # distance-matrix entries per batched call (256 MiB in float64)
 
 
-def batched_energy(p: Tensor, q: Tensor) -> Tensor:
-    """Unbiased energy distance of each batch entry: p (G, n, F), q (G, m, F) -> (G,), in bounded memory."""
+def batched_energy(p: Tensor, q: Tensor, paired: bool = False) -> Tensor:
+    """Unbiased energy distance of each batch entry: p (G, n, F), q (G, m, F) -> (G,), in bounded memory.
+
+    ``paired``: row i of p and row i of q are dependent (the same inputs), so the cross mean
+    skips i = j as the within-sample means do; otherwise a near-perfect paired sample would
+    score below zero by about 2 E||X - X'|| / n.
+    """
     n, m = p.shape[1], q.shape[1]
-    if n < 2 or m < 2:
-        raise ValueError(f"the energy distance needs at least 2 points per sample, got {n} and {m}")
+    if n < 2 or m < 2 or (paired and n != m):
+        raise ValueError(f"the energy distance needs at least 2 points per sample (equally many if paired), got {n} and {m}")
     step = max(1, MAX_BLOCK_ENTRIES // (n * m + n * n + m * m))
     parts = []
     for g in range(0, len(p), step):
         a, b = p[g : g + step], q[g : g + step]
         within_a = torch.cdist(a, a).sum((1, 2)) / (n * (n - 1))  # the zero diagonal is skipped by the divisor
         within_b = torch.cdist(b, b).sum((1, 2)) / (m * (m - 1))
-        parts.append(2 * torch.cdist(a, b).mean((1, 2)) - within_a - within_b)
+        cross = torch.cdist(a, b)
+        cross = (cross.sum((1, 2)) - cross.diagonal(dim1=1, dim2=2).sum(1)) / (n * (n - 1)) if paired else cross.mean((1, 2))
+        parts.append(2 * cross - within_a - within_b)
     return torch.cat(parts)
 
 
-def energy_distance(p: Tensor, q: Tensor) -> Tensor:
+def energy_distance(p: Tensor, q: Tensor, paired: bool = False) -> Tensor:
     """Unbiased energy distance between the rows of p (n, D) and q (m, D), on pooled-standardised features."""
     p, q = standardise(*_as_float(p, q))
-    return batched_energy(p[None].double(), q[None].double())[0]
+    return batched_energy(p[None].double(), q[None].double(), paired)[0]
 
 
-def energy_per_time(p: Tensor, q: Tensor, trajectory_shape: tuple[int, ...]) -> Tensor:
+def energy_per_time(p: Tensor, q: Tensor, trajectory_shape: tuple[int, ...], paired: bool = False) -> Tensor:
     """Energy distance per time step and component: (T, C) for trajectories (T, C, *space).
 
     p (n, D) and q (m, D) are rows whose last prod(trajectory_shape) features are a trajectory
@@ -68,19 +75,21 @@ def energy_per_time(p: Tensor, q: Tensor, trajectory_shape: tuple[int, ...]) -> 
     def cells(rows: Tensor) -> Tensor:  # (n, width) -> (T * C, n, space)
         return rows[:, -width:].reshape(len(rows), steps * channels, -1).transpose(0, 1).double()
 
-    return batched_energy(cells(p), cells(q)).reshape(steps, channels).float()
+    return batched_energy(cells(p), cells(q), paired).reshape(steps, channels).float()
 
 
 class EnergyDistance(TwoSampleMetric):
     """Energy distance on accumulated samples: ``{"energy"}``, and ``{"energy_per_time": (T, C)}`` when
-    ``trajectory_shape`` (T, *obs) says where the trajectory sits in each row."""
+    ``trajectory_shape`` (T, *obs) says where the trajectory sits in each row; ``paired``: see
+    :func:`batched_energy`."""
 
-    def __init__(self, trajectory_shape: tuple[int, ...] | None = None, **kwargs) -> None:
+    def __init__(self, trajectory_shape: tuple[int, ...] | None = None, paired: bool = False, **kwargs) -> None:
         super().__init__(**kwargs)
         self.trajectory_shape = None if trajectory_shape is None else tuple(trajectory_shape)
+        self.paired = paired
 
     def score(self, p: Tensor, q: Tensor) -> dict[str, Tensor]:
-        results = {"energy": energy_distance(p, q).float()}
+        results = {"energy": energy_distance(p, q, self.paired).float()}
         if self.trajectory_shape is not None:
-            results["energy_per_time"] = energy_per_time(p, q, self.trajectory_shape)
+            results["energy_per_time"] = energy_per_time(p, q, self.trajectory_shape, self.paired)
         return results

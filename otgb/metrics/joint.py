@@ -77,7 +77,7 @@ class JointEvaluator:
         self.two_sample = MetricCollection(
             {
                 "mmd": MMD(**kw),
-                "energy": EnergyDistance(trajectory_shape=trajectory_shape if per_time else None, **kw),
+                "energy": EnergyDistance(trajectory_shape=trajectory_shape if per_time else None, paired=paired, **kw),
                 "mmdagg": MMDAgg(n_permutations=mmdagg_permutations, n_level=mmdagg_permutations, seed=seed, paired=paired, **kw),
                 "c2st": C2ST(
                     folds=c2st_folds,
