@@ -3,10 +3,12 @@
 import csv
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -207,10 +209,24 @@ def test_test_writes_metrics_json_and_table(tmp_path):
     assert "| ABS ERR |" in table and "| C2ST accuracy |" in table and "Reference" in table
 
 
-def test_checkpoint_on_a_test_metric_needs_tests_at_every_validation(tmp_path):
+def test_checkpoint_on_a_test_metric_needs_tests_at_every_validation(tmp_path, capsys):
     config = str(Path(CONFIG).with_name("pendulum_2m.yaml"))
-    with pytest.raises(ValueError, match="monitor='val/c2st'.*evaluation.tests_every=2"):
+    with pytest.raises(SystemExit) as exit_info:
         main(["fit", *_args(tmp_path, "--trainer.max_steps=3", "--evaluation.tests_every=2", config=config)])
+    assert exit_info.value.code == 2
+    assert re.search(r"^otgb: error: .*monitor='val/c2st'.*evaluation.tests_every=2", capsys.readouterr().err, re.M)
+
+
+def test_checkpoint_must_monitor_a_metric_of_the_mode(tmp_path, capsys):
+    """A measured file has no DGP: a checkpoint on val/abs_err is refused before training, with the choices."""
+    measured = tmp_path / "m.npz"
+    np.savez(measured, y=np.zeros((100, 50, 1)))
+    args = _args(tmp_path, "--data.hidden_effect=[]", f"--data.measured_path={measured}", "--checkpoint.monitor=val/abs_err")
+    with pytest.raises(SystemExit):
+        main(["fit", *args])
+    assert "the marginal evaluation does not log it; choose one of ['val/mmd', 'val/mmd2_median', 'val/energy'" in (
+        capsys.readouterr().err
+    )
 
 
 def _tiny(config: Path, cache: Path) -> list[str]:
