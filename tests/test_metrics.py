@@ -261,7 +261,8 @@ def test_reference_scores_are_the_noise_floor(one_to_many_set):
     data = one_to_many_set
     evaluator = JointEvaluator((50, 1), mmdagg_permutations=200)
     reference = reference_scores(evaluator, data, tests=False, repeats=3)
-    assert set(reference) == {"mmd", "mmd_std", "mmd2_median", "mmd2_median_std"}
+    names = ("mmd", "mmd2_median", "energy", "energy_per_time")
+    assert set(reference) == {f"{name}{std}" for name in names for std in ("", "_std")}
     fp = evaluator.evaluate(data["x"].unsqueeze(1).expand_as(data["y"]), data, tests=False)
     assert 0 < reference["mmd_std"] and reference["mmd"] < fp["mmd"] / 10
     one_draw = {**data, "y": data["y"][:, :1], "y_ref": data["y"][:, :1]}  # a deterministic DGP: both draws equal
