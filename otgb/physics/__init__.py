@@ -1,18 +1,22 @@
 """Simulators: the incomplete physics f_p and the data-generating process built from it."""
 
 from otgb.physics.advection_diffusion import AdvectionDiffusion
+from otgb.physics.augmented import Augmented
 from otgb.physics.base import FieldModel, PhysicsModel, SimulationDiverged, Term, raise_if_diverged
 from otgb.physics.pendulum import Pendulum
-from otgb.physics.priors import Choice, Constant, Prior, Uniform
+from otgb.physics.priors import Choice, Constant, Normal, Prior, Uniform
 from otgb.physics.reaction_diffusion import ReactionDiffusion
-from otgb.physics.terms import Advection, ConstantDrain, FitzHughNagumoReaction, ViscousFriction
+from otgb.physics.terms import Advection, ConstantDrain, FitzHughNagumoReaction, LibraryTerm, ViscousFriction
 
 __all__ = [
     "Advection",
     "AdvectionDiffusion",
+    "Augmented",
     "ConstantDrain",
     "FieldModel",
     "FitzHughNagumoReaction",
+    "LibraryTerm",
+    "Normal",
     "ReactionDiffusion",
     "Choice",
     "Constant",

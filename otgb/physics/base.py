@@ -30,7 +30,7 @@ from torchdiffeq import odeint
 from otgb.errors import InputError
 from otgb.physics.arguments import RecordsInitArgs, invalid
 from otgb.physics.priors import Prior, check_prior, sample_joint
-from otgb.physics.stencils import central_difference, laplacian
+from otgb.physics.stencils import central_difference, laplacian, second_difference
 
 VectorField = Callable[[Tensor, Tensor], Tensor]
 
@@ -62,6 +62,10 @@ def _check_declarations(cls: type[PhysicsModel]) -> None:
         raise TypeError(f"{cls.__name__}.observed names {unknown}, which are not in state_names {cls.state_names}")
     if list(cls.observed) != [name for name in cls.state_names if name in cls.observed]:
         raise TypeError(f"{cls.__name__}.observed {cls.observed} must follow the order of state_names {cls.state_names}")
+    for attr in ("angle_names", "velocity_names"):
+        stray = [name for name in getattr(cls, attr) if name not in cls.state_names]
+        if stray:
+            raise TypeError(f"{cls.__name__}.{attr} names {stray}, which are not in state_names {cls.state_names}")
     shared = sorted(set(cls.theta_names) & set(cls.state_names))
     if shared:
         raise TypeError(f"{cls.__name__}: {shared} named both in theta_names and in state_names; each name must be unique")
@@ -86,7 +90,10 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
     ``theta_names``, takes a :class:`Prior` argument named after each entry of ``theta_names``
     and ``state_names`` (or overrides :meth:`sample_theta` / :meth:`sample_initial_state`),
     and writes :meth:`field`, the known physics f_p. Its constructor's arguments are recorded
-    and make its ``repr``, the key of cached data sets.
+    and make its ``repr``, the key of cached data sets. It may also name which states are
+    angles (``angle_names``) and velocities (``velocity_names``): the missing-effect library
+    (:mod:`otgb.discovery.library`) then offers sin/cos of the angles and drag-like terms of
+    the velocities.
 
     Args:
         dt: time between two observations.
@@ -101,6 +108,8 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
     state_names: ClassVar[tuple[str, ...]]
     observed: ClassVar[tuple[str, ...]]
     theta_names: ClassVar[tuple[str, ...]]
+    angle_names: ClassVar[tuple[str, ...]] = ()
+    velocity_names: ClassVar[tuple[str, ...]] = ()
 
     def __init_subclass__(cls, **kwargs: object) -> None:
         super().__init_subclass__(**kwargs)
@@ -116,7 +125,7 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
         hidden_effect: Sequence[Term] = (),
     ) -> None:
         super().__init__()
-        if getattr(type(self), "state_names", None) is None or getattr(type(self), "theta_names", None) is None:
+        if getattr(self, "state_names", None) is None or getattr(self, "theta_names", None) is None:
             raise TypeError(f"{type(self).__name__} must declare the class attributes state_names and theta_names")
         if not (_is_number(dt) and dt > 0):
             raise invalid(self, "dt", dt, "a positive number")
@@ -244,7 +253,7 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
                     f"{cls.__name__} draws {name!r} from its prior, but its constructor has no argument {name!r}; "
                     "add one (a Prior) or override sample_theta / sample_initial_state"
                 )
-        for name in (*cls.theta_names, *cls.state_names):
+        for name in (*self.theta_names, *self.state_names):
             if name in self.init_args:
                 check_prior(self, name, self.init_args[name])
 
@@ -258,7 +267,7 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
         dstate = self.field(state, theta)
         offset = 0
         for term in self.terms:
-            dstate = dstate + term(state, effect_params[:, offset : offset + term.n_params], self)
+            dstate = dstate + term(state, effect_params[:, offset : offset + term.n_params], self, theta)
             offset += term.n_params
         return dstate
 
@@ -354,6 +363,10 @@ class FieldModel(PhysicsModel):
         """du/ds along a spatial ``axis`` (negative) by central differences."""
         return central_difference(u, self.dx, self.boundary, axis)
 
+    def second_derivative(self, u: Tensor, axis: int = -1) -> Tensor:
+        """d^2u/ds^2 along a spatial ``axis`` (negative) by the 3-point stencil."""
+        return second_difference(u, self.dx, self.boundary, axis)
+
     @abstractmethod
     def sample_initial_state(self, n: int, generator: torch.Generator) -> Tensor:
         """Initial fields (n, *state_shape)."""
@@ -363,9 +376,10 @@ class Term(RecordsInitArgs, nn.Module, ABC):
     """A named additive term of a vector field with its own latent parameters.
 
     ``priors`` maps each parameter name to the prior it is drawn from, once per trajectory.
-    ``forward(state, params, model)`` returns the term's contribution to d(state)/dt, with params
-    of shape (B, len(priors)) in the order of ``priors``; ``model`` is the physics model the term
-    is part of. ``model_type`` is the kind of model the term needs (:class:`FieldModel` for
+    ``forward(state, params, model, theta)`` returns the term's contribution to d(state)/dt, with
+    params of shape (B, len(priors)) in the order of ``priors``; ``model`` is the physics model the
+    term is part of and ``theta`` (B, P) its physics parameters (for effects whose strength
+    depends on them). ``model_type`` is the kind of model the term needs (:class:`FieldModel` for
     spatial terms), checked by :meth:`check_model` when the term is added to a model.
     """
 
@@ -376,7 +390,7 @@ class Term(RecordsInitArgs, nn.Module, ABC):
         self.priors = {name: check_prior(self, name, prior) for name, prior in priors.items()}
 
     @abstractmethod
-    def forward(self, state: Tensor, params: Tensor, model: PhysicsModel) -> Tensor:
+    def forward(self, state: Tensor, params: Tensor, model: PhysicsModel, theta: Tensor | None = None) -> Tensor:
         """d(state)/dt of this term for states (B, *state_shape) and its parameters (B, n_params)."""
 
     def check_model(self, model: PhysicsModel) -> None:

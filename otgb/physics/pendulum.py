@@ -34,6 +34,8 @@ class Pendulum(PhysicsModel):
     state_names = ("angle", "velocity")
     observed = ("angle",)
     theta_names = ("omega",)
+    angle_names = ("angle",)
+    velocity_names = ("velocity",)
 
     def __init__(
         self,

@@ -76,6 +76,24 @@ class Uniform(Prior):
         return low + (high - low) * u
 
 
+class Normal(Prior):
+    """N(mean, std^2).
+
+    Args:
+        mean: the mean.
+        std: the standard deviation, positive.
+    """
+
+    def __init__(self, mean: float, std: float) -> None:
+        if not (_finite(mean) and _finite(std) and std > 0):
+            raise invalid(self, "(mean, std)", (mean, std), "finite numbers with std > 0")
+        self.mean, self.std = float(mean), float(std)
+
+    def quantile(self, u: Tensor) -> Tensor:
+        u = u.clamp(1e-7, 1 - 1e-7)  # the tails' inverse CDF is finite
+        return self.mean + self.std * math.sqrt(2) * torch.erfinv(2 * u - 1)
+
+
 class Choice(Prior):
     """One of ``values``, each equally likely (a mixture of point masses).
 
@@ -125,7 +143,7 @@ def _finite(value: object) -> bool:
 def check_prior(owner: object, name: str, value: object) -> Prior:
     """``value`` if it is a Prior, else an InputError naming ``owner``'s argument ``name``."""
     if not isinstance(value, Prior):
-        raise invalid(owner, name, value, "a Prior (otgb.physics.Uniform, Constant or Choice)")
+        raise invalid(owner, name, value, "a Prior (otgb.physics.Uniform, Normal, Constant or Choice)")
     if hasattr(value, "lazy_get_init_data"):
         value.quantile(torch.zeros(0))  # a jsonargparse lazy_instance default: its first method call runs its __init__
     return value

@@ -27,6 +27,11 @@ def central_difference(u: Tensor, dx: float, boundary: str, axis: int = -1) -> T
     return (_shifted(u, axis, 1, boundary) - _shifted(u, axis, -1, boundary)) / (2 * dx)
 
 
+def second_difference(u: Tensor, dx: float, boundary: str, axis: int = -1) -> Tensor:
+    """d^2u/ds^2 ~ (u[i+1] - 2 u[i] + u[i-1]) / dx^2 along ``axis``."""
+    return (_shifted(u, axis, 1, boundary) - 2 * u + _shifted(u, axis, -1, boundary)) / dx**2
+
+
 def laplacian(u: Tensor, dx: float, boundary: str, dims: int) -> Tensor:
     """Sum over the last ``dims`` axes of (u[i+1] - 2 u[i] + u[i-1]) / dx^2 (the 3/5-point stencil)."""
     out = -2 * dims * u

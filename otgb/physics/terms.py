@@ -7,6 +7,7 @@ from torch import Tensor
 
 from otgb.errors import InputError
 from otgb.physics.base import FieldModel, PhysicsModel, Term
+from otgb.physics.features import evaluate_feature, parse_feature
 from otgb.physics.priors import Prior
 
 
@@ -27,7 +28,7 @@ class ViscousFriction(Term):
         super().check_model(model)
         _check_index(self, "velocity_index", self.velocity_index, model)
 
-    def forward(self, state: Tensor, params: Tensor, model: PhysicsModel) -> Tensor:
+    def forward(self, state: Tensor, params: Tensor, model: PhysicsModel, theta: Tensor | None = None) -> Tensor:
         out = torch.zeros_like(state)
         out[:, self.velocity_index] = -params[:, 0] * state[:, self.velocity_index]
         return out
@@ -50,7 +51,7 @@ class Advection(Term):
     def __init__(self, beta: Prior) -> None:
         super().__init__({"beta": beta})
 
-    def forward(self, state: Tensor, params: Tensor, model: FieldModel) -> Tensor:
+    def forward(self, state: Tensor, params: Tensor, model: FieldModel, theta: Tensor | None = None) -> Tensor:
         return -_column(params, state) * model.derivative(state)
 
 
@@ -71,7 +72,7 @@ class FitzHughNagumoReaction(Term):
                 f"FitzHughNagumoReaction acts on a (u, v) state; {type(model).__name__} has the components {model.state_names}"
             )
 
-    def forward(self, state: Tensor, params: Tensor, model: PhysicsModel) -> Tensor:
+    def forward(self, state: Tensor, params: Tensor, model: PhysicsModel, theta: Tensor | None = None) -> Tensor:
         u, v = state[:, 0], state[:, 1]
         reaction = u - u**3 - v - _column(params, u)
         return torch.stack([reaction, torch.zeros_like(v)], dim=1)
@@ -93,7 +94,7 @@ class ConstantDrain(Term):
         super().check_model(model)
         _check_index(self, "channel", self.channel, model)
 
-    def forward(self, state: Tensor, params: Tensor, model: PhysicsModel) -> Tensor:
+    def forward(self, state: Tensor, params: Tensor, model: PhysicsModel, theta: Tensor | None = None) -> Tensor:
         out = torch.zeros_like(state)
         out[:, self.channel] = -_column(params, state[:, self.channel])
         return out
@@ -107,3 +108,43 @@ def _check_index(term: Term, name: str, index: int, model: PhysicsModel) -> None
             f"{type(term).__name__}: {name}={index!r} is invalid; expected an index 0..{size - 1} "
             f"into the state components {model.state_names} of {type(model).__name__}"
         )
+
+
+class LibraryTerm(Term):
+    """``coefficient * feature`` added to d(component)/dt: any named effect, one class.
+
+    The feature is written in the model's variable names (grammar: :mod:`otgb.physics.features`),
+    e.g. ``velocity`` on ``velocity`` with coefficient -1.2 is viscous friction, ``velocity*|velocity|``
+    quadratic drag, ``d_s(T)`` on ``T`` advection, ``u^3`` on ``u`` a cubic reaction. It serves as a
+    hidden effect of a synthetic DGP and as a named term of an augmented physics model
+    (:class:`otgb.physics.Augmented`), where the coefficient becomes a physics parameter.
+
+    Args:
+        feature: the feature, e.g. ``velocity*|velocity|`` or ``lap(u)``.
+        component: the state component whose rate of change the term adds to.
+        coefficient: prior of the coefficient, drawn once per trajectory.
+        name: the coefficient's parameter name (default ``<component>:<feature>``).
+    """
+
+    def __init__(self, feature: str, component: str, coefficient: Prior, name: str | None = None) -> None:
+        super().__init__({"coefficient": coefficient})
+        self.feature, self.component = feature, component
+        self.name = name if name is not None else f"{component}:{feature}"
+        self._factors = None
+
+    def check_model(self, model: PhysicsModel) -> None:
+        super().check_model(model)
+        if self.component not in model.state_names:
+            raise InputError(
+                f"LibraryTerm: component={self.component!r} is invalid; expected one of {type(model).__name__}'s "
+                f"state names {model.state_names}"
+            )
+        self._factors = parse_feature(self.feature, model)
+
+    def forward(self, state: Tensor, params: Tensor, model: PhysicsModel, theta: Tensor | None = None) -> Tensor:
+        if self._factors is None:
+            self.check_model(model)
+        value = _column(params, state[:, 0]) * evaluate_feature(self._factors, state, theta, model)
+        index = model.state_names.index(self.component)
+        parts = [value if i == index else torch.zeros_like(value) for i in range(state.shape[1])]
+        return torch.stack(parts, dim=1)

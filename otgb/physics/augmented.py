@@ -1,0 +1,108 @@
+"""f_p augmented with named library terms whose coefficients are new physics parameters.
+
+What ``otgb discover`` writes into ``augmented.yaml``:
+
+    data:
+      physics:
+        class_path: otgb.physics.Augmented
+        init_args:
+          base: {class_path: otgb.physics.Pendulum}
+          terms:
+            - class_path: otgb.physics.LibraryTerm
+              init_args: {feature: velocity, component: velocity,
+                          coefficient: {class_path: otgb.physics.Constant, init_args: {value: -1.2}}}
+
+The augmented model is f_p's system with theta extended by one parameter per term (named by
+the term, drawn from the term's coefficient prior), so the data module, the grey-box map and
+the evaluation take it as any other f_p: a second round of training or discovery starts from
+the improved physics.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor, nn
+
+from otgb.errors import InputError
+from otgb.physics.base import PhysicsModel
+from otgb.physics.priors import Prior, sample_joint
+from otgb.physics.terms import LibraryTerm
+
+
+class Augmented(PhysicsModel):
+    """``base`` plus ``terms``: d(state)/dt = f_base(state, theta) + sum_k c_k feature_k(state).
+
+    theta is (base theta, c_1, ..., c_K); ``theta_names`` appends the terms' names. Everything
+    else (states, observation, grid, initial states, time grid, solver, the correction's slot)
+    is the base model's.
+
+    Args:
+        base: the physics model f_p that is augmented (with no hidden effect of its own).
+        terms: the named terms added to it, each a :class:`otgb.physics.LibraryTerm`.
+    """
+
+    state_names = None  # per instance: the base model's
+
+    def __init__(self, base: PhysicsModel, terms: Sequence[LibraryTerm]) -> None:
+        if not isinstance(base, PhysicsModel) or len(base.terms) > 0:
+            raise InputError(f"Augmented: base={base!r} is invalid; expected a physics model without hidden-effect terms")
+        if isinstance(terms, (str, LibraryTerm)) or not all(isinstance(t, LibraryTerm) for t in terms):
+            raise InputError(f"Augmented: terms={terms!r} is invalid; expected a list of otgb.physics.LibraryTerm")
+        names = [term.name for term in terms]
+        clash = sorted({n for n in names if names.count(n) > 1} | (set(names) & {*base.theta_names, *base.state_names}))
+        if clash:
+            raise InputError(f"Augmented: the term names {clash} repeat a name of the base model or of another term")
+        for attr in ("state_names", "observed", "angle_names", "velocity_names"):
+            object.__setattr__(self, attr, getattr(base, attr))
+        object.__setattr__(self, "theta_names", (*base.theta_names, *names))
+        super().__init__(base.dt, base.n_obs, base.include_initial, base.step_size, base.method)
+        self.base = base
+        self.added = nn.ModuleList(terms)
+        for term in terms:
+            term.check_model(base)
+
+    def __getattr__(self, name: str) -> object:
+        """Attributes the base model has and this one lacks (its grid, stencils, ...)."""
+        try:
+            return super().__getattr__(name)
+        except AttributeError:
+            base = self.__dict__.get("_modules", {}).get("base")
+            if base is None:
+                raise
+            return getattr(base, name)
+
+    @property
+    def state_shape(self) -> tuple[int, ...]:
+        return self.base.state_shape
+
+    @property
+    def correction_shape(self) -> tuple[int, ...]:
+        return self.base.correction_shape
+
+    @property
+    def priors(self) -> dict[str, Prior]:
+        return {**self.base.priors, **{term.name: term.priors["coefficient"] for term in self.added}}
+
+    def add_correction(self, dstate: Tensor, correction: Tensor) -> Tensor:
+        return self.base.add_correction(dstate, correction)
+
+    def observe(self, state: Tensor) -> Tensor:
+        return self.base.observe(state)
+
+    def field(self, state: Tensor, theta: Tensor) -> Tensor:
+        base_theta = theta[:, : self.base.theta_dim]
+        dstate = self.base.field(state, base_theta)
+        for k, term in enumerate(self.added):
+            column = self.base.theta_dim + k
+            dstate = dstate + term(state, theta[:, column : column + 1], self.base, base_theta)
+        return dstate
+
+    def sample_theta(self, n: int, generator: torch.Generator) -> Tensor:
+        """The base model's theta, then one draw of each term's coefficient prior."""
+        coefficients = sample_joint([term.priors["coefficient"] for term in self.added], n, generator)
+        return torch.cat([self.base.sample_theta(n, generator), coefficients], dim=1)
+
+    def sample_initial_state(self, n: int, generator: torch.Generator) -> Tensor:
+        return self.base.sample_initial_state(n, generator)

@@ -1,0 +1,120 @@
+"""Features of a state written in its variable names: the grammar of missing-effect terms.
+
+A feature is a product of factors separated by ``*``; each factor is an atom, optionally
+raised to an integer power with ``^``:
+
+- ``1`` (the constant), a state name (``angle``, ``u``);
+- ``sin(x)``, ``cos(x)``, ``sign(x)``, ``|x|`` of a state name;
+- spatial derivatives of a field's channel (a :class:`FieldModel`): ``d_s(u)`` and
+  ``d_ss(u)`` on a 1-D grid, ``d_x(u)``, ``d_y(u)``, ``d_xx(u)``, ``d_yy(u)`` on a 2-D grid,
+  and ``lap(u)``, the Laplacian, on any grid.
+
+Examples: ``velocity*|velocity|`` (quadratic drag), ``u^3``, ``u*d_s(u)``, ``omega*velocity``
+(a state times a physics parameter: names of ``theta_names`` are allowed too).
+:func:`parse_feature` checks a feature against a model once; :func:`evaluate_feature`
+computes it on states (B, *state_shape) -> (B, *grid_shape).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from otgb.errors import InputError
+
+POINTWISE = {"sin": torch.sin, "cos": torch.cos, "sign": torch.sign}
+SPATIAL_1D = {"d_s": (1, -1), "d_ss": (2, -1)}  # name -> (order, axis)
+SPATIAL_2D = {"d_x": (1, -2), "d_y": (1, -1), "d_xx": (2, -2), "d_yy": (2, -1)}
+_NAME = r"[A-Za-z_]\w*"
+_ATOM = re.compile(rf"^(?:(?P<func>[a-z_]+)\((?P<arg>{_NAME})\)|\|(?P<abs>{_NAME})\||(?P<name>{_NAME})|(?P<one>1))$")
+
+
+@dataclass(frozen=True)
+class Factor:
+    """One factor of a feature: ``op`` applied to the variable ``name``, raised to ``power``.
+
+    ``op`` is "one" (the constant), "var", "abs", a pointwise function or a spatial operator.
+    """
+
+    op: str
+    name: str
+    power: int = 1
+
+
+def parse_feature(feature: str, model: object) -> tuple[Factor, ...]:
+    """The factors of ``feature``, checked against ``model``'s names and grid; InputError if invalid."""
+    if not isinstance(feature, str) or not feature.strip():
+        raise InputError(f"feature {feature!r} is invalid; expected e.g. 'velocity*|velocity|' or 'lap(u)'")
+    factors = tuple(_parse_factor(part.strip(), feature, model) for part in feature.replace(" ", "").split("*"))
+    return tuple(f for f in factors if f.op != "one") or factors[:1]
+
+
+def _parse_factor(text: str, feature: str, model: object) -> Factor:
+    base, _, power = text.partition("^")
+    if power and not (power.isdigit() and int(power) >= 1):
+        raise InputError(f"feature {feature!r}: power {power!r} in {text!r} is invalid; expected a whole number >= 1")
+    match = _ATOM.match(base)
+    if match is None:
+        raise InputError(f"feature {feature!r}: cannot read {text!r}; {_grammar_hint(model)}")
+    power = int(power or 1)
+    if match["one"]:
+        return Factor("one", "", 1)
+    if match["abs"]:
+        return Factor("abs", _checked_name(match["abs"], feature, model), power)
+    if match["name"]:
+        return Factor("var", _checked_name(match["name"], feature, model), power)
+    func, name = match["func"], _checked_name(match["arg"], feature, model, states_only=True)
+    if func not in POINTWISE and func not in _spatial_ops(model) and not (func == "lap" and _spatial_ops(model)):
+        raise InputError(f"feature {feature!r}: unknown function {func!r}; {_grammar_hint(model)}")
+    return Factor(func, name, power)
+
+
+def _checked_name(name: str, feature: str, model: object, states_only: bool = False) -> str:
+    names = tuple(model.state_names) + (() if states_only else tuple(model.theta_names))
+    if name not in names:
+        raise InputError(f"feature {feature!r}: {name!r} is not a name of {type(model).__name__}; expected one of {names}")
+    return name
+
+
+def _spatial_ops(model: object) -> dict[str, tuple[int, int]]:
+    dims = getattr(model, "spatial_dims", 0)
+    return SPATIAL_1D if dims == 1 else SPATIAL_2D if dims == 2 else {}
+
+
+def _grammar_hint(model: object) -> str:
+    spatial = ", ".join(f"{op}(u)" for op in [*_spatial_ops(model), "lap"]) if getattr(model, "spatial_dims", 0) else "none"
+    return (
+        f"expected factors joined by '*' among 1, a name of {tuple(model.state_names) + tuple(model.theta_names)}, "
+        f"sin(x), cos(x), sign(x), |x|, each optionally '^k'; spatial operators: {spatial}"
+    )
+
+
+def evaluate_feature(factors: tuple[Factor, ...], state: Tensor, theta: Tensor, model: object) -> Tensor:
+    """The feature on states (B, *state_shape) with parameters theta (B, P): shape (B, *grid_shape)."""
+    value = None
+    for factor in factors:
+        if factor.op == "one":
+            return torch.ones_like(state[:, 0])
+        part = _atom(factor, state, theta, model) ** factor.power
+        value = part if value is None else value * part
+    return value
+
+
+def _atom(factor: Factor, state: Tensor, theta: Tensor, model: object) -> Tensor:
+    if factor.name in model.state_names:
+        u = state[:, model.state_names.index(factor.name)]
+    else:
+        u = theta[:, model.theta_names.index(factor.name)].reshape(-1, *([1] * (state.dim() - 2))).expand_as(state[:, 0])
+    if factor.op == "var":
+        return u
+    if factor.op == "abs":
+        return u.abs()
+    if factor.op in POINTWISE:
+        return POINTWISE[factor.op](u)
+    if factor.op == "lap":
+        return model.laplacian(u)
+    order, axis = _spatial_ops(model)[factor.op]
+    return model.derivative(u, axis) if order == 1 else model.second_derivative(u, axis)
