@@ -2,6 +2,7 @@
 
     otgb fit --config configs/pendulum.yaml [--model.gamma 0.5 --trainer.max_steps 2000 ...]
     otgb validate|test --config configs/pendulum.yaml --ckpt_path runs/.../best.ckpt
+    otgb discover --config my_model.yaml --data.measured_path measurements.npz   (otgb.discovery)
 
 Every subcommand first loads ``otgb/configs/defaults.yaml`` (trainer, loggers, checkpointing,
 optimisers), then the ``--config`` files in order, then the command-line overrides. The data
@@ -144,7 +145,13 @@ def share_logger_version(loggers: object) -> list[Path]:
 def main(args: list[str] | None = None) -> None:
     """Run the ``otgb`` command; bad user input ends it with one line on stderr and status 2."""
     logging.getLogger("lightning.fabric.utilities.seed").setLevel(logging.WARNING)  # the seed is in config.yaml
+    args = sys.argv[1:] if args is None else args
     try:
+        if args[:1] == ["discover"]:
+            from otgb.discovery.cli import discover
+
+            discover(args[1:])
+            return
         OTGBCLI(KernelWeakOT, SimulationDataModule, args=args)
     except InputError as error:
         print(f"otgb: error: {error}", file=sys.stderr)

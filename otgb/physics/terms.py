@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import torch
 from torch import Tensor
 
@@ -123,13 +125,14 @@ class LibraryTerm(Term):
         feature: the feature, e.g. ``velocity*|velocity|`` or ``lap(u)``.
         component: the state component whose rate of change the term adds to.
         coefficient: prior of the coefficient, drawn once per trajectory.
-        name: the coefficient's parameter name (default ``<component>:<feature>``).
+        name: the coefficient's parameter name (default from component and feature, e.g.
+            ``c_velocity__velocity_x_abs_velocity`` for ``velocity*|velocity|`` on ``velocity``).
     """
 
     def __init__(self, feature: str, component: str, coefficient: Prior, name: str | None = None) -> None:
         super().__init__({"coefficient": coefficient})
         self.feature, self.component = feature, component
-        self.name = name if name is not None else f"{component}:{feature}"
+        self.name = name if name is not None else coefficient_name(feature, component)
         self._factors = None
 
     def check_model(self, model: PhysicsModel) -> None:
@@ -148,3 +151,9 @@ class LibraryTerm(Term):
         index = model.state_names.index(self.component)
         parts = [value if i == index else torch.zeros_like(value) for i in range(state.shape[1])]
         return torch.stack(parts, dim=1)
+
+
+def coefficient_name(feature: str, component: str) -> str:
+    """A parameter name (a Python identifier) for the coefficient of ``feature`` on ``component``."""
+    text = re.sub(r"\|(\w+)\|", r"abs_\1", feature.replace("*", "_x_").replace("^", "_pow"))
+    return re.sub(r"\W+", "_", f"c_{component}__{text}").strip("_")

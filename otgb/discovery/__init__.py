@@ -1,0 +1,1 @@
+"""Missing-effect discovery: locate, name, add and verify what f_p lacks (``otgb discover``)."""

@@ -1,0 +1,96 @@
+"""``otgb discover``: the discovery workflow from the command line.
+
+    otgb discover --config my_model.yaml --data.measured_path measurements.npz [--ckpt_path grey-box.ckpt]
+
+It takes the options of ``otgb fit`` (the same config files work), a ``discover:`` section
+(:class:`otgb.discovery.workflow.DiscoverySettings`) and ``--ckpt_path``, a grey-box trained on
+the same measurements, to skip training. It writes ``report.md``, ``report.json``,
+``figures/`` and ``augmented.yaml`` into the run directory (``runs/<config stem>/version_N``,
+where the fit's logs and checkpoints also go) and prints that directory.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+import yaml
+
+from otgb.cli import OTGBCLI
+from otgb.data import SimulationDataModule
+from otgb.discovery.locate import describe
+from otgb.discovery.report import augmented_config, write_augmented, write_report
+from otgb.discovery.workflow import Discovery, DiscoverySettings, Measurements, gap_step, locate_step, run, simulate_from_priors
+from otgb.errors import InputError
+from otgb.training import KernelWeakOT
+
+
+class DiscoverCLI(OTGBCLI):
+    """The ``otgb fit`` parser plus the ``discover:`` section and ``--ckpt_path``."""
+
+    def add_arguments_to_parser(self, parser) -> None:
+        super().add_arguments_to_parser(parser)
+        parser.add_class_arguments(DiscoverySettings, "discover")
+        parser.add_argument(
+            "--ckpt_path",
+            type=str | None,
+            default=None,
+            help="A checkpoint of an OT grey-box trained on these measurements with this config: skip training.",
+        )
+
+
+def discover(args: list[str]) -> Path:
+    """Run the workflow with ``otgb discover`` arguments; returns the run directory."""
+    cli = DiscoverCLI(KernelWeakOT, SimulationDataModule, args=args, run=False)
+    settings: DiscoverySettings = cli.config_init["discover"]
+    datamodule, module, trainer = cli.datamodule, cli.model, cli.trainer
+    if datamodule.mode != "marginal":
+        raise InputError(
+            "otgb discover works from measurements alone: give --data.measured_path FILE and --data.hidden_effect=[] "
+            "(scripts/export_measured.py writes a config's synthetic measurements to such a file)"
+        )
+    data = Measurements.from_datamodule(datamodule)
+    physics = datamodule.physics
+    before = locate_step(physics, data.train, settings)
+    print(f"otgb discover: {describe(before)}", flush=True)
+    run_dir = Path(trainer.log_dir)
+    if before.any_significant:
+        load_or_fit(cli, cli.config.get("ckpt_path"))
+        result = run(module, data, settings, before)
+    else:
+        result = Discovery(before, describe(before))
+        f_p = simulate_from_priors(physics, len(data.test), settings.seed, "gap-f_p")
+        result.gap = gap_step({"f_p": f_p}, data.test, settings)
+    samples = {"measured": data.test, "f_p": simulate_from_priors(physics, len(data.test), settings.seed, "gap-f_p")}
+    if result.found:
+        samples["augmented"] = simulate_from_priors(result.fitted.model(physics), len(data.test), settings.seed, "gap-augmented")
+    facts = {"description": datamodule.describe(), "config": [str(c) for c in cli.config.get("config") or []]}
+    run_dir.mkdir(parents=True, exist_ok=True)
+    report = write_report(run_dir, result, physics, facts, samples)
+    if result.found:
+        config = yaml.safe_load(cli.parser.dump(cli.config, format="yaml", skip_none=False))
+        write_augmented(run_dir / "augmented.yaml", augmented_config(config, physics, result))
+    print(f"otgb discover: {report['verdict']}")
+    print(f"otgb discover: report in {run_dir}")
+    return run_dir
+
+
+def load_or_fit(cli: Any, ckpt_path: str | None) -> None:
+    """Load the grey-box's weights from ``ckpt_path``, or train it and load its best checkpoint."""
+    if ckpt_path is None:
+        cli.trainer.fit(cli.model, cli.datamodule)
+        best = getattr(cli.trainer.checkpoint_callback, "best_model_path", "")
+        if not best:
+            return
+        ckpt_path = best
+    path = Path(ckpt_path)
+    if not path.is_file():
+        raise InputError(f"--ckpt_path {ckpt_path}: no such checkpoint file")
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    try:
+        cli.model.load_state_dict(state["state_dict"])
+    except (KeyError, RuntimeError) as error:
+        raise InputError(
+            f"--ckpt_path {ckpt_path}: not a checkpoint of this config's grey-box ({str(error).splitlines()[0]})"
+        ) from None

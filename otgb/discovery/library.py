@@ -1,0 +1,134 @@
+"""The candidate library: features built from what a physics model declares, with physical names.
+
+From ``state_names``, ``angle_names``, ``velocity_names``, ``theta_names`` and, for a
+:class:`otgb.physics.FieldModel`, its grid, the library offers for each component the
+correction acts on:
+
+- the constant ``1``; the states and their products and powers up to degree 3;
+- ``sin`` and ``cos`` of angles; ``v*|v|`` and ``sign(v)`` of velocities;
+- for fields: first spatial derivatives and the Laplacian of each channel, and the advective
+  products ``w*d_s(u)``;
+- optionally (``theta_products``) each of those times each physics parameter, for an effect
+  whose strength depends on theta.
+
+Each candidate carries a physical name from :func:`physical_name`'s vocabulary, which falls
+back to the expression itself. Features follow :mod:`otgb.physics.features`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import combinations_with_replacement
+
+from otgb.physics.base import PhysicsModel
+from otgb.physics.features import SPATIAL_1D, SPATIAL_2D
+
+MAX_DEGREE = 3
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """``feature`` as a term of d(component)/dt."""
+
+    feature: str
+    component: str
+
+
+def monomials(names: tuple[str, ...], degree: int = MAX_DEGREE) -> list[str]:
+    """Products and powers of ``names`` up to ``degree``: ``u``, ``u^2``, ``u*v``, ``u^2*v``, ..."""
+    features = []
+    for d in range(1, degree + 1):
+        for combo in combinations_with_replacement(names, d):
+            features.append("*".join(f"{n}^{combo.count(n)}" if combo.count(n) > 1 else n for n in dict.fromkeys(combo)))
+    return features
+
+
+def spatial_features(model: PhysicsModel) -> list[str]:
+    """First derivatives and the Laplacian of each channel, and the advective products."""
+    dims = getattr(model, "spatial_dims", 0)
+    if not dims:
+        return []
+    first = [op for op, (order, _) in (SPATIAL_1D if dims == 1 else SPATIAL_2D).items() if order == 1]
+    derivatives = [f"{op}({u})" for u in model.state_names for op in first]
+    laplacians = [f"lap({u})" for u in model.state_names]
+    advective = [f"{w}*{d}" for w in model.state_names for d in derivatives]
+    return derivatives + laplacians + advective
+
+
+def feature_names(model: PhysicsModel, theta_products: bool = False) -> list[str]:
+    """Every candidate feature of ``model`` (the same for each component)."""
+    features = ["1", *monomials(tuple(model.state_names))]
+    features += [f"{f}({a})" for a in model.angle_names for f in ("sin", "cos")]
+    features += [f"{v}*|{v}|" for v in model.velocity_names] + [f"sign({v})" for v in model.velocity_names]
+    features += spatial_features(model)
+    if theta_products:
+        features += [theta if f == "1" else f"{theta}*{f}" for theta in model.theta_names for f in list(features)]
+    return features
+
+
+def build_library(model: PhysicsModel, components: list[str], theta_products: bool = False) -> list[Candidate]:
+    """The candidates for each component the correction acts on."""
+    features = feature_names(model, theta_products)
+    return [Candidate(feature, component) for component in components for feature in features]
+
+
+def physical_name(feature: str, component: str, coefficient: float, model: PhysicsModel) -> str:
+    """A physical name for ``coefficient * feature`` in d(component)/dt, or the expression itself."""
+    factors = feature.split("*")
+    thetas = [f for f in factors if f in model.theta_names]
+    if thetas and len(thetas) < len(factors):
+        rest = "*".join(f for f in factors if f not in model.theta_names)
+        return f"{physical_name(rest, component, coefficient, model)} scaled by {', '.join(thetas)}"
+    name = _named(feature, component, coefficient, model)
+    return name if name is not None else f"{coefficient:+.3g} * {feature} on d{component}/dt"
+
+
+def _named(feature: str, own: str, coefficient: float, model: PhysicsModel) -> str | None:
+    sign = "negative" if coefficient < 0 else "positive"
+    is_velocity = own in model.velocity_names
+    field = bool(getattr(model, "spatial_dims", 0))
+    if feature == "1":
+        return ("constant drain" if coefficient < 0 else "constant source") if field else "constant forcing"
+    if feature == own:
+        if is_velocity:
+            return "viscous friction" if coefficient < 0 else "negative damping (self-excitation)"
+        return "linear decay" if coefficient < 0 else "linear growth"
+    if feature == f"{own}*|{own}|" and is_velocity:
+        return "quadratic drag" if coefficient < 0 else "quadratic anti-drag"
+    if feature == f"sign({own})" and is_velocity:
+        return "Coulomb friction" if coefficient < 0 else "constant-magnitude push along the motion"
+    if feature == f"{own}^2":
+        return "logistic saturation" if coefficient < 0 else "quadratic growth"
+    if feature == f"{own}^3":
+        return "cubic reaction (saturation)" if coefficient < 0 else "cubic reaction (growth)"
+    if feature.startswith(("sin(", "cos(")) and is_velocity:
+        return f"{'restoring' if coefficient < 0 else 'destabilising'} torque {feature}"
+    if feature in model.state_names:
+        if is_velocity and feature in model.angle_names:
+            return "linear restoring force (spring)" if coefficient < 0 else "linear destabilising force"
+        return f"linear coupling to {feature} ({sign})"
+    if field:
+        return _field_name(feature, own, coefficient)
+    if all(_base(f) in model.state_names for f in feature.split("*")) and len({_base(f) for f in feature.split("*")}) > 1:
+        return f"coupling {feature}"
+    return None
+
+
+def _base(factor: str) -> str:
+    return factor.split("^")[0]
+
+
+def _field_name(feature: str, own: str, coefficient: float) -> str | None:
+    if feature in (f"lap({own})", f"d_ss({own})"):
+        return "diffusion" if coefficient > 0 else "anti-diffusion"
+    for axis in ("s", "x", "y"):
+        if feature == f"d_{axis}({own})":
+            direction = "towards +" if coefficient < 0 else "towards -"
+            return f"advection along {axis} ({direction}{axis})"
+        if feature == f"{own}*d_{axis}({own})":
+            return f"nonlinear (Burgers) advection along {axis}"
+    if feature.startswith("lap(") or feature.startswith("d_"):
+        return f"cross-diffusion {feature}"
+    if "d_" in feature:
+        return f"advection by another channel {feature}"
+    return f"coupling {feature}"

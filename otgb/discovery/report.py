@@ -1,0 +1,270 @@
+"""The discovery's outputs: ``report.json``, ``report.md`` with its figures, ``augmented.yaml``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import yaml  # noqa: E402
+
+from otgb.callbacks.figures import distribution_figure  # noqa: E402
+from otgb.discovery import locate  # noqa: E402
+from otgb.discovery.workflow import Discovery, term_name  # noqa: E402
+from otgb.physics.augmented import Augmented  # noqa: E402
+from otgb.physics.base import PhysicsModel  # noqa: E402
+from otgb.physics.priors import Prior  # noqa: E402
+
+GAP_ROWS = {"f_p": "f_p alone", "greybox": "OT grey-box", "augmented": "augmented physics", "reference": "Reference"}
+
+
+def prior_dict(prior: Prior) -> dict[str, Any]:
+    """A prior as a config entry (class_path / init_args)."""
+    return {"class_path": f"otgb.physics.{type(prior).__name__}", "init_args": dict(prior.init_args)}
+
+
+def distribution(prior: Prior) -> dict[str, Any] | None:
+    """``null`` for a constant coefficient, else the prior's kind and parameters."""
+    if prior.is_constant:
+        return None
+    return {"kind": type(prior).__name__.lower(), **prior.init_args}
+
+
+def verdict(result: Discovery, physics: PhysicsModel) -> str:
+    if not result.before.any_significant:
+        return "no missing effect found: " + result.sentence_before
+    if not result.found:
+        return (
+            "no missing effect found in the library: the measurements differ from f_p ("
+            + result.sentence_before
+            + "), but no candidate term explains the learned correction"
+        )
+    names = [f"{term_name(c, p.quantile(_half()).item(), physics)} ({p_feature(c)})" for c, p in _terms(result)]
+    return f"missing effect found: {', '.join(names)}; " + (result.sentence_after or "")
+
+
+def _half():
+    import torch
+
+    return torch.tensor(0.5)
+
+
+def p_feature(candidate: Any) -> str:
+    return f"{candidate.feature} on d{candidate.component}/dt"
+
+
+def _terms(result: Discovery) -> list[tuple]:
+    return list(zip(result.fitted.candidates, result.fitted.priors)) if result.found else []
+
+
+def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any]) -> dict[str, Any]:
+    """``report.json``: found, verdict, terms, ambiguous, explained_r2, gap, and the details."""
+    regression = {(t.candidate.feature, t.candidate.component): t for s in result.selections for t in s.terms}
+    terms = []
+    for candidate, prior in _terms(result):
+        centre = prior.quantile(_half()).item()
+        found = regression.get((candidate.feature, candidate.component))
+        terms.append(
+            {
+                "name": term_name(candidate, centre, physics),
+                "feature": candidate.feature,
+                "component": candidate.component,
+                "coefficient": centre,
+                "interval": list(found.interval) if found else None,
+                "inclusion_probability": found.inclusion_probability if found else None,
+                "r2_share": found.r2_share if found else None,
+                "regression_coefficient": found.coefficient if found else None,
+                "per_trajectory": found.per_trajectory if found else None,
+                "distribution": distribution(prior),
+            }
+        )
+    ambiguous = [
+        {"feature": t.candidate.feature, "component": t.candidate.component, "alternatives": [a.feature for a in t.alternatives]}
+        for s in result.selections
+        for t in s.terms
+        if t.alternatives
+    ]
+    return {
+        "found": result.found,
+        "verdict": verdict(result, physics),
+        "terms": terms,
+        "ambiguous": ambiguous,
+        "explained_r2": {s.component: s.explained_r2 for s in result.selections},
+        "gap": result.gap,
+        "locate": {
+            "before": result.before.to_dict(),
+            "sentence_before": result.sentence_before,
+            "after": result.after.to_dict() if result.after else None,
+            "sentence_after": result.sentence_after,
+        },  # fmt: skip
+        "regression": [_selection_dict(s) for s in result.selections],
+        "cross_check": result.cross_check,
+        "family": result.fitted.family if result.fitted else None,
+        "family_heldout_energy": result.family_scores,
+        "dropped_by_heldout_check": result.dropped,
+        "correction_share": result.correction_share,
+        "run": facts,
+    }
+
+
+def _selection_dict(selection: Any) -> dict[str, Any]:
+    return {
+        "component": selection.component,
+        "selected": [t.candidate.feature for t in selection.terms],
+        "explained_r2": selection.explained_r2,
+        "condition_number": selection.condition_number,
+        "confusable_pairs": [{"a": a, "b": b, "correlation": c} for a, b, c in selection.confusable_pairs],
+        "inclusion_probability": selection.inclusion,
+        "target_rms": selection.target_rms,
+    }
+
+
+def draw_locate(result: Discovery, path: Path) -> None:
+    maps = [(result.before, "f_p vs measured (before)")] + (
+        [(result.after, "augmented vs measured (after)")] if result.after else []
+    )
+    figure, axes = plt.subplots(1, len(maps), figsize=(6 * len(maps), 3.6), squeeze=False)
+    for ax, (disagreement, title) in zip(axes[0], maps):
+        locate.draw(ax, disagreement, title)
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+
+
+def write_report(run_dir: Path, result: Discovery, physics: PhysicsModel, facts: dict[str, Any], samples: dict) -> dict:
+    """Write report.json, report.md and the figures into ``run_dir``; returns the report dict."""
+    figures = run_dir / "figures"
+    figures.mkdir(parents=True, exist_ok=True)
+    report = report_dict(result, physics, facts)
+    (run_dir / "report.json").write_text(json.dumps(report, indent=2))
+    draw_locate(result, figures / "disagreement.png")
+    figure = distribution_figure(samples, physics.observation_times(), physics.observed)
+    figure.savefig(figures / "distributions.png", dpi=110)
+    plt.close(figure)
+    (run_dir / "report.md").write_text(markdown(report, facts))
+    return report
+
+
+def markdown(report: dict[str, Any], facts: dict[str, Any]) -> str:
+    lines = [
+        "# Missing-effect discovery",
+        "",
+        f"**Verdict:** {report['verdict']}",
+        "",
+        f"Measurements: {facts.get('description', '')}",
+        "",
+        "## 1. Where f_p and the measurements disagree",
+        "",
+        f"{report['locate']['sentence_before']}.",
+        "",
+        "![disagreement map](figures/disagreement.png)",
+        "",
+        "Each cell (time step, component, region) compares the two samples by the energy distance; "
+        "p-values from label permutations, significant cells kept by Benjamini-Hochberg at the stated false discovery rate.",
+        "",
+    ]
+    if report["regression"]:
+        lines += _naming_section(report)
+    lines += [
+        "## Gap on held-out test measurements",
+        "",
+        "| model | MMD (paper-code) | C2ST | energy distance |",
+        "|---|---|---|---|",
+    ]
+    for key, label in GAP_ROWS.items():
+        if key in report["gap"]:
+            g = report["gap"][key]
+            lines.append(f"| {label} | {g['mmd']:.4g} | {g['c2st']:.3f} ± {g['c2st_std']:.3f} | {g['energy']:.4g} |")
+    lines += [
+        "",
+        "Reference: one half of the test measurements against the other (the noise floor of these metrics at this sample size).",
+        "",
+        "![distributions](figures/distributions.png)",
+        "",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def _naming_section(report: dict[str, Any]) -> list[str]:
+    lines = ["## 2. What the learned correction is", ""]
+    if report["correction_share"] is not None:
+        lines.append(
+            f"The grey-box's correction f_phi has {report['correction_share']:.3g} times the size (RMS) of f_p along its trajectories."
+        )
+        lines.append("")
+    for s in report["regression"]:
+        lines.append(
+            f"- d{s['component']}/dt: selected {', '.join(s['selected']) or 'nothing'}; R^2 of f_phi explained {s['explained_r2']:.3f}; "
+            f"library condition number {s['condition_number']:.3g}" + _confusable(s["confusable_pairs"])
+        )
+    if report["terms"]:
+        lines += [
+            "",
+            "| term | feature | on | coefficient | 95 % interval | inclusion | share of f_phi (R^2) | distribution |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for t in report["terms"]:
+            interval = f"[{t['interval'][0]:.4g}, {t['interval'][1]:.4g}]" if t["interval"] else "-"
+            inclusion = f"{t['inclusion_probability']:.2f}" if t["inclusion_probability"] is not None else "-"
+            share = f"{t['r2_share']:.3f}" if t["r2_share"] is not None else "-"
+            dist = "constant" if t["distribution"] is None else json.dumps(t["distribution"])
+            lines.append(
+                f"| {t['name']} | `{t['feature']}` | d{t['component']}/dt | {t['coefficient']:.4g} | {interval} | {inclusion} | {share} | {dist} |"
+            )
+    for a in report["ambiguous"]:
+        lines.append(f"\n**Ambiguous:** `{a['feature']}` could equally be {', '.join(f'`{x}`' for x in a['alternatives'])}.")
+    lines += [
+        "",
+        "### Cross-check: each strong candidate alone added to f_p",
+        "",
+        "| feature | on | fitted coefficient | share of the gap closed |",
+        "|---|---|---|---|",
+    ]
+    for row in report["cross_check"]:
+        lines.append(f"| `{row['feature']}` | d{row['component']}/dt | {row['coefficient']:.4g} | {row['gap_closed']:.2f} |")
+    if report["dropped_by_heldout_check"]:
+        lines.append("")
+        lines.append("Dropped (no held-out gain): " + ", ".join(f"`{d['feature']}`" for d in report["dropped_by_heldout_check"]))
+    if report["family"]:
+        lines += ["", f"Prior family chosen on held-out measurements: **{report['family']}** (held-out energy per family: "
+                  + ", ".join(f"{k} {v:.4g}" for k, v in report["family_heldout_energy"].items()) + ")."]  # fmt: skip
+    if report["locate"]["sentence_after"]:
+        lines += ["", f"After the fix: {report['locate']['sentence_after']}."]
+    return lines + [""]
+
+
+def _confusable(pairs: list[dict]) -> str:
+    if not pairs:
+        return ""
+    return "; confusable pairs: " + ", ".join(f"{p['a']} ~ {p['b']} ({p['correlation']:.3f})" for p in pairs)
+
+
+def augmented_config(config: dict[str, Any], physics: PhysicsModel, result: Discovery) -> dict[str, Any]:
+    """The run's config with ``data.physics`` replaced by f_p plus the named terms (earlier rounds' kept)."""
+    config = {k: v for k, v in config.items() if k not in ("discover", "ckpt_path", "config")}
+    physics_entry = config["data"]["physics"]
+    earlier = []
+    if isinstance(physics, Augmented):
+        physics_entry, earlier = physics_entry["init_args"]["base"], physics_entry["init_args"]["terms"]
+    new = [
+        {"class_path": "otgb.physics.LibraryTerm",
+         "init_args": {"feature": c.feature, "component": c.component, "coefficient": prior_dict(p)}}
+        for c, p in _terms(result)
+    ]  # fmt: skip
+    config["data"]["physics"] = {
+        "class_path": "otgb.physics.Augmented",
+        "init_args": {"base": physics_entry, "terms": earlier + new},
+    }
+    for logger in config["trainer"].get("logger") or []:
+        if isinstance(logger, dict) and "name" in logger.get("init_args", {}):
+            logger["init_args"]["name"] = "auto"
+    return config
+
+
+def write_augmented(path: Path, config: dict[str, Any]) -> None:
+    header = "# Written by otgb discover: the run's config with f_p augmented by the named terms.\n"
+    path.write_text(header + yaml.safe_dump(config, sort_keys=False))

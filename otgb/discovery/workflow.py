@@ -1,0 +1,339 @@
+"""The missing-effect discovery workflow: locate, learn, name, add, verify.
+
+Given f_p, a file of measured trajectories and an OT grey-box trained on them ("Hybrid
+Generative Modeling for Incomplete Physics: Deep Grey-Box Meets Optimal Transport"):
+
+1. **Locate** (:mod:`otgb.discovery.locate`): where and when f_p's simulations and the
+   measured training trajectories disagree. Nothing significant: no missing effect found.
+2. **Learn**: the grey-box T_phi (trained by ``otgb discover`` or loaded from a checkpoint).
+3. **Name** (:mod:`otgb.discovery.regression`): its correction f_phi, evaluated along generated
+   trajectories, regressed on the candidate library (:mod:`otgb.discovery.library`).
+4. **Cross-check and add** (:mod:`otgb.discovery.refine`): each strong candidate alone added
+   to f_p with its coefficient fitted by distribution matching, ranked by the share of the gap
+   it closes; the selected terms fitted together, each prior family tried, terms that do not
+   lower the held-out energy dropped.
+5. **Verify**: MMD, C2ST and energy distance on the held-out test measurements for f_p, the
+   grey-box and the augmented physics next to the Reference (half the test measurements
+   against the other half), and the disagreement map drawn again for the augmented physics.
+
+The measured data are split by the data module (train / validation / test): locating and
+fitting use the training part, choices between fitted models the validation part, the gap
+table the test part.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from otgb.data.seeding import generator_for
+from otgb.discovery.library import Candidate, build_library, physical_name
+from otgb.discovery.locate import DisagreementMap, describe, locate
+from otgb.discovery.refine import FAMILIES, FittedTerms, choose_family, fit, heldout_energy
+from otgb.discovery.regression import Selection, design_matrix, regress
+from otgb.metrics.c2st import c2st
+from otgb.metrics.energy import energy_distance
+from otgb.metrics.mmd import mmd_multiscale
+from otgb.physics.augmented import Augmented
+from otgb.physics.base import PhysicsModel
+
+CHUNK = 256
+
+
+class DiscoverySettings:
+    """Settings of ``otgb discover`` (the ``discover:`` section of its config).
+
+    Args:
+        n_permutations: Label permutations per p-value of the disagreement map.
+        alpha: False discovery rate of the disagreement map (Benjamini-Hochberg).
+        regions_per_axis: Blocks per spatial axis in which a field's cells are compared.
+        n_trajectories: Generated trajectories along which the correction f_phi is evaluated.
+        n_bootstrap: Bootstrap resamples (of trajectories) for inclusion probabilities and intervals.
+        theta_products: Whether the library also offers each feature times each physics parameter.
+        strong_candidates: Candidates per component cross-checked alone (besides the selected ones), by univariate R^2.
+        fit_steps: Optimiser steps of each distribution-matching fit of coefficients.
+        fit_batch: Simulated and measured trajectories per distribution-matching step.
+        families: Prior families tried for the coefficients, simplest first.
+        c2st_classifier: The C2ST judge of the gap table ("auto", "mlp" or "conv").
+        seed: Seed of every draw of the workflow.
+    """
+
+    def __init__(
+        self,
+        n_permutations: int = 999,
+        alpha: float = 0.05,
+        regions_per_axis: int = 4,
+        n_trajectories: int = 256,
+        n_bootstrap: int = 30,
+        theta_products: bool = False,
+        strong_candidates: int = 3,
+        fit_steps: int = 200,
+        fit_batch: int = 128,
+        families: tuple[str, ...] = FAMILIES,
+        c2st_classifier: str = "auto",
+        seed: int = 0,
+    ) -> None:
+        from otgb.errors import InputError
+
+        if n_permutations < 19 or not 0 < alpha < 1 or regions_per_axis < 1:
+            raise InputError(
+                f"discover: need n_permutations >= 19, 0 < alpha < 1, regions_per_axis >= 1; "
+                f"got {n_permutations}, {alpha}, {regions_per_axis}"
+            )
+        if n_trajectories < 10 or n_bootstrap < 1 or fit_steps < 1 or fit_batch < 2 or strong_candidates < 0:
+            raise InputError(
+                "discover: need n_trajectories >= 10, n_bootstrap >= 1, fit_steps >= 1, fit_batch >= 2, strong_candidates >= 0"
+            )
+        unknown = [f for f in families if f not in FAMILIES]
+        if unknown or not families:
+            raise InputError(f"discover.families={list(families)}: expected a non-empty list among {list(FAMILIES)}")
+        self.n_permutations, self.alpha, self.regions_per_axis = n_permutations, alpha, regions_per_axis
+        self.n_trajectories, self.n_bootstrap, self.theta_products = n_trajectories, n_bootstrap, theta_products
+        self.strong_candidates, self.fit_steps, self.fit_batch = strong_candidates, fit_steps, fit_batch
+        self.families, self.c2st_classifier, self.seed = tuple(families), c2st_classifier, seed
+
+
+@dataclass
+class Measurements:
+    """The measured trajectories (n, T, *obs) of each part of the split."""
+
+    train: Tensor
+    val: Tensor
+    test: Tensor
+
+    @classmethod
+    def from_datamodule(cls, datamodule: Any) -> Measurements:
+        datamodule.setup("fit")
+        datamodule.setup("test")
+        return cls(datamodule.measured, datamodule.val_set["y"].flatten(0, 1), datamodule.test_set["y"].flatten(0, 1))
+
+
+@dataclass
+class Discovery:
+    """Everything the report shows."""
+
+    before: DisagreementMap
+    sentence_before: str
+    selections: list[Selection] = field(default_factory=list)
+    cross_check: list[dict] = field(default_factory=list)
+    fitted: FittedTerms | None = None
+    family_scores: dict[str, float] = field(default_factory=dict)
+    dropped: list[dict] = field(default_factory=list)
+    after: DisagreementMap | None = None
+    sentence_after: str | None = None
+    gap: dict[str, dict[str, float]] = field(default_factory=dict)
+    correction_share: float | None = None
+
+    @property
+    def found(self) -> bool:
+        return self.fitted is not None and len(self.fitted.candidates) > 0
+
+
+# --- simulation helpers ---------------------------------------------------------------
+@torch.no_grad()
+def simulate_from_priors(physics: PhysicsModel, n: int, seed: int, name: str) -> Tensor:
+    """n observed trajectories of ``physics`` with inputs from its priors, (n, T, *obs)."""
+    g = generator_for(seed, "discover", name)
+    x0, theta = physics.sample_initial_state(n, g), physics.sample_theta(n, g)
+    return torch.cat([physics.simulate(x0[i : i + CHUNK], theta[i : i + CHUNK]) for i in range(0, n, CHUNK)])
+
+
+@torch.no_grad()
+def greybox_draws(module: Any, n: int, seed: int) -> dict[str, Tensor]:
+    """The grey-box's states, f_p and f_phi (in state space) along n generated trajectories from the priors."""
+    physics = module.physics
+    g = generator_for(seed, "discover", "greybox")
+    x0, theta = physics.sample_initial_state(n, g), physics.sample_theta(n, g)
+    transport_map = module.map_average.module if module.map_average is not None else module.transport_map
+    device = module.device
+    rng = module.generator.get_state()
+    parts = []
+    for i in range(0, n, CHUNK):
+        z = module.sample_z(len(x0[i : i + CHUNK]))
+        parts.append(transport_map.components(x0[i : i + CHUNK].to(device), theta[i : i + CHUNK].to(device), z))
+    module.generator.set_state(rng)
+    out = {key: torch.cat([p[key] for p in parts]).cpu() for key in parts[0]}
+    steps = out["states"].shape[1]
+    flat = out["correction"].flatten(0, 1)
+    out["correction"] = physics.add_correction(torch.zeros_like(out["states"].flatten(0, 1)), flat).reshape(out["states"].shape)
+    out["observed"] = physics.observe(out["states"])
+    out["theta"], out["steps"] = theta, steps
+    return out
+
+
+def acting_components(physics: PhysicsModel) -> list[str]:
+    """The state components the grey-box's correction can change."""
+    probe = torch.zeros(1, *physics.state_shape)
+    reach = physics.add_correction(probe, torch.ones(1, *physics.correction_shape)).reshape(len(physics.state_names), -1)
+    reach = reach.abs().sum(-1)
+    return [name for name, r in zip(physics.state_names, reach) if r > 0]
+
+
+# --- the steps ----------------------------------------------------------------------
+def locate_step(physics: PhysicsModel, measured: Tensor, settings: DiscoverySettings, model_name: str = "f_p") -> DisagreementMap:
+    simulated = simulate_from_priors(physics, len(measured), settings.seed, model_name)
+    return locate(
+        measured, simulated, physics.observation_times(), physics.observed,
+        settings.n_permutations, settings.alpha, settings.regions_per_axis, settings.seed,
+    )  # fmt: skip
+
+
+def name_step(module: Any, settings: DiscoverySettings) -> tuple[list[Selection], dict[str, Tensor], float]:
+    """Regress f_phi on the library, per component; also returns the draws and |f_phi| / |f_p| (RMS)."""
+    physics = module.physics
+    draws = greybox_draws(module, settings.n_trajectories, settings.seed)
+    selections = []
+    for component in acting_components(physics):
+        index = physics.state_names.index(component)
+        candidates = build_library(physics, [component], settings.theta_products)
+        design = design_matrix(
+            physics, candidates, draws["states"], draws["theta"], draws["correction"][:, :, index], settings.seed
+        )
+        selections.append(regress(design, component, settings.n_bootstrap, settings.seed))
+    share = float(draws["correction"].pow(2).mean().sqrt() / draws["physics"].pow(2).mean().sqrt().clamp_min(1e-12))
+    return selections, draws, share
+
+
+def strong_candidates(selections: list[Selection], draws: dict[str, Tensor], physics: PhysicsModel, k: int) -> list[tuple]:
+    """(candidate, initial coefficient) to cross-check: selected terms, their alternatives, the top-k alone."""
+    chosen: dict[Candidate, float] = {}
+    for selection in selections:
+        for term in selection.terms:
+            chosen.setdefault(term.candidate, term.coefficient)
+            for alternative in term.alternatives:
+                chosen.setdefault(alternative, None)
+        index = physics.state_names.index(selection.component)
+        candidates = build_library(physics, [selection.component])
+        design = design_matrix(physics, candidates, draws["states"], draws["theta"], draws["correction"][:, :, index])
+        X, y = design.X, design.y
+        slope = (X * y[:, None]).sum(0) / (X**2).sum(0).clip(1e-300)
+        r2 = 1 - ((y[:, None] - X * slope) ** 2).sum(0) / max((y**2).sum(), 1e-300)
+        for j in r2.argsort()[::-1][:k]:
+            chosen.setdefault(candidates[j], None)
+            if chosen[candidates[j]] is None:
+                chosen[candidates[j]] = float(slope[j])
+    return [(c, v if v is not None else 0.0) for c, v in chosen.items()]
+
+
+def cross_check_step(physics: PhysicsModel, strong: list[tuple], data: Measurements, settings: DiscoverySettings) -> list[dict]:
+    """Each strong candidate alone added to f_p, its coefficient fitted: the share of f_p's held-out gap it closes."""
+    baseline = heldout_energy(physics, Augmented(physics, []), None, data.val, settings.seed)
+    gap = sum(baseline) / len(baseline)
+    rows = []
+    for candidate, init in strong:
+        fitted = fit(physics, [candidate], [init], "constant", data.train, data.val, **_fit_args(settings))
+        rows.append(
+            {
+                "feature": candidate.feature,
+                "component": candidate.component,
+                "coefficient": fitted.priors[0].value,
+                "heldout_energy": fitted.heldout_energy,
+                "gap_closed": 1 - fitted.heldout_energy / gap if gap > 0 else 0.0,
+            }
+        )
+    return sorted(rows, key=lambda r: -r["gap_closed"])
+
+
+def _fit_args(settings: DiscoverySettings) -> dict:
+    return {"steps": settings.fit_steps, "batch": settings.fit_batch, "seed": settings.seed}
+
+
+def add_step(physics: PhysicsModel, terms: list[tuple], data: Measurements, settings: DiscoverySettings) -> tuple:
+    """Fit the terms together (constant), drop those the held-out data do not support, then choose the prior family."""
+    candidates, init = [c for c, _ in terms], [v for _, v in terms]
+    current = fit(physics, candidates, init, "constant", data.train, data.val, **_fit_args(settings))
+    dropped = []
+    while len(current.candidates) > 1:
+        trials = []
+        for k in range(len(current.candidates)):
+            keep = [i for i in range(len(current.candidates)) if i != k]
+            values = [current.priors[i].value for i in keep]
+            trials.append(
+                (
+                    k,
+                    fit(
+                        physics,
+                        [current.candidates[i] for i in keep],
+                        values,
+                        "constant",
+                        data.train,
+                        data.val,
+                        **_fit_args(settings),
+                    ),
+                )
+            )
+        k, reduced = min(trials, key=lambda t: t[1].heldout_energy)
+        if _better(current, reduced):  # the term lowers the held-out energy by more than two standard errors
+            break
+        dropped.append({"feature": current.candidates[k].feature, "component": current.candidates[k].component})
+        current = reduced
+    fits = [current] + [
+        fit(physics, current.candidates, [p.value for p in current.priors], family, data.train, data.val, **_fit_args(settings))
+        for family in settings.families
+        if family != "constant"
+    ]
+    chosen = choose_family([f for f in fits if f.family in settings.families] or [current])
+    return chosen, {f.family: f.heldout_energy for f in fits}, dropped
+
+
+def _better(a: FittedTerms, b: FittedTerms) -> bool:
+    """Whether ``a`` has a lower held-out energy than ``b`` by more than two standard errors (paired draws)."""
+    difference = torch.tensor(b.heldout) - torch.tensor(a.heldout)
+    return bool(difference.mean() > 2 * difference.std() / len(difference) ** 0.5)
+
+
+def gap_step(sources: dict[str, Tensor], test: Tensor, settings: DiscoverySettings) -> dict[str, dict[str, float]]:
+    """MMD, C2ST and energy distance of each source's draws against the test measurements, and the Reference."""
+    gap = {name: scores(draws, test, settings) for name, draws in sources.items()}
+    g = torch.Generator().manual_seed(settings.seed)
+    order = torch.randperm(len(test), generator=g)
+    half = len(test) // 2
+    gap["reference"] = scores(test[order[:half]], test[order[half : 2 * half]], settings)
+    return gap
+
+
+def scores(p: Tensor, q: Tensor, settings: DiscoverySettings) -> dict[str, float]:
+    p, q = p.flatten(1).double(), q.flatten(1).double()
+    judge = c2st(p.float(), q.float(), folds=5, seed=settings.seed, classifier=settings.c2st_classifier)
+    return {
+        "mmd": float(mmd_multiscale(p, q)),
+        "c2st": float(judge["c2st"]),
+        "c2st_std": float(judge["c2st_std"]),
+        "energy": float(energy_distance(p, q)),
+    }
+
+
+def run(module: Any, data: Measurements, settings: DiscoverySettings, before: DisagreementMap) -> Discovery:
+    """Steps 3-5 on a trained grey-box ``module`` (a KernelWeakOT), after a significant locate."""
+    physics = module.physics
+    result = Discovery(before, describe(before))
+    result.selections, draws, result.correction_share = name_step(module, settings)
+    strong = strong_candidates(result.selections, draws, physics, settings.strong_candidates)
+    result.cross_check = cross_check_step(physics, strong, data, settings)
+    selected = [(t.candidate, t.coefficient) for s in result.selections for t in s.terms]
+    if selected:
+        result.fitted, result.family_scores, result.dropped = add_step(physics, selected, data, settings)
+    sources = {
+        "f_p": simulate_from_priors(physics, len(data.test), settings.seed, "gap-f_p"),
+        "greybox": generated(module, len(data.test), settings.seed),
+    }
+    if result.found:
+        augmented = result.fitted.model(physics)
+        sources["augmented"] = simulate_from_priors(augmented, len(data.test), settings.seed, "gap-augmented")
+        result.after = locate_step(augmented, data.train, settings, "augmented")
+        result.sentence_after = describe(result.after, b_name="augmented-physics")
+    result.gap = gap_step(sources, data.test, settings)
+    return result
+
+
+@torch.no_grad()
+def generated(module: Any, n: int, seed: int) -> Tensor:
+    """n trajectories of the grey-box with inputs from the priors, (n, T, *obs)."""
+    return greybox_draws(module, n, seed)["observed"][:, -module.physics.n_obs :]
+
+
+def term_name(candidate: Candidate, coefficient: float, physics: PhysicsModel) -> str:
+    return physical_name(candidate.feature, candidate.component, coefficient, physics)
