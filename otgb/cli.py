@@ -7,12 +7,14 @@
 Every subcommand first loads ``otgb/configs/defaults.yaml`` (trainer, loggers, checkpointing,
 optimisers), then the ``--config`` files in order, then the command-line overrides. The data
 module's f_p is handed to the model at instantiation, and the model's T_max sets how many
-source batches each training item holds. Two callbacks are always present, each with its own
+source batches each training item holds. Three callbacks are always present, each with its own
 config section: :class:`otgb.callbacks.Evaluation` (``evaluation:``, e.g.
-``--evaluation.reference_repeats 10``) and a :class:`BestAndLastCheckpoint` (``checkpoint:``, e.g.
-``--checkpoint.monitor val/mmd``). ``otgb test`` writes ``metrics.json`` and ``metrics.md``
-into its run directory. Bad user input (:class:`otgb.errors.InputError`) ends the command
-with one line ``otgb: error: <message>`` and exit status 2.
+``--evaluation.reference_repeats 10``), a :class:`BestAndLastCheckpoint` (``checkpoint:``, e.g.
+``--checkpoint.monitor val/mmd``) and :class:`otgb.callbacks.ComponentAnalysis` (``components:``,
+e.g. ``--components.enabled false``), which writes ``components.json`` at the end of ``otgb fit``.
+``otgb test`` writes ``metrics.json`` and ``metrics.md`` into its run directory. Bad user input
+(:class:`otgb.errors.InputError`) ends the command with one line ``otgb: error: <message>`` and
+exit status 2.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from lightning import LightningModule, Trainer
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
 
-from otgb.callbacks import Evaluation
+from otgb.callbacks import ComponentAnalysis, Evaluation
 from otgb.data import SimulationDataModule
 from otgb.errors import InputError
 from otgb.training import KernelWeakOT
@@ -84,6 +86,7 @@ class OTGBCLI(LightningCLI):
         parser.link_arguments("data.physics", "model.physics", apply_on="instantiate")
         parser.add_lightning_class_args(Evaluation, "evaluation")
         parser.add_lightning_class_args(BestAndLastCheckpoint, "checkpoint")
+        parser.add_lightning_class_args(ComponentAnalysis, "components")
 
     def before_instantiate_classes(self) -> None:
         config = self.config[self.subcommand] if self.subcommand else self.config

@@ -167,6 +167,10 @@ class KernelWeakOT(LightningModule):
             return torch.nn.functional.one_hot(category, self.z_dim).to(torch.get_default_dtype())
         return torch.randn(shape, device=self.device, generator=self.generator)
 
+    def evaluation_map(self) -> nn.Module:
+        """The map that evaluation uses: the moving average of its weights when there is one, else the map itself."""
+        return self.map_average.module if self.map_average is not None else self.transport_map
+
     def generate(self, x: Tensor, x0: Tensor, theta: Tensor, n_draws: int, averaged: bool = True) -> Tensor:
         """``n_draws`` outputs of the map per input: (B, n_draws, T, *obs).
 
@@ -175,7 +179,7 @@ class KernelWeakOT(LightningModule):
         """
         batch = x.shape[0]
         rep = lambda v: v.repeat_interleave(n_draws, dim=0)  # noqa: E731
-        transport_map = self.map_average.module if averaged and self.map_average is not None else self.transport_map
+        transport_map = self.evaluation_map() if averaged else self.transport_map
         y_hat = transport_map(rep(x), rep(x0), rep(theta), self.sample_z(batch * n_draws))
         return y_hat.reshape(batch, n_draws, *y_hat.shape[1:])
 

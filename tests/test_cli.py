@@ -62,7 +62,9 @@ def test_fit_writes_logs_checkpoints_and_figures(tmp_path):
     assert {"metrics.csv", "config.yaml", "hparams.yaml"} <= {p.name for p in run.iterdir()}
     assert list(run.glob("events.out.tfevents.*")), "TensorBoard events next to the CSV log"
     assert (run / "checkpoints" / "last.ckpt").is_file() and list(run.glob("checkpoints/best-*.ckpt"))
-    assert sorted(p.name for p in (run / "figures").iterdir()) == ["trajectories_step0000003.png", "trajectories_step0000006.png"]
+    figures = sorted(p.name for p in (run / "figures").iterdir())
+    assert figures == ["components.png", "trajectories_step0000003.png", "trajectories_step0000006.png"]
+    assert json.loads((run / "components.json").read_text())["traj_err_kind"] == "abs_err", "the component analysis ran"
     rows = _rows(run)
     assert _last(rows, "val/fp_nrmse") > 0.1, "the uncorrected f_p gap is logged"
     assert len([r for r in rows if r.get("val/abs_err")]) == 2, "cheap metrics at every validation"
@@ -252,8 +254,8 @@ def test_config_fits_and_tests(tmp_path, monkeypatch, config):
     run = tmp_path / "runs" / config.stem / "version_0"
     assert {"metrics.csv", "config.yaml", "hparams.yaml"} <= {p.name for p in run.iterdir()}
     assert list(run.glob("events.out.tfevents.*")), "TensorBoard events next to the CSV log"
-    figures = sorted(p.name.split("_", 1)[1] for p in (run / "figures").iterdir())
-    assert figures == ["step0000002.png", "step0000004.png"]
+    figures = sorted(p.name.split("_", 1)[-1] for p in (run / "figures").iterdir())
+    assert figures == ["components.png", "step0000002.png", "step0000004.png"], "validation figures and the component analysis"
     monitor = yaml.safe_load((run / "config.yaml").read_text())["checkpoint"]["monitor"]
     assert monitor.startswith("val/"), "checkpoint.monitor: auto is resolved in the saved config"
     rows = _rows(run)

@@ -103,7 +103,8 @@ def test_the_documented_oscillator_trains_and_tests_from_the_users_folder(tmp_pa
     assert {"metrics.csv", "config.yaml", "hparams.yaml"} <= {p.name for p in fit.iterdir()}
     assert list(fit.glob("events.out.tfevents.*")) and (fit / "checkpoints" / "last.ckpt").is_file()
     assert len(list(fit.glob("checkpoints/best-step=*.ckpt"))) == 1
-    assert sorted(p.name for p in (fit / "figures").iterdir()) == ["trajectories_step0000003.png", "trajectories_step0000006.png"]
+    figures = sorted(p.name for p in (fit / "figures").iterdir())
+    assert figures == ["components.png", "trajectories_step0000003.png", "trajectories_step0000006.png"]
     rows = _rows(fit)
     assert [float(r["val/fp_abs_err"]) for r in rows if r.get("val/fp_abs_err")][0] > 0.05, "f_p misses the friction"
     assert len([r for r in rows if r.get("val/abs_err")]) == 2

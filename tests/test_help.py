@@ -1,4 +1,4 @@
-"""`otgb fit --help` documents every option of the model, the data, the evaluation (and checkpointing).
+"""`otgb fit --help` documents every option of the model, the data, the evaluation, checkpointing and the component analysis.
 
 jsonargparse takes each option's help from the constructor's Google-style ``Args:`` entry of
 that parameter: an entry that packs several names on one line ("n_val, n_test: ...") leaves
@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).parents[1]
-GROUPS = ("model", "data", "evaluation", "checkpoint")
+GROUPS = ("model", "data", "evaluation", "checkpoint", "components")
 OPTION = re.compile(rf"--(?:{'|'.join(GROUPS)})\.[\w.]+")
 TYPE_NOTE = re.compile(r"\((?:required, )?type: ")  # what jsonargparse appends: "(type: int, default: 0)"
 

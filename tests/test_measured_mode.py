@@ -60,6 +60,7 @@ def test_fit_and_test_on_a_measured_file(tmp_path):
     assert next(run.glob("checkpoints/best-*.ckpt")).name == f"best-step={min(energies, key=energies.get)}.ckpt"
     assert "monitor: val/energy" in (run / "config.yaml").read_text(), "checkpoint.monitor auto -> the marginal energy"
     assert sorted(p.name for p in (run / "figures").iterdir()) == [
+        "components.png",
         "distributions_step0000003.png",
         "distributions_step0000006.png",
     ]
