@@ -30,6 +30,7 @@ from otgb.physics.priors import Constant, Normal, Prior, Uniform
 from otgb.physics.terms import LibraryTerm
 
 FAMILIES = ("constant", "uniform", "normal")  # simplest first
+HELDOUT_REPEATS = 10  # simulation draws per held-out score
 
 
 @dataclass
@@ -89,11 +90,18 @@ class CoefficientPrior(torch.nn.Module):
         return [Normal(c, w) for c, w in zip(centre, width)]
 
 
+def simulate_finite(model: Augmented, x0: Tensor, theta: Tensor) -> Tensor:
+    """Observed trajectories (n, T * obs) of the augmented model; those that diverged (a coefficient
+    that makes the model blow up, e.g. a growing cubic) are left out."""
+    trajectories = model.observe(model.solve(lambda t, s: model.vector_field(s, theta), x0)).flatten(1)
+    return trajectories[torch.isfinite(trajectories).all(1)]
+
+
 def simulate_with(base: PhysicsModel, model: Augmented, coefficients: Tensor, generator: torch.Generator) -> Tensor:
-    """Observed trajectories (n, T * obs) of the augmented model for coefficient draws (n, K), inputs from the priors."""
+    """Finite trajectories (<= n, T * obs) of the augmented model for coefficient draws (n, K), inputs from the priors."""
     n = len(coefficients)
     x0, theta = base.sample_initial_state(n, generator), base.sample_theta(n, generator)
-    return model.simulate(x0, torch.cat([theta, coefficients], dim=1)).flatten(1)
+    return simulate_finite(model, x0, torch.cat([theta, coefficients], dim=1))
 
 
 def fit(
@@ -107,8 +115,9 @@ def fit(
     batch: int = 128,
     lr: float = 0.05,
     seed: int = 0,
+    score: bool = True,
 ) -> FittedTerms:
-    """Fit the coefficients' prior of one ``family`` to ``measured`` (m, T, *obs); score on ``heldout``."""
+    """Fit the coefficients' prior of one ``family`` to ``measured`` (m, T, *obs); score on ``heldout`` (if ``score``)."""
     prior = CoefficientPrior(family, init)
     model = Augmented(base, [LibraryTerm(c.feature, c.component, Constant(v)) for c, v in zip(candidates, init)])
     optimiser = torch.optim.Adam(prior.parameters(), lr=lr)
@@ -119,18 +128,58 @@ def fit(
     for _ in range(steps):
         rows = torch.randint(len(targets), (min(batch, len(targets)),), generator=g)
         simulated = simulate_with(base, model, prior.sample(batch, g), g)
+        if len(simulated) < batch // 2:
+            break  # the coefficients make most trajectories diverge: this fit fails (held-out energy inf)
         loss = batched_energy(simulated[None], targets[rows][None])[0]
+        if not torch.isfinite(loss):
+            break
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()
         schedule.step()
         losses.append(float(loss.detach()))
-    return FittedTerms(family, list(candidates), prior.priors(), heldout_energy(base, model, prior, heldout, seed), losses)
+    if not (torch.isfinite(prior.centre).all() and torch.isfinite(prior.width).all()):
+        return FittedTerms(family, list(candidates), [Constant(v) for v in init], [float("inf")] * HELDOUT_REPEATS, losses)
+    scores = heldout_energy(base, model, prior, heldout, seed) if score else []
+    return FittedTerms(family, list(candidates), prior.priors(), scores, losses)
+
+
+def bootstrap_intervals(
+    base: PhysicsModel, fitted: FittedTerms, measured: Tensor, n_bootstrap: int, steps: int, batch: int, seed: int
+) -> list[tuple[float, float]]:
+    """95 % intervals of the fitted coefficients (the centres of their priors): the fit repeated, from the
+    fitted values with a smaller step, on resamples of the measured trajectories."""
+    g = torch.Generator().manual_seed(seed + 3)
+    start = [p.quantile(torch.tensor(0.5)).item() for p in fitted.priors]
+    centres = []
+    for b in range(n_bootstrap):
+        rows = torch.randint(len(measured), (len(measured),), generator=g)
+        refit = fit(
+            base,
+            fitted.candidates,
+            start,
+            fitted.family,
+            measured[rows],
+            measured,
+            max(steps // 4, 10),
+            batch,
+            0.01,
+            seed + 10 + b,
+            False,
+        )
+        centres.append([p.quantile(torch.tensor(0.5)).item() for p in refit.priors])
+    low, high = torch.tensor(centres).quantile(torch.tensor([0.025, 0.975]), dim=0)
+    return list(zip(low.tolist(), high.tolist()))
 
 
 @torch.no_grad()
 def heldout_energy(
-    base: PhysicsModel, model: Augmented, prior: CoefficientPrior | None, heldout: Tensor, seed: int, repeats: int = 10
+    base: PhysicsModel,
+    model: Augmented,
+    prior: CoefficientPrior | None,
+    heldout: Tensor,
+    seed: int,
+    repeats: int = HELDOUT_REPEATS,
 ) -> list[float]:
     """Energy distances to ``heldout`` of ``repeats`` fresh simulation draws as large as it.
 
@@ -143,7 +192,9 @@ def heldout_energy(
     for _ in range(repeats):
         x0, theta = base.sample_initial_state(n, inputs), base.sample_theta(n, inputs)
         coefficients = prior.sample(n, noise) if prior is not None else torch.zeros(n, 0)
-        simulated = model.simulate(x0, torch.cat([theta, coefficients], dim=1)).flatten(1)
+        simulated = simulate_finite(model, x0, torch.cat([theta, coefficients], dim=1))
+        if len(simulated) < n:
+            return [float("inf")] * repeats  # a model that diverges for some inputs does not describe the data
         values.append(float(batched_energy(simulated[None].double(), heldout.flatten(1)[None].double())[0]))
     return values
 
@@ -157,6 +208,8 @@ def choose_family(fits: list[FittedTerms]) -> FittedTerms:
     ordered = sorted(fits, key=lambda f: FAMILIES.index(f.family))
     chosen = ordered[0]
     for richer in ordered[1:]:
+        if not torch.isfinite(torch.tensor(richer.heldout)).all():
+            continue
         difference = torch.tensor(chosen.heldout) - torch.tensor(richer.heldout)
         if difference.mean() > 2 * difference.std() / len(difference) ** 0.5:
             chosen = richer

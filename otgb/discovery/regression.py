@@ -14,7 +14,8 @@ f_phi is evaluated along generated trajectories and regressed on named candidate
 - A bootstrap over trajectories gives each candidate's inclusion probability and each selected
   coefficient's 95 % interval.
 - A selected term is *ambiguous* with a candidate that can replace it without a held-out error
-  worse by more than one standard error (``sin(angle)`` for ``angle`` at small angles).
+  worse by more than one standard error (``sin(angle)`` for ``angle`` at small angles), or with
+  another selected term when either can be dropped (both selected, sharing one effect).
 - The library's condition number and its confusable pairs (uncentred |correlation| >= 0.95)
   are reported.
 """
@@ -67,6 +68,7 @@ class SelectedTerm:
     r2_share: float
     per_trajectory: dict[str, float]
     alternatives: list[Candidate]
+    size: float  # RMS of the term's contribution to f_phi along the trajectories
 
 
 @dataclass
@@ -151,37 +153,18 @@ def fold_errors(Xs: np.ndarray, y: np.ndarray, groups: np.ndarray, support: np.n
 
 
 def regress(design: Design, component: str, n_bootstrap: int = 30, seed: int = 0) -> Selection:
-    """Select, refit, bootstrap and check the ambiguity of one component's terms."""
+    """Select the terms of one component's correction, with inclusion probabilities over a bootstrap."""
     usable = np.flatnonzero(_usable(design))
     Xs, y, groups = design.Xs[:, usable], design.y, design.groups
     support = select_support(Xs, y, groups)
-    coef = least_squares(Xs, y, support)
     rng = np.random.default_rng(seed)
     trajectories = np.unique(groups)
-    boot_coef, included = [], np.zeros(Xs.shape[1])
+    included = np.zeros(Xs.shape[1])
     for _ in range(n_bootstrap):
         rows = _resample(groups, trajectories, rng)
         included[select_support(Xs[rows], y[rows], groups[rows])] += 1
-        boot_coef.append(least_squares(Xs[rows], y[rows], support))
-    boot_coef = np.array(boot_coef)
-    r2 = r_squared(Xs, y, coef)
-    base_errors = fold_errors(Xs, y, groups, support) if len(support) else None
-    terms = []
-    for j in support:
-        scale = design.scale[usable[j]]
-        low, high = np.percentile(boot_coef[:, j], [2.5, 97.5]) / scale
-        reduced = least_squares(Xs, y, support[support != j])
-        terms.append(
-            SelectedTerm(
-                candidate=design.candidates[usable[j]],
-                coefficient=float(coef[j] / scale),
-                interval=(float(low), float(high)),
-                inclusion_probability=float(included[j] / n_bootstrap),
-                r2_share=r2 - r_squared(Xs, y, reduced),
-                per_trajectory=_per_trajectory(Xs, y, groups, support, j, scale),
-                alternatives=[design.candidates[usable[k]] for k in _alternatives(Xs, y, groups, support, j, base_errors)],
-            )
-        )
+    inclusion = {design.candidates[usable[k]]: float(included[k] / n_bootstrap) for k in range(len(usable))}
+    selected = [design.candidates[usable[j]] for j in support]
     correlation = Xs.T @ Xs / len(Xs)  # of unit-RMS columns: the uncentred correlation, as the regression sees them
     pairs = [
         (design.candidates[usable[a]].feature, design.candidates[usable[b]].feature, float(correlation[a, b]))
@@ -191,13 +174,50 @@ def regress(design: Design, component: str, n_bootstrap: int = 30, seed: int = 0
     ]
     return Selection(
         component=component,
-        terms=terms,
-        explained_r2=r2,
+        terms=describe_terms(design, selected, inclusion, n_bootstrap, seed),
+        explained_r2=r_squared(Xs, y, least_squares(Xs, y, support)),
         condition_number=float(np.linalg.cond(Xs)),
         confusable_pairs=pairs,
-        inclusion={design.candidates[usable[k]].feature: float(included[k] / n_bootstrap) for k in range(len(usable))},
+        inclusion={c.feature: p for c, p in inclusion.items()},
         target_rms=float(np.sqrt((y**2).mean())),
     )
+
+
+def describe_terms(
+    design: Design, candidates: list[Candidate], inclusion: dict[Candidate, float], n_bootstrap: int = 30, seed: int = 0
+) -> list[SelectedTerm]:
+    """The least-squares fit of f_phi on ``candidates``: per term its coefficient, 95 % bootstrap interval
+    (trajectories resampled), unique share of R^2, per-trajectory spread and ambiguous alternatives."""
+    usable = np.flatnonzero(_usable(design))
+    Xs, y, groups = design.Xs[:, usable], design.y, design.groups
+    position = {design.candidates[i]: k for k, i in enumerate(usable)}
+    support = np.array([position[c] for c in candidates], dtype=int)
+    coef = least_squares(Xs, y, support)
+    rng = np.random.default_rng(seed + 1)
+    trajectories = np.unique(groups)
+    boot = np.array(
+        [least_squares(Xs[rows], y[rows], support) for rows in (_resample(groups, trajectories, rng) for _ in range(n_bootstrap))]
+    )
+    r2 = r_squared(Xs, y, coef)
+    base_errors = fold_errors(Xs, y, groups, support) if len(support) else None
+    terms = []
+    for j in support:
+        scale = design.scale[usable[j]]
+        low, high = np.percentile(boot[:, j], [2.5, 97.5]) / scale
+        candidate = design.candidates[usable[j]]
+        terms.append(
+            SelectedTerm(
+                candidate=candidate,
+                coefficient=float(coef[j] / scale),
+                interval=(float(low), float(high)),
+                inclusion_probability=inclusion.get(candidate, 0.0),
+                r2_share=r2 - r_squared(Xs, y, least_squares(Xs, y, support[support != j])),
+                per_trajectory=_per_trajectory(Xs, y, groups, support, j, scale),
+                alternatives=[design.candidates[usable[k]] for k in _alternatives(Xs, y, groups, support, j, base_errors)],
+                size=float(abs(coef[j])),
+            )
+        )
+    return terms
 
 
 def _resample(groups: np.ndarray, trajectories: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -206,19 +226,28 @@ def _resample(groups: np.ndarray, trajectories: np.ndarray, rng: np.random.Gener
     return np.concatenate([rows_of[g] for g in rng.choice(trajectories, size=len(trajectories))])
 
 
+def _as_good(Xs: np.ndarray, y: np.ndarray, groups: np.ndarray, support: np.ndarray, base_errors: np.ndarray) -> bool:
+    """Whether the fit on ``support`` has a held-out error not worse than ``base_errors`` by more than one standard error."""
+    difference = fold_errors(Xs, y, groups, support) - base_errors
+    return bool(difference.mean() <= difference.std() / np.sqrt(len(difference)))
+
+
 def _alternatives(
     Xs: np.ndarray, y: np.ndarray, groups: np.ndarray, support: np.ndarray, j: int, base_errors: np.ndarray
 ) -> list[int]:
-    """Columns that replace column j without a held-out error worse by more than one standard error."""
-    found = []
-    for k in range(Xs.shape[1]):
-        if k in support:
-            continue
-        swapped = np.append(support[support != j], k)
-        difference = fold_errors(Xs, y, groups, swapped) - base_errors
-        if difference.mean() <= difference.std() / np.sqrt(len(difference)):
-            found.append(k)
-    return found
+    """Other explanations of column j's part of f_phi.
+
+    If the fit without j is as good (j is redundant with other selected columns), those selected
+    columns that are redundant too; otherwise the columns outside the selection that can replace
+    j with a held-out error not worse by more than one standard error.
+    """
+    if _as_good(Xs, y, groups, support[support != j], base_errors):
+        return [k for k in support if k != j and _as_good(Xs, y, groups, support[support != k], base_errors)]
+    return [
+        k
+        for k in range(Xs.shape[1])
+        if k not in support and _as_good(Xs, y, groups, np.append(support[support != j], k), base_errors)
+    ]
 
 
 def _per_trajectory(Xs: np.ndarray, y: np.ndarray, groups: np.ndarray, support: np.ndarray, j: int, scale: float) -> dict:
@@ -231,3 +260,9 @@ def _per_trajectory(Xs: np.ndarray, y: np.ndarray, groups: np.ndarray, support: 
     values = np.array(values)
     q05, q50, q95 = np.percentile(values, [5, 50, 95])
     return {"mean": float(values.mean()), "std": float(values.std()), "q05": float(q05), "median": float(q50), "q95": float(q95)}
+
+
+def subset_coefficients(design: Design, candidates: list[Candidate]) -> list[float]:
+    """Least-squares coefficients (original units) of f_phi on ``candidates`` alone."""
+    index = np.array([design.candidates.index(c) for c in candidates])
+    return list(least_squares(design.Xs, design.y, index)[index] / design.scale[index])

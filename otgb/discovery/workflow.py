@@ -32,8 +32,8 @@ from torch import Tensor
 from otgb.data.seeding import generator_for
 from otgb.discovery.library import Candidate, build_library, physical_name
 from otgb.discovery.locate import DisagreementMap, describe, locate
-from otgb.discovery.refine import FAMILIES, FittedTerms, choose_family, fit, heldout_energy
-from otgb.discovery.regression import Selection, design_matrix, regress
+from otgb.discovery.refine import FAMILIES, FittedTerms, bootstrap_intervals, choose_family, fit, heldout_energy
+from otgb.discovery.regression import SelectedTerm, Selection, describe_terms, design_matrix, regress, subset_coefficients
 from otgb.metrics.c2st import c2st
 from otgb.metrics.energy import energy_distance
 from otgb.metrics.mmd import mmd_multiscale
@@ -120,6 +120,8 @@ class Discovery:
     selections: list[Selection] = field(default_factory=list)
     cross_check: list[dict] = field(default_factory=list)
     fitted: FittedTerms | None = None
+    final_terms: list[SelectedTerm] = field(default_factory=list)  # the regression on f_phi of the kept terms
+    intervals: list[tuple[float, float]] = field(default_factory=list)  # of the fitted coefficients, bootstrap
     family_scores: dict[str, float] = field(default_factory=dict)
     dropped: list[dict] = field(default_factory=list)
     after: DisagreementMap | None = None
@@ -130,6 +132,10 @@ class Discovery:
     @property
     def found(self) -> bool:
         return self.fitted is not None and len(self.fitted.candidates) > 0
+
+
+def progress(message: str) -> None:
+    print(f"otgb discover: {message}", flush=True)
 
 
 # --- simulation helpers ---------------------------------------------------------------
@@ -181,11 +187,11 @@ def locate_step(physics: PhysicsModel, measured: Tensor, settings: DiscoverySett
     )  # fmt: skip
 
 
-def name_step(module: Any, settings: DiscoverySettings) -> tuple[list[Selection], dict[str, Tensor], float]:
-    """Regress f_phi on the library, per component; also returns the draws and |f_phi| / |f_p| (RMS)."""
+def name_step(module: Any, settings: DiscoverySettings) -> tuple[list[Selection], dict, dict[str, Tensor], float]:
+    """Regress f_phi on the library, per component; also returns the designs, the draws and |f_phi| / |f_p| (RMS)."""
     physics = module.physics
     draws = greybox_draws(module, settings.n_trajectories, settings.seed)
-    selections = []
+    selections, designs = [], {}
     for component in acting_components(physics):
         index = physics.state_names.index(component)
         candidates = build_library(physics, [component], settings.theta_products)
@@ -193,18 +199,20 @@ def name_step(module: Any, settings: DiscoverySettings) -> tuple[list[Selection]
             physics, candidates, draws["states"], draws["theta"], draws["correction"][:, :, index], settings.seed
         )
         selections.append(regress(design, component, settings.n_bootstrap, settings.seed))
+        designs[component] = design
     share = float(draws["correction"].pow(2).mean().sqrt() / draws["physics"].pow(2).mean().sqrt().clamp_min(1e-12))
-    return selections, draws, share
+    return selections, designs, draws, share
 
 
 def strong_candidates(selections: list[Selection], draws: dict[str, Tensor], physics: PhysicsModel, k: int) -> list[tuple]:
-    """(candidate, initial coefficient) to cross-check: selected terms, their alternatives, the top-k alone."""
+    """(candidate, initial coefficient) to cross-check: the k largest selected terms and their alternatives,
+    and per component the k candidates that alone explain most of f_phi."""
     chosen: dict[Candidate, float] = {}
+    for term in sorted((t for s in selections for t in s.terms), key=lambda t: -t.size)[:k]:
+        chosen.setdefault(term.candidate, term.coefficient)
+        for alternative in term.alternatives:
+            chosen.setdefault(alternative, None)
     for selection in selections:
-        for term in selection.terms:
-            chosen.setdefault(term.candidate, term.coefficient)
-            for alternative in term.alternatives:
-                chosen.setdefault(alternative, None)
         index = physics.state_names.index(selection.component)
         candidates = build_library(physics, [selection.component])
         design = design_matrix(physics, candidates, draws["states"], draws["theta"], draws["correction"][:, :, index])
@@ -241,46 +249,63 @@ def _fit_args(settings: DiscoverySettings) -> dict:
     return {"steps": settings.fit_steps, "batch": settings.fit_batch, "seed": settings.seed}
 
 
-def add_step(physics: PhysicsModel, terms: list[tuple], data: Measurements, settings: DiscoverySettings) -> tuple:
-    """Fit the terms together (constant), drop those the held-out data do not support, then choose the prior family."""
-    candidates, init = [c for c, _ in terms], [v for _, v in terms]
-    current = fit(physics, candidates, init, "constant", data.train, data.val, **_fit_args(settings))
-    dropped = []
-    while len(current.candidates) > 1:
-        trials = []
-        for k in range(len(current.candidates)):
-            keep = [i for i in range(len(current.candidates)) if i != k]
-            values = [current.priors[i].value for i in keep]
-            trials.append(
-                (
-                    k,
-                    fit(
-                        physics,
-                        [current.candidates[i] for i in keep],
-                        values,
-                        "constant",
-                        data.train,
-                        data.val,
-                        **_fit_args(settings),
-                    ),
-                )
-            )
-        k, reduced = min(trials, key=lambda t: t[1].heldout_energy)
-        if _better(current, reduced):  # the term lowers the held-out energy by more than two standard errors
+def add_step(physics: PhysicsModel, selections: list[Selection], designs: dict, data: Measurements, settings: DiscoverySettings):
+    """Forward selection on held-out measurements, then the prior family.
+
+    The selected terms are ordered by the size of their contribution to f_phi; the models made
+    of the first 1, 2, ... of them (coefficients started at their least-squares values and
+    fitted by distribution matching) are scored on the validation measurements. The search
+    stops after two models that do not improve on the best; the sparsest model that the best
+    does not beat by more than two standard errors is kept (terms past it are reported as
+    dropped), and each prior family is fitted for it.
+    """
+    ordered = sorted(((t.size, t.candidate) for s in selections for t in s.terms), key=lambda pair: -pair[0])
+    path = [c for _, c in ordered]
+    fits: list[FittedTerms] = []
+    for k in range(1, len(path) + 1):
+        init = _initial(path[:k], designs)
+        fits.append(fit(physics, path[:k], init, "constant", data.train, data.val, **_fit_args(settings)))
+        progress(f"{k} term(s) {[c.feature for c in path[:k]]}: held-out energy {fits[-1].heldout_energy:.4g}")
+        best = min(range(len(fits)), key=lambda i: fits[i].heldout_energy)
+        if k - best > 2:
             break
-        dropped.append({"feature": current.candidates[k].feature, "component": current.candidates[k].component})
-        current = reduced
-    fits = [current] + [
+    best = min(fits, key=lambda f: f.heldout_energy)
+    current = next(f for f in fits if not _better(best, f))
+    dropped = [{"feature": c.feature, "component": c.component} for c in path[len(current.candidates) :]]
+    richer = [
         fit(physics, current.candidates, [p.value for p in current.priors], family, data.train, data.val, **_fit_args(settings))
         for family in settings.families
         if family != "constant"
     ]
-    chosen = choose_family([f for f in fits if f.family in settings.families] or [current])
-    return chosen, {f.family: f.heldout_energy for f in fits}, dropped
+    candidates = [f for f in [current, *richer] if f.family in settings.families] or [current]
+    chosen = choose_family(candidates)
+    return chosen, {f.family: f.heldout_energy for f in [current, *richer]}, dropped
+
+
+def final_regression(selections: list[Selection], designs: dict, kept: list[Candidate], settings: DiscoverySettings) -> list:
+    """The regression of f_phi on the kept terms alone, per component (intervals, shares, ambiguity)."""
+    terms = []
+    for selection in selections:
+        mine = [c for c in kept if c.component == selection.component]
+        if mine:
+            inclusion = {Candidate(f, selection.component): p for f, p in selection.inclusion.items()}
+            terms += describe_terms(designs[selection.component], mine, inclusion, settings.n_bootstrap, settings.seed)
+    return terms
+
+
+def _initial(candidates: list[Candidate], designs: dict) -> list[float]:
+    """Least-squares starting values per component for ``candidates``."""
+    values = {}
+    for component in dict.fromkeys(c.component for c in candidates):
+        mine = [c for c in candidates if c.component == component]
+        values.update(zip(mine, subset_coefficients(designs[component], mine)))
+    return [values[c] for c in candidates]
 
 
 def _better(a: FittedTerms, b: FittedTerms) -> bool:
     """Whether ``a`` has a lower held-out energy than ``b`` by more than two standard errors (paired draws)."""
+    if not torch.isfinite(torch.tensor(b.heldout)).all():
+        return torch.isfinite(torch.tensor(a.heldout)).all().item()
     difference = torch.tensor(b.heldout) - torch.tensor(a.heldout)
     return bool(difference.mean() > 2 * difference.std() / len(difference) ** 0.5)
 
@@ -310,12 +335,19 @@ def run(module: Any, data: Measurements, settings: DiscoverySettings, before: Di
     """Steps 3-5 on a trained grey-box ``module`` (a KernelWeakOT), after a significant locate."""
     physics = module.physics
     result = Discovery(before, describe(before))
-    result.selections, draws, result.correction_share = name_step(module, settings)
+    result.selections, designs, draws, result.correction_share = name_step(module, settings)
+    selected = [(t.candidate, t.coefficient) for s in result.selections for t in s.terms]
+    progress(f"named {[f'{c.feature} on d{c.component}/dt: {v:.4g}' for c, v in selected] or 'nothing'}")
     strong = strong_candidates(result.selections, draws, physics, settings.strong_candidates)
     result.cross_check = cross_check_step(physics, strong, data, settings)
-    selected = [(t.candidate, t.coefficient) for s in result.selections for t in s.terms]
+    progress(f"cross-checked {len(strong)} candidates alone")
     if selected:
-        result.fitted, result.family_scores, result.dropped = add_step(physics, selected, data, settings)
+        result.fitted, result.family_scores, result.dropped = add_step(physics, result.selections, designs, data, settings)
+        progress(f"fitted {result.fitted.family} coefficients {result.fitted.priors}")
+        result.final_terms = final_regression(result.selections, designs, result.fitted.candidates, settings)
+        result.intervals = bootstrap_intervals(
+            physics, result.fitted, data.train, settings.n_bootstrap, settings.fit_steps, settings.fit_batch, settings.seed
+        )
     sources = {
         "f_p": simulate_from_priors(physics, len(data.test), settings.seed, "gap-f_p"),
         "greybox": generated(module, len(data.test), settings.seed),

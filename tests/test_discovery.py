@@ -1,0 +1,226 @@
+"""Missing-effect discovery: the library term, the augmented physics, locate, name, add, and `otgb discover`."""
+
+import json
+import subprocess
+import sys
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from torch import nn
+
+from otgb.data import generate_measured
+from otgb.discovery.library import build_library, physical_name
+from otgb.discovery.locate import describe, locate
+from otgb.discovery.refine import fit
+from otgb.discovery.regression import design_matrix, regress
+from otgb.discovery.workflow import DiscoverySettings, Measurements, locate_step, run
+from otgb.errors import InputError
+from otgb.models import GreyBoxODE, MLPCritic
+from otgb.physics import (
+    Advection,
+    AdvectionDiffusion,
+    Augmented,
+    Constant,
+    LibraryTerm,
+    Pendulum,
+    Uniform,
+    ViscousFriction,
+)
+from otgb.training import KernelWeakOT
+
+ROOT = Path(__file__).parents[1]
+FAST = dict(n_permutations=199, n_trajectories=48, n_bootstrap=5, fit_steps=80, fit_batch=64, strong_candidates=1)
+
+
+def _draws(model, n, seed):
+    return generate_measured(model, n, seed)["y"]
+
+
+# --- physics: one generic term, and f_p augmented by it --------------------------------
+def test_library_term_reproduces_the_named_terms(generator):
+    pendulum, diffusion = Pendulum(), AdvectionDiffusion()
+    for model, named, generic, value in [
+        (pendulum, ViscousFriction(Constant(1.2)), LibraryTerm("velocity", "velocity", Constant(-1.2)), 1.2),
+        (diffusion, Advection(Constant(0.1)), LibraryTerm("d_s(T)", "T", Constant(-0.1)), 0.1),
+    ]:
+        x0, theta = model.sample_initial_state(4, generator), model.sample_theta(4, generator)
+        a = model.with_hidden_effect([named]).simulate(x0, theta, torch.full((4, 1), value))
+        b = model.with_hidden_effect([generic]).simulate(x0, theta, torch.full((4, 1), -value))
+        assert torch.equal(a, b)
+        augmented = Augmented(model, [LibraryTerm(generic.feature, generic.component, Constant(-value))])
+        c = augmented.simulate(x0, torch.cat([theta, torch.full((4, 1), -value)], 1))
+        assert torch.equal(a, c)
+        assert augmented.theta_names[-1].startswith("c_") and augmented.theta_names[-1].isidentifier()
+
+
+def test_augmented_draws_its_coefficients_from_their_priors(generator):
+    augmented = Augmented(Pendulum(), [LibraryTerm("velocity*|velocity|", "velocity", Uniform(-0.6, -0.4))])
+    theta = augmented.sample_theta(500, generator)
+    assert theta.shape == (500, 2) and -0.6 <= theta[:, 1].min() < -0.58 and -0.42 < theta[:, 1].max() <= -0.4
+
+
+@pytest.mark.parametrize(
+    "feature, expected",
+    [
+        ("velocity*", "cannot read"),
+        ("speed", "not a name of Pendulum"),
+        ("lap(angle)", "unknown function"),
+        ("velocity^0", "whole number"),
+    ],
+)
+def test_bad_features_are_refused_in_one_line(feature, expected):
+    with pytest.raises(InputError, match=expected) as error:
+        LibraryTerm(feature, "velocity", Constant(1.0)).check_model(Pendulum())
+    assert "\n" not in str(error.value)
+
+
+# --- locate ---------------------------------------------------------------------------
+def test_locate_finds_when_and_how_samples_differ():
+    pendulum = Pendulum()
+    measured = _draws(pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))]), 200, 1)
+    same = locate(_draws(pendulum, 200, 2), _draws(pendulum, 200, 3), pendulum.observation_times(), ("angle",), 199)
+    assert not same.any_significant and "agree everywhere" in describe(same)
+    found = locate(measured, _draws(pendulum, 200, 2), pendulum.observation_times(), ("angle",), 199)
+    assert found.any_significant and not found.significant[0].any()  # t = 0: the same initial states
+    assert "amplitude (mean |value|) is smaller" in describe(found) and "agree up to t =" in describe(found)
+
+
+def test_locate_maps_field_regions():
+    model = AdvectionDiffusion()
+    measured = _draws(model.with_hidden_effect([Advection(Constant(0.1))]), 100, 1)
+    result = locate(measured, _draws(model, 100, 2), model.observation_times(), ("T",), 199, regions_per_axis=4)
+    assert result.statistic.shape == (50, 1, 4) and result.any_significant
+    assert "most in region s" in describe(result)
+
+
+# --- name -----------------------------------------------------------------------------
+def _pendulum_states(n, angle=(-1.57, 1.57), seed=0):
+    model = Pendulum(angle=Uniform(*angle))
+    g = torch.Generator().manual_seed(seed)
+    x0, theta = model.sample_initial_state(n, g), model.sample_theta(n, g)
+    damped = model.with_hidden_effect([ViscousFriction(Constant(0.5))])
+    states = damped.solve(lambda t, s: damped.vector_field(s, theta, torch.full((n, 1), 0.5)), x0)
+    return model, states, theta
+
+
+def test_regression_names_quadratic_drag():
+    model, states, theta = _pendulum_states(64)
+    target = -0.5 * states[:, :, 1] * states[:, :, 1].abs() + 0.005 * torch.randn(
+        states.shape[:2], generator=torch.Generator().manual_seed(1)
+    )
+    library = build_library(model, ["velocity"])
+    selection = regress(design_matrix(model, library, states, theta, target), "velocity", n_bootstrap=5)
+    assert [t.candidate.feature for t in selection.terms] == ["velocity*|velocity|"]
+    term = selection.terms[0]
+    assert abs(term.coefficient + 0.5) < 0.01 and term.interval[0] < -0.49 and term.inclusion_probability == 1.0
+    assert physical_name(term.candidate.feature, "velocity", term.coefficient, model) == "quadratic drag"
+    assert ("angle", "sin(angle)") in {(a, b) for a, b, _ in selection.confusable_pairs}
+
+
+def test_regression_says_ambiguous_at_small_angles():
+    model, states, theta = _pendulum_states(64, angle=(-0.05, 0.05))
+    target = -2.0 * torch.sin(states[:, :, 0]) + 1e-4 * torch.randn(states.shape[:2], generator=torch.Generator().manual_seed(1))
+    selection = regress(
+        design_matrix(model, build_library(model, ["velocity"]), states, theta, target), "velocity", n_bootstrap=5
+    )
+    named = {t.candidate.feature: [a.feature for a in t.alternatives] for t in selection.terms}
+    assert set(named) & {"angle", "sin(angle)"}, named
+    chosen = next(iter(set(named) & {"angle", "sin(angle)"}))
+    assert ({"angle", "sin(angle)"} - {chosen}) <= set(named[chosen]), "the other explanation is listed as an alternative"
+
+
+# --- add ------------------------------------------------------------------------------
+def test_distribution_matching_recovers_the_coefficient():
+    pendulum = Pendulum()
+    dgp = pendulum.with_hidden_effect([LibraryTerm("velocity*|velocity|", "velocity", Constant(-0.6))])
+    candidate = build_library(pendulum, ["velocity"])[12]
+    assert candidate.feature == "velocity*|velocity|"
+    fitted = fit(pendulum, [candidate], [-0.3], "constant", _draws(dgp, 400, 1), _draws(dgp, 100, 2), steps=150)
+    assert abs(fitted.priors[0].value + 0.6) < 0.06
+
+
+# --- the workflow on a grey-box whose correction is the hidden term -------------------
+class Exact(nn.Module):
+    """f_phi equal to a hidden term: -xi * velocity on the acceleration."""
+
+    def __init__(self, xi: float) -> None:
+        super().__init__()
+        self.xi = xi
+
+    def forward(self, state, cond):
+        return -self.xi * state[:, 1:2]
+
+
+def test_workflow_names_adds_and_closes_the_gap():
+    pendulum = Pendulum()
+    dgp = pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))])
+    module = KernelWeakOT(
+        pendulum, lambda physics, z: GreyBoxODE(physics, z, lambda *_: Exact(1.2)), partial(MLPCritic, hidden=[8])
+    )
+    data = Measurements(_draws(dgp, 300, 1), _draws(dgp, 100, 2), _draws(dgp, 100, 3))
+    settings = DiscoverySettings(**FAST)
+    before = locate_step(pendulum, data.train, settings)
+    result = run(module, data, settings, before)
+    assert result.found and [c.feature for c in result.fitted.candidates] == ["velocity"]
+    assert abs(result.fitted.priors[0].value + 1.2) < 0.12 and result.fitted.family == "constant"
+    assert result.gap["f_p"]["c2st"] > 0.85 and result.gap["augmented"]["c2st"] < 0.7
+    assert result.after is not None and result.after.significant.sum() < before.significant.sum()
+
+
+# --- otgb discover ----------------------------------------------------------------------
+def _export(tmp_path: Path, coefficient: float) -> Path:
+    """A measured file of the pendulum plus coefficient * velocity on the acceleration (0: f_p itself)."""
+    dgp = Pendulum().with_hidden_effect([LibraryTerm("velocity", "velocity", Constant(coefficient))])
+    y = generate_measured(dgp, 200, 7)["y"]
+    path = tmp_path / "measured.npz"
+    np.savez(path, y=y.numpy())
+    return path
+
+
+def _discover(tmp_path: Path, measured: Path, *extra: str) -> subprocess.CompletedProcess:
+    args = ["discover", "--config", str(ROOT / "configs" / "pendulum.yaml"), "--data.hidden_effect=[]"]
+    args += [f"--data.measured_path={measured}", f"--data.cache_dir={tmp_path / 'cache'}", "--trainer.enable_progress_bar=false"]
+    args += [f"--discover.{k}={v}" for k, v in FAST.items()]
+    return subprocess.run(
+        [sys.executable, "-m", "otgb.cli", *args, *extra], cwd=tmp_path, capture_output=True, text=True, timeout=900
+    )
+
+
+def test_discover_negative_control_names_nothing(tmp_path):
+    done = _discover(tmp_path, _export(tmp_path, 0.0))
+    assert done.returncode == 0, done.stderr[-2000:]
+    run_dir = Path(done.stdout.strip().splitlines()[-1].split("report in ")[1])
+    report = json.loads((tmp_path / run_dir / "report.json").read_text())
+    assert report["found"] is False and report["terms"] == [] and report["verdict"].startswith("no missing effect found")
+    assert set(report["gap"]) == {"f_p", "reference"} and not (tmp_path / run_dir / "augmented.yaml").exists()
+    assert (tmp_path / run_dir / "report.md").read_text().count("figures/") >= 2
+    assert not (tmp_path / run_dir / "checkpoints").exists(), "nothing to learn: no training"
+
+
+def test_discover_refuses_a_config_without_measurements(tmp_path):
+    args = ["discover", "--config", str(ROOT / "configs" / "pendulum.yaml")]
+    done = subprocess.run([sys.executable, "-m", "otgb.cli", *args], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2 and "works from measurements alone" in done.stderr.strip().splitlines()[-1]
+
+
+@pytest.mark.slow
+def test_discover_finds_friction_and_writes_a_config_fit_accepts(tmp_path):
+    measured = _export(tmp_path, -1.2)
+    done = _discover(tmp_path, measured, "--data.simulation_budget=16000", "--trainer.val_check_interval=250")
+    assert done.returncode == 0, done.stderr[-2000:]
+    run_dir = tmp_path / done.stdout.strip().splitlines()[-1].split("report in ")[1]
+    report = json.loads((run_dir / "report.json").read_text())
+    assert report["found"] and [t["feature"] for t in report["terms"]] == ["velocity"], report["terms"]
+    assert abs(report["terms"][0]["coefficient"] + 1.2) < 0.12 and report["terms"][0]["name"] == "viscous friction"
+    config = yaml.safe_load((run_dir / "augmented.yaml").read_text())
+    assert config["data"]["physics"]["class_path"] == "otgb.physics.Augmented"
+    fit = subprocess.run(
+        [sys.executable, "-m", "otgb.cli", "fit", "--config", str(run_dir / "augmented.yaml"), "--trainer.max_steps=2",
+         "--trainer.enable_progress_bar=false"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert fit.returncode == 0, fit.stderr[-2000:]
