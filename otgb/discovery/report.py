@@ -221,7 +221,7 @@ def _naming_section(report: dict[str, Any]) -> list[str]:
             )
             dist = "constant" if t["distribution"] is None else json.dumps(t["distribution"])
             lines.append(
-                f"| {t['name']} | `{t['feature']}` | d{t['component']}/dt | {t['coefficient']:.4g} | {interval} | {inclusion} | {slope} | {share} | {dist} |"
+                f"| {t['name']} | {code(t['feature'])} | d{t['component']}/dt | {t['coefficient']:.4g} | {interval} | {inclusion} | {slope} | {share} | {dist} |"
             )
     for a in report["ambiguous"]:
         lines.append(f"\n**Ambiguous:** `{a['feature']}` could equally be {', '.join(f'`{x}`' for x in a['alternatives'])}.")
@@ -234,7 +234,7 @@ def _naming_section(report: dict[str, Any]) -> list[str]:
     ]
     for row in report["cross_check"]:
         closed = f"{row['gap_closed']:.2f}" if math.isfinite(row["gap_closed"]) else "diverges"
-        lines.append(f"| `{row['feature']}` | d{row['component']}/dt | {row['coefficient']:.4g} | {closed} |")
+        lines.append(f"| {code(row['feature'])} | d{row['component']}/dt | {row['coefficient']:.4g} | {closed} |")
     if report["dropped_by_heldout_check"]:
         lines.append("")
         lines.append("Dropped (no held-out gain): " + ", ".join(f"`{d['feature']}`" for d in report["dropped_by_heldout_check"]))
@@ -244,6 +244,11 @@ def _naming_section(report: dict[str, Any]) -> list[str]:
     if report["locate"]["sentence_after"]:
         lines += ["", f"After the fix: {report['locate']['sentence_after']}."]
     return lines + [""]
+
+
+def code(text: str) -> str:
+    """Inline code that survives a Markdown table cell (its pipes escaped)."""
+    return "`" + text.replace("|", "\\|") + "`"
 
 
 def _confusable(pairs: list[dict]) -> str:
