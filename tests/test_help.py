@@ -1,4 +1,5 @@
-"""`otgb fit --help` documents every option of the model, the data, the evaluation, checkpointing and the component analysis.
+"""`otgb fit --help` documents every option of the model, the data, the evaluation, checkpointing and the component analysis;
+`otgb discover --help` those of the discovery too.
 
 jsonargparse takes each option's help from the constructor's Google-style ``Args:`` entry of
 that parameter: an entry that packs several names on one line ("n_val, n_test: ...") leaves
@@ -15,7 +16,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).parents[1]
-GROUPS = ("model", "data", "evaluation", "checkpoint", "components")
+GROUPS = ("model", "data", "evaluation", "checkpoint", "components", "discover")
 OPTION = re.compile(rf"--(?:{'|'.join(GROUPS)})\.[\w.]+")
 TYPE_NOTE = re.compile(r"\((?:required, )?type: ")  # what jsonargparse appends: "(type: int, default: 0)"
 
@@ -67,14 +68,28 @@ def option_help(text: str) -> dict[str, str]:
     return {name: TYPE_NOTE.split(" ".join(parts), maxsplit=1)[0].strip() for name, parts in entries.items()}
 
 
-@pytest.fixture(scope="module")
-def fit_help() -> dict[str, str]:
+def command_help(subcommand: str) -> dict[str, str]:
     """The real command's help, on a wide terminal so that lines do not wrap, for this checkout's code."""
     env = {**os.environ, "COLUMNS": "200", "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     out = subprocess.run(
-        [sys.executable, "-m", "otgb.cli", "fit", "--help"], capture_output=True, text=True, check=True, env=env, cwd=ROOT
+        [sys.executable, "-m", "otgb.cli", subcommand, "--help"], capture_output=True, text=True, check=True, env=env, cwd=ROOT
     ).stdout
     return option_help(out)
+
+
+@pytest.fixture(scope="module")
+def fit_help() -> dict[str, str]:
+    return command_help("fit")
+
+
+def test_discover_help_documents_its_own_section():
+    """`otgb discover --help`: the fit options plus the discover section, each with help of its own."""
+    options = command_help("discover")
+    discover = {name: text for name, text in options.items() if name.startswith("--discover.")}
+    assert {"--discover.alpha", "--discover.n_permutations", "--discover.families"} <= set(discover)
+    assert all(discover.values()), [name for name, text in discover.items() if not text]
+    assert len(set(discover.values())) == len(discover), "two discover options share their help"
+    assert "--data.measured_path" in options
 
 
 def test_option_help_reads_jsonargparse_entries():

@@ -4,14 +4,18 @@ The augmented physics f_p + sum_k c_k feature_k (:class:`otgb.physics.Augmented`
 differentiable simulator; its coefficients, or the parameters of their prior, are fitted so
 that its trajectories (inputs from f_p's priors) match the measured training trajectories in
 the unbiased energy distance (:mod:`otgb.metrics.energy`; no bandwidth to tune, unbiased, so
-it is 0 on average at the optimum whatever the batch size). A prior family per fit:
+it is 0 on average at the optimum whatever the batch size), between whole trajectories and
+between the values at each time step (:func:`discrepancy`). A prior family per fit:
 
 - ``constant``: c (the effect is the same in every trajectory);
 - ``uniform``: U(c - w, c + w); ``normal``: N(c, w^2) (the effect varies between trajectories).
 
-:func:`choose_family` decides between them on held-out measurements (a richer family only if
-it lowers the held-out energy by more than two standard errors), so whether the effect varies is
-decided by the data (held-out draws with common random numbers, :func:`heldout_energy`).
+:func:`choose_family` decides between them (a richer family only if it lowers the discrepancy
+by more than two standard errors, over simulation draws with common random numbers,
+:func:`discrepancies`), so whether the effect varies is decided by the data. The families are
+compared on the training measurements: the richer families add one width per term to hundreds of
+trajectories, too little to fit noise, and the training part is several times larger than the
+held-out parts, which a spread that varies over time needs to be seen.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from otgb.physics.terms import LibraryTerm
 
 FAMILIES = ("constant", "uniform", "normal")  # simplest first
 HELDOUT_REPEATS = 10  # simulation draws per held-out score
+FAMILY_REPEATS = 20  # simulation draws per score of a prior family on the training measurements
 
 
 @dataclass
@@ -91,14 +96,27 @@ class CoefficientPrior(torch.nn.Module):
 
 
 def simulate_finite(model: Augmented, x0: Tensor, theta: Tensor) -> Tensor:
-    """Observed trajectories (n, T * obs) of the augmented model; those that diverged (a coefficient
+    """Observed trajectories (n, T, *obs) of the augmented model; those that diverged (a coefficient
     that makes the model blow up, e.g. a growing cubic) are left out."""
-    trajectories = model.observe(model.solve(lambda t, s: model.vector_field(s, theta), x0)).flatten(1)
-    return trajectories[torch.isfinite(trajectories).all(1)]
+    trajectories = model.observe(model.solve(lambda t, s: model.vector_field(s, theta), x0))
+    return trajectories[torch.isfinite(trajectories.flatten(1)).all(1)]
+
+
+def discrepancy(a: Tensor, b: Tensor) -> Tensor:
+    """Energy distance between trajectories a (n, T, *obs) and b (m, T, *obs): over whole trajectories
+    plus the sum over time steps and components of the distances between their values there.
+
+    The second part compares the marginal distributions at each time (a spread that grows or
+    shrinks over time, as an effect that varies between trajectories makes it), which the
+    distance between whole trajectories detects with far less power.
+    """
+    whole = batched_energy(a.flatten(1)[None], b.flatten(1)[None])[0]
+    cells = lambda y: y.reshape(len(y), y.shape[1] * y.shape[2], -1).transpose(0, 1)  # noqa: E731  (T * C, n, space)
+    return whole + batched_energy(cells(a), cells(b)).sum()
 
 
 def simulate_with(base: PhysicsModel, model: Augmented, coefficients: Tensor, generator: torch.Generator) -> Tensor:
-    """Finite trajectories (<= n, T * obs) of the augmented model for coefficient draws (n, K), inputs from the priors."""
+    """Finite trajectories (<= n, T, *obs) of the augmented model for coefficient draws (n, K), inputs from the priors."""
     n = len(coefficients)
     x0, theta = base.sample_initial_state(n, generator), base.sample_theta(n, generator)
     return simulate_finite(model, x0, torch.cat([theta, coefficients], dim=1))
@@ -123,14 +141,14 @@ def fit(
     optimiser = torch.optim.Adam(prior.parameters(), lr=lr)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, steps, eta_min=lr / 50)
     g = torch.Generator().manual_seed(seed)
-    targets = measured.flatten(1).float()
+    targets = measured.float()
     losses = []
     for _ in range(steps):
         rows = torch.randint(len(targets), (min(batch, len(targets)),), generator=g)
         simulated = simulate_with(base, model, prior.sample(batch, g), g)
         if len(simulated) < batch // 2:
             break  # the coefficients make most trajectories diverge: this fit fails (held-out energy inf)
-        loss = batched_energy(simulated[None], targets[rows][None])[0]
+        loss = discrepancy(simulated, targets[rows])
         if not torch.isfinite(loss):
             break
         optimiser.zero_grad()
@@ -140,8 +158,10 @@ def fit(
         losses.append(float(loss.detach()))
     if not (torch.isfinite(prior.centre).all() and torch.isfinite(prior.width).all()):
         return FittedTerms(family, list(candidates), [Constant(v) for v in init], [float("inf")] * HELDOUT_REPEATS, losses)
-    scores = heldout_energy(base, model, prior, heldout, seed) if score else []
-    return FittedTerms(family, list(candidates), prior.priors(), scores, losses)
+    priors = prior.priors()
+    return FittedTerms(
+        family, list(candidates), priors, discrepancies(base, candidates, priors, heldout, seed) if score else [], losses
+    )
 
 
 def bootstrap_intervals(
@@ -173,44 +193,51 @@ def bootstrap_intervals(
 
 
 @torch.no_grad()
-def heldout_energy(
+def discrepancies(
     base: PhysicsModel,
-    model: Augmented,
-    prior: CoefficientPrior | None,
-    heldout: Tensor,
+    candidates: list[Candidate],
+    priors: list[Prior],
+    measured: Tensor,
     seed: int,
     repeats: int = HELDOUT_REPEATS,
 ) -> list[float]:
-    """Energy distances to ``heldout`` of ``repeats`` fresh simulation draws as large as it.
+    """:func:`discrepancy` to ``measured`` of ``repeats`` fresh simulation draws as large as it, coefficients from ``priors``.
 
     The inputs and the coefficients' noise come from two generators seeded alike for every
     model, so that two models' scores differ by their coefficients, not by the luck of the
     draws (common random numbers): their difference is then measured far more precisely.
     """
+    model = Augmented(base, [LibraryTerm(c.feature, c.component, Constant(0.0)) for c in candidates])
     inputs, noise = torch.Generator().manual_seed(seed + 1), torch.Generator().manual_seed(seed + 2)
-    n, values = len(heldout), []
+    n, values = len(measured), []
     for _ in range(repeats):
         x0, theta = base.sample_initial_state(n, inputs), base.sample_theta(n, inputs)
-        coefficients = prior.sample(n, noise) if prior is not None else torch.zeros(n, 0)
-        simulated = simulate_finite(model, x0, torch.cat([theta, coefficients], dim=1))
+        coefficients = (
+            torch.stack([p.quantile(torch.rand(n, generator=noise)) for p in priors], 1) if priors else torch.zeros(n, 0)
+        )
+        simulated = simulate_finite(model, x0, torch.cat([theta, coefficients.float()], dim=1))
         if len(simulated) < n:
             return [float("inf")] * repeats  # a model that diverges for some inputs does not describe the data
-        values.append(float(batched_energy(simulated[None].double(), heldout.flatten(1)[None].double())[0]))
+        values.append(float(discrepancy(simulated.double(), measured.double())))
     return values
 
 
-def choose_family(fits: list[FittedTerms]) -> FittedTerms:
-    """The simplest family (``FAMILIES`` order) that no richer family beats on held-out data.
+def beats(scores_a: list[float], scores_b: list[float]) -> bool:
+    """Whether model a's discrepancies are lower than b's by more than two standard errors of the paired differences."""
+    a, b = torch.tensor(scores_a), torch.tensor(scores_b)
+    if not torch.isfinite(a).all():
+        return False
+    if not torch.isfinite(b).all():
+        return True
+    difference = b - a
+    return bool(difference.mean() > 2 * difference.std() / len(difference) ** 0.5)
 
-    A richer family beats a simpler one when its held-out energy is lower by more than two
-    standard errors of the paired differences over the common simulation draws.
-    """
+
+def choose_family(fits: list[FittedTerms], scores: dict[str, list[float]]) -> FittedTerms:
+    """The simplest family (``FAMILIES`` order) that no richer family beats, by their ``scores``."""
     ordered = sorted(fits, key=lambda f: FAMILIES.index(f.family))
     chosen = ordered[0]
     for richer in ordered[1:]:
-        if not torch.isfinite(torch.tensor(richer.heldout)).all():
-            continue
-        difference = torch.tensor(chosen.heldout) - torch.tensor(richer.heldout)
-        if difference.mean() > 2 * difference.std() / len(difference) ** 0.5:
+        if beats(scores[richer.family], scores[chosen.family]):
             chosen = richer
     return chosen

@@ -105,7 +105,7 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
         "regression": [_selection_dict(s) for s in result.selections],
         "cross_check": result.cross_check,
         "family": result.fitted.family if result.fitted else None,
-        "family_heldout_energy": result.family_scores,
+        "family_training_discrepancy": result.family_scores,
         "dropped_by_heldout_check": result.dropped,
         "correction_share": result.correction_share,
         "run": facts,
@@ -239,8 +239,9 @@ def _naming_section(report: dict[str, Any]) -> list[str]:
         lines.append("")
         lines.append("Dropped (no held-out gain): " + ", ".join(f"`{d['feature']}`" for d in report["dropped_by_heldout_check"]))
     if report["family"]:
-        lines += ["", f"Prior family chosen on held-out measurements: **{report['family']}** (held-out energy per family: "
-                  + ", ".join(f"{k} {v:.4g}" for k, v in report["family_heldout_energy"].items()) + ")."]  # fmt: skip
+        lines += ["", f"Prior family of the coefficients: **{report['family']}** (energy discrepancy to the training measurements "
+                  "per family, a richer family chosen only if lower by more than two standard errors: "
+                  + ", ".join(f"{k} {v:.4g}" for k, v in report["family_training_discrepancy"].items()) + ")."]  # fmt: skip
     if report["locate"]["sentence_after"]:
         lines += ["", f"After the fix: {report['locate']['sentence_after']}."]
     return lines + [""]

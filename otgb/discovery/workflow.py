@@ -32,12 +32,20 @@ from torch import Tensor
 from otgb.data.seeding import generator_for
 from otgb.discovery.library import Candidate, build_library, physical_name
 from otgb.discovery.locate import DisagreementMap, describe, locate
-from otgb.discovery.refine import FAMILIES, FittedTerms, bootstrap_intervals, choose_family, fit, heldout_energy
+from otgb.discovery.refine import (
+    FAMILIES,
+    FAMILY_REPEATS,
+    FittedTerms,
+    beats,
+    bootstrap_intervals,
+    choose_family,
+    discrepancies,
+    fit,
+)
 from otgb.discovery.regression import SelectedTerm, Selection, describe_terms, design_matrix, regress, subset_coefficients
 from otgb.metrics.c2st import c2st
 from otgb.metrics.energy import energy_distance
 from otgb.metrics.mmd import mmd_multiscale
-from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 
 CHUNK = 256
@@ -228,7 +236,7 @@ def strong_candidates(selections: list[Selection], draws: dict[str, Tensor], phy
 
 def cross_check_step(physics: PhysicsModel, strong: list[tuple], data: Measurements, settings: DiscoverySettings) -> list[dict]:
     """Each strong candidate alone added to f_p, its coefficient fitted: the share of f_p's held-out gap it closes."""
-    baseline = heldout_energy(physics, Augmented(physics, []), None, data.val, settings.seed)
+    baseline = discrepancies(physics, [], [], data.val, settings.seed)
     gap = sum(baseline) / len(baseline)
     rows = []
     for candidate, init in strong:
@@ -270,7 +278,7 @@ def add_step(physics: PhysicsModel, selections: list[Selection], designs: dict, 
         if k - best > 2:
             break
     best = min(fits, key=lambda f: f.heldout_energy)
-    current = next(f for f in fits if not _better(best, f))
+    current = next(f for f in fits if not beats(best.heldout, f.heldout))
     dropped = [{"feature": c.feature, "component": c.component} for c in path[len(current.candidates) :]]
     richer = [
         fit(physics, current.candidates, [p.value for p in current.priors], family, data.train, data.val, **_fit_args(settings))
@@ -278,8 +286,11 @@ def add_step(physics: PhysicsModel, selections: list[Selection], designs: dict, 
         if family != "constant"
     ]
     candidates = [f for f in [current, *richer] if f.family in settings.families] or [current]
-    chosen = choose_family(candidates)
-    return chosen, {f.family: f.heldout_energy for f in [current, *richer]}, dropped
+    scores = {
+        f.family: discrepancies(physics, f.candidates, f.priors, data.train, settings.seed, FAMILY_REPEATS) for f in candidates
+    }
+    chosen = choose_family(candidates, scores)
+    return chosen, {family: float(torch.tensor(s).mean()) for family, s in scores.items()}, dropped
 
 
 def final_regression(selections: list[Selection], designs: dict, kept: list[Candidate], settings: DiscoverySettings) -> list:
@@ -300,14 +311,6 @@ def _initial(candidates: list[Candidate], designs: dict) -> list[float]:
         mine = [c for c in candidates if c.component == component]
         values.update(zip(mine, subset_coefficients(designs[component], mine)))
     return [values[c] for c in candidates]
-
-
-def _better(a: FittedTerms, b: FittedTerms) -> bool:
-    """Whether ``a`` has a lower held-out energy than ``b`` by more than two standard errors (paired draws)."""
-    if not torch.isfinite(torch.tensor(b.heldout)).all():
-        return torch.isfinite(torch.tensor(a.heldout)).all().item()
-    difference = torch.tensor(b.heldout) - torch.tensor(a.heldout)
-    return bool(difference.mean() > 2 * difference.std() / len(difference) ** 0.5)
 
 
 def gap_step(sources: dict[str, Tensor], test: Tensor, settings: DiscoverySettings) -> dict[str, dict[str, float]]:
