@@ -103,6 +103,52 @@ def run_case(case: str, seed: int, noise: float, out: Path) -> None:
     wall = time.time() - start
     (folder / "wall_time.json").write_text(json.dumps({"seconds": wall, "returncode": done.returncode, "machine": machine()}))
     print(f"{folder.name}: exit {done.returncode} in {wall / 60:.1f} min")
+    report = latest_report(folder)
+    if report is not None and report["found"]:
+        (folder / "extrapolation.json").write_text(json.dumps(extrapolation(case, report)))
+        round_two(folder)
+
+
+def latest_report(folder: Path) -> dict | None:
+    reports = sorted(folder.glob("runs/*/version_*/report.json"), key=lambda p: p.stat().st_mtime)
+    return json.loads(reports[-1].read_text()) if reports else None
+
+
+def round_two(folder: Path) -> None:
+    """``otgb discover`` again, on the augmented.yaml the first round wrote: a correct model must show nothing."""
+    augmented = sorted(folder.glob("runs/*/version_*/augmented.yaml"))[-1]
+    second = folder / "round2"
+    second.mkdir(exist_ok=True)
+    with open(second / "discover.log", "w") as log:
+        args = ["discover", "--config", str(augmented), "--trainer.enable_progress_bar=false"]
+        subprocess.run([sys.executable, "-m", "otgb.cli", *args], cwd=second, stdout=log, stderr=subprocess.STDOUT)
+
+
+@torch.no_grad()
+def extrapolation(case: str, report: dict, n: int = 200) -> dict:
+    """Mean |y - y_DGP| of f_p and of the augmented physics on the DGP's inputs, over the training horizon and twice it.
+
+    Deterministic cases only (a coefficient drawn per trajectory has no pointwise truth): the
+    augmented physics takes its coefficients at the centre of their fitted prior.
+    """
+    _, physics, terms, _, step, _ = CASES[case]
+    if any(not t.priors["coefficient"].is_constant for t in terms):
+        return {}
+    base = physics()
+    long = physics()
+    long.n_obs = 2 * base.n_obs
+    dgp = long.with_hidden_effect(terms, step_size=step)
+    named = [LibraryTerm(t["feature"], t["component"], Constant(t["coefficient"])) for t in report["terms"]]
+    augmented = long.with_hidden_effect(named)
+    g = torch.Generator().manual_seed(3000)
+    x0, theta = long.sample_initial_state(n, g), long.sample_theta(n, g)
+    truth = dgp.simulate(x0, theta, dgp.sample_effect_params(n, g))
+    out = {}
+    for name, model in (("f_p", long), ("augmented", augmented)):
+        effect = model.sample_effect_params(n, g) if model.effect_dim else None
+        error = (model.simulate(x0, theta, effect) - truth).abs()
+        out[name] = {"train_horizon": float(error[:, : base.n_obs].mean()), "twice_horizon": float(error[:, base.n_obs :].mean())}
+    return out
 
 
 def machine() -> str:
@@ -114,30 +160,54 @@ def truth_text(case: str) -> str:
     return ", ".join(f"{t.feature} on d{t.component}/dt: {t.priors['coefficient']!r}" for t in terms)
 
 
+HEADER = (
+    "| case | seed | named: coefficient [95 %] | truth | f_p C2ST | grey-box C2ST | augmented C2ST | Reference C2ST "
+    "| round 2 on augmented.yaml | wall time |\n|---|---|---|---|---|---|---|---|---|---|"
+)
+
+
 def table(out: Path) -> str:
-    rows = [
-        "| case | seed | named (coefficient [95 %]) | truth | f_p C2ST | grey-box C2ST | augmented C2ST | Reference C2ST | wall time |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
+    rows, extrapolated = [HEADER], []
     for folder in sorted(out.iterdir()):
-        reports = sorted(folder.glob("runs/*/version_*/report.json"))
-        if not reports:
+        report = latest_report(folder)
+        if report is None:
             continue
-        report = json.loads(reports[-1].read_text())
         case, seed = folder.name.rsplit("-seed", 1)
         named = "; ".join(_named(t) for t in report["terms"]) or "nothing"
         gap = report["gap"]
-        c2st = lambda key: f"{gap[key]['c2st']:.3f}" if key in gap else "-"  # noqa: E731
         reference = f"{gap['reference']['c2st']:.3f} ± {gap['reference']['c2st_std']:.3f}"
-        wall = (
-            json.loads((folder / "wall_time.json").read_text())["seconds"] / 60
-            if (folder / "wall_time.json").exists()
-            else float("nan")
+        second = latest_report(folder / "round2") if (folder / "round2").exists() else None
+        round2 = (
+            "-"
+            if second is None
+            else ("found " + "; ".join(_named(t) for t in second["terms"]))
+            if second["found"]
+            else "nothing found"
         )
-        rows.append(
-            f"| {case} | {seed} | {named} | {truth_text(case)} | {c2st('f_p')} | {c2st('greybox')} | {c2st('augmented')} | {reference} | {wall:.1f} min |"
-        )
-    return "\n".join(rows).replace("|velocity|", "\\|velocity\\|") + "\n"
+        timing = folder / "wall_time.json"
+        wall = f"{json.loads(timing.read_text())['seconds'] / 60:.1f} min" if timing.exists() else "-"
+        cells = [
+            case,
+            seed,
+            named,
+            truth_text(case),
+            *(f"{gap[k]['c2st']:.3f}" if k in gap else "-" for k in ("f_p", "greybox", "augmented")),
+            reference,
+            round2,
+            wall,
+        ]
+        rows.append("| " + " | ".join(cells) + " |")
+        if (folder / "extrapolation.json").exists():
+            errors = json.loads((folder / "extrapolation.json").read_text())
+            if errors:
+                values = [f"{errors[m][h]:.4g}" for m in ("f_p", "augmented") for h in ("train_horizon", "twice_horizon")]
+                extrapolated.append("| " + " | ".join([case, seed, *values]) + " |")
+    text = "\n".join(rows) + "\n"
+    if extrapolated:
+        text += "\nMean |y - y_DGP| on 200 DGP inputs, over the training horizon and over the second, unseen one:\n\n"
+        text += "| case | seed | f_p, horizon | f_p, 2nd horizon | augmented, horizon | augmented, 2nd horizon |\n"
+        text += "|---|---|---|---|---|---|\n" + "\n".join(extrapolated) + "\n"
+    return text.replace("|velocity|", "\\|velocity\\|")
 
 
 def _named(t: dict) -> str:

@@ -17,6 +17,7 @@ from typing import Any
 import torch
 import yaml
 
+from otgb.callbacks.components import component_analysis
 from otgb.cli import OTGBCLI
 from otgb.data import SimulationDataModule
 from otgb.discovery.locate import describe
@@ -55,8 +56,10 @@ def discover(args: list[str]) -> Path:
     before = locate_step(physics, data.train, settings)
     print(f"otgb discover: {describe(before)}", flush=True)
     run_dir = Path(trainer.log_dir)
+    components = None
     if before.any_significant:
         load_or_fit(cli, cli.config.get("ckpt_path"))
+        components = component_analysis(module, datamodule, seed=settings.seed)
         result = run(module, data, settings, before)
     else:
         result = Discovery(before, describe(before))
@@ -67,7 +70,7 @@ def discover(args: list[str]) -> Path:
         samples["augmented"] = simulate_from_priors(result.fitted.model(physics), len(data.test), settings.seed, "gap-augmented")
     facts = {"description": datamodule.describe(), "config": [str(c) for c in cli.config.get("config") or []]}
     run_dir.mkdir(parents=True, exist_ok=True)
-    report = write_report(run_dir, result, physics, facts, samples)
+    report = write_report(run_dir, result, physics, facts, samples, components)
     if result.found:
         config = yaml.safe_load(cli.parser.dump(cli.config, format="yaml", skip_none=False))
         write_augmented(run_dir / "augmented.yaml", augmented_config(config, physics, result))

@@ -13,6 +13,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import yaml  # noqa: E402
 
+from otgb.callbacks.components import components_figure, to_json  # noqa: E402
 from otgb.callbacks.figures import distribution_figure  # noqa: E402
 from otgb.discovery import locate  # noqa: E402
 from otgb.discovery.workflow import Discovery, term_name  # noqa: E402
@@ -136,11 +137,23 @@ def draw_locate(result: Discovery, path: Path) -> None:
     plt.close(figure)
 
 
-def write_report(run_dir: Path, result: Discovery, physics: PhysicsModel, facts: dict[str, Any], samples: dict) -> dict:
-    """Write report.json, report.md and the figures into ``run_dir``; returns the report dict."""
+def write_report(
+    run_dir: Path, result: Discovery, physics: PhysicsModel, facts: dict[str, Any], samples: dict, components: dict | None = None
+) -> dict:
+    """Write report.json, report.md and the figures into ``run_dir``; returns the report dict.
+
+    ``components``: the grey-box's component analysis (:func:`otgb.callbacks.component_analysis`),
+    written as ``components.json`` and ``figures/components.png`` and summarised in the report.
+    """
     figures = run_dir / "figures"
     figures.mkdir(parents=True, exist_ok=True)
     report = report_dict(result, physics, facts)
+    report["components"] = None if components is None else to_json(components)["summary"]
+    if components is not None:
+        (run_dir / "components.json").write_text(json.dumps(to_json(components), indent=2))
+        figure = components_figure(components)
+        figure.savefig(figures / "components.png", dpi=110)
+        plt.close(figure)
     (run_dir / "report.json").write_text(json.dumps(report, indent=2))
     draw_locate(result, figures / "disagreement.png")
     figure = distribution_figure(samples, physics.observation_times(), physics.observed)
@@ -158,7 +171,7 @@ def markdown(report: dict[str, Any], facts: dict[str, Any]) -> str:
         "",
         f"Measurements: {facts.get('description', '')}",
         "",
-        "## 1. Where f_p and the measurements disagree",
+        "## Where f_p and the measurements disagree",
         "",
         f"{report['locate']['sentence_before']}.",
         "",
@@ -168,6 +181,20 @@ def markdown(report: dict[str, Any], facts: dict[str, Any]) -> str:
         "p-values from label permutations, significant cells kept by Benjamini-Hochberg at the stated false discovery rate.",
         "",
     ]
+    if report["components"] is not None:
+        c = report["components"]
+        lines += [
+            "## The grey-box's components over time",
+            "",
+            "Along the OT grey-box's solves (validation inputs), the learned correction f_phi makes up "
+            f"{c['correction_share']:.3g} "
+            "of |f_p| + |f_phi| (the paper's component analysis, Figure 3). Trajectory level: the grey-box against the "
+            "held-out measurements per time step; function level needs a known vector field, which measurements alone "
+            "do not give.",
+            "",
+            "![components](figures/components.png)",
+            "",
+        ]
     if report["regression"]:
         lines += _naming_section(report)
     lines += [
@@ -193,21 +220,24 @@ def markdown(report: dict[str, Any], facts: dict[str, Any]) -> str:
 
 
 def _naming_section(report: dict[str, Any]) -> list[str]:
-    lines = ["## 2. What the learned correction is", ""]
+    lines = ["## What the learned correction is", ""]
     if report["correction_share"] is not None:
         lines.append(
-            f"The grey-box's correction f_phi has {report['correction_share']:.3g} times the size (RMS) of f_p along its trajectories."
+            f"The grey-box's correction f_phi has {report['correction_share']:.3g} times the size (RMS) of f_p "
+            "along its trajectories."
         )
         lines.append("")
     for s in report["regression"]:
         lines.append(
-            f"- d{s['component']}/dt: selected {', '.join(s['selected']) or 'nothing'}; R^2 of f_phi explained {s['explained_r2']:.3f}; "
+            f"- d{s['component']}/dt: selected {', '.join(s['selected']) or 'nothing'}; "
+            f"R^2 of f_phi explained {s['explained_r2']:.3f}; "
             f"library condition number {s['condition_number']:.3g}" + _confusable(s["confusable_pairs"])
         )
     if report["terms"]:
         lines += [
             "",
-            "| term | feature | on | coefficient | 95 % interval | inclusion | f_phi's slope [95 %] | share of f_phi (R^2) | distribution |",
+            "| term | feature | on | coefficient | 95 % interval | inclusion | f_phi's slope [95 %] "
+            "| share of f_phi (R^2) | distribution |",
             "|---|---|---|---|---|---|---|---|---|",
         ]
         for t in report["terms"]:
@@ -221,7 +251,8 @@ def _naming_section(report: dict[str, Any]) -> list[str]:
             )
             dist = "constant" if t["distribution"] is None else json.dumps(t["distribution"])
             lines.append(
-                f"| {t['name']} | {code(t['feature'])} | d{t['component']}/dt | {t['coefficient']:.4g} | {interval} | {inclusion} | {slope} | {share} | {dist} |"
+                f"| {t['name']} | {code(t['feature'])} | d{t['component']}/dt | {t['coefficient']:.4g} | {interval} "
+                f"| {inclusion} | {slope} | {share} | {dist} |"
             )
     for a in report["ambiguous"]:
         lines.append(f"\n**Ambiguous:** `{a['feature']}` could equally be {', '.join(f'`{x}`' for x in a['alternatives'])}.")
@@ -239,7 +270,8 @@ def _naming_section(report: dict[str, Any]) -> list[str]:
         lines.append("")
         lines.append("Dropped (no held-out gain): " + ", ".join(f"`{d['feature']}`" for d in report["dropped_by_heldout_check"]))
     if report["family"]:
-        lines += ["", f"Prior family of the coefficients: **{report['family']}** (energy discrepancy to the training measurements "
+        lines += ["", f"Prior family of the coefficients: **{report['family']}** (energy discrepancy to the "
+                  "training measurements "
                   "per family, a richer family chosen only if lower by more than two standard errors: "
                   + ", ".join(f"{k} {v:.4g}" for k, v in report["family_training_discrepancy"].items()) + ")."]  # fmt: skip
     if report["locate"]["sentence_after"]:
