@@ -224,3 +224,23 @@ def test_discover_finds_friction_and_writes_a_config_fit_accepts(tmp_path):
         cwd=tmp_path, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert fit.returncode == 0, fit.stderr[-2000:]
+
+
+@pytest.mark.slow
+def test_workflow_names_advection_on_a_field():
+    model = AdvectionDiffusion()
+    dgp = model.with_hidden_effect([Advection(Constant(0.1))])
+
+    class Advecting(nn.Module):
+        def forward(self, state, cond):
+            return -0.1 * model.derivative(state)
+
+    module = KernelWeakOT(
+        model, lambda physics, z: GreyBoxODE(physics, z, lambda *_: Advecting()), partial(MLPCritic, hidden=[8])
+    )
+    data = Measurements(_draws(dgp, 300, 1), _draws(dgp, 100, 2), _draws(dgp, 100, 3))
+    settings = DiscoverySettings(**FAST)
+    result = run(module, data, settings, locate_step(model, data.train, settings))
+    assert [(c.feature, c.component) for c in result.fitted.candidates] == [("d_s(T)", "T")]
+    assert abs(result.fitted.priors[0].value + 0.1) < 0.01
+    assert result.gap["augmented"]["c2st"] < 0.7 < result.gap["f_p"]["c2st"]

@@ -167,10 +167,20 @@ def describe(result: DisagreementMap, a_name: str = "measured", b_name: str = "s
             f"at a false discovery rate of {result.alpha:g} ({result.n_permutations} permutations)"
         )
     times = result.times
-    first = int(result.significant.any(2).any(1).nonzero()[0])
+    first = onset(result.significant.any(2).any(1))
     start = f"agree up to t = {times[first - 1]:.3g}; from t = {times[first]:.3g} on" if first > 0 else "differ from the start:"
     parts = [_component_difference(result, c, a_name, b_name) for c in range(len(result.components))]
     return f"{b_name} and {a_name} trajectories {start} " + "; ".join(p for p in parts if p)
+
+
+def onset(flagged: Tensor) -> int:
+    """The first time step of the first run of two flagged steps (the first flagged one if there is no run).
+
+    The false discovery rate lets a few null cells through among many true ones (about alpha of
+    the flagged cells): a lone flagged step before the disagreement sets in is likely one of them.
+    """
+    steps = flagged.nonzero().squeeze(1).tolist()
+    return next((i for i in steps if i + 1 < len(flagged) and flagged[i + 1]), steps[0])
 
 
 def _component_difference(result: DisagreementMap, c: int, a_name: str, b_name: str) -> str:

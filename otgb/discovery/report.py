@@ -11,6 +11,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import torch  # noqa: E402
 import yaml  # noqa: E402
 
 from otgb.callbacks.components import components_figure, to_json  # noqa: E402
@@ -45,18 +46,13 @@ def verdict(result: Discovery, physics: PhysicsModel) -> str:
             + result.sentence_before
             + "), but no candidate term explains the learned correction"
         )
-    names = [f"{term_name(c, p.quantile(_half()).item(), physics)} ({p_feature(c)})" for c, p in _terms(result)]
+    names = [f"{term_name(c, centre(p), physics)} ({c.feature} on d{c.component}/dt)" for c, p in _terms(result)]
     return f"missing effect found: {', '.join(names)}; " + (result.sentence_after or "")
 
 
-def _half():
-    import torch
-
-    return torch.tensor(0.5)
-
-
-def p_feature(candidate: Any) -> str:
-    return f"{candidate.feature} on d{candidate.component}/dt"
+def centre(prior: Prior) -> float:
+    """The median of a coefficient's prior: its value if constant."""
+    return prior.quantile(torch.tensor(0.5)).item()
 
 
 def _terms(result: Discovery) -> list[tuple]:
@@ -68,14 +64,14 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
     regression = {(t.candidate.feature, t.candidate.component): t for t in result.final_terms}
     terms = []
     for (candidate, prior), interval in zip(_terms(result), result.intervals):
-        centre = prior.quantile(_half()).item()
+        middle = centre(prior)
         found = regression.get((candidate.feature, candidate.component))
         terms.append(
             {
-                "name": term_name(candidate, centre, physics),
+                "name": term_name(candidate, middle, physics),
                 "feature": candidate.feature,
                 "component": candidate.component,
-                "coefficient": centre,
+                "coefficient": middle,
                 "interval": list(interval),
                 "inclusion_probability": found.inclusion_probability if found else None,
                 "r2_share": found.r2_share if found else None,

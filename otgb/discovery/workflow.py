@@ -43,6 +43,7 @@ from otgb.discovery.refine import (
     fit,
 )
 from otgb.discovery.regression import SelectedTerm, Selection, describe_terms, design_matrix, regress, subset_coefficients
+from otgb.errors import InputError
 from otgb.metrics.c2st import c2st
 from otgb.metrics.energy import energy_distance
 from otgb.metrics.mmd import mmd_multiscale
@@ -84,8 +85,6 @@ class DiscoverySettings:
         c2st_classifier: str = "auto",
         seed: int = 0,
     ) -> None:
-        from otgb.errors import InputError
-
         if n_permutations < 19 or not 0 < alpha < 1 or regions_per_axis < 1:
             raise InputError(
                 f"discover: need n_permutations >= 19, 0 < alpha < 1, regions_per_axis >= 1; "
@@ -324,8 +323,9 @@ def gap_step(sources: dict[str, Tensor], test: Tensor, settings: DiscoverySettin
 
 
 def scores(p: Tensor, q: Tensor, settings: DiscoverySettings) -> dict[str, float]:
+    shape = tuple(p.shape[1:])
     p, q = p.flatten(1).double(), q.flatten(1).double()
-    judge = c2st(p.float(), q.float(), folds=5, seed=settings.seed, classifier=settings.c2st_classifier)
+    judge = c2st(p.float(), q.float(), folds=5, seed=settings.seed, classifier=settings.c2st_classifier, trajectory_shape=shape)
     return {
         "mmd": float(mmd_multiscale(p, q)),
         "c2st": float(judge["c2st"]),
