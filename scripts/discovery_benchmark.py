@@ -82,9 +82,20 @@ def export(case: str, seed: int, noise: float, path: Path) -> None:
 
 def run_case(case: str, seed: int, noise: float, out: Path) -> None:
     folder = out / f"{case}{'-noise' if noise else ''}-seed{seed}"
-    if list(folder.glob("runs/*/version_*/report.json")):
-        print(f"{folder.name}: done, skipped")
-        return
+    if latest_report(folder) is None:
+        discover(case, seed, noise, folder)
+    else:
+        print(f"{folder.name}: done")
+    report = latest_report(folder)
+    if report is not None and report["found"]:
+        if not (folder / "extrapolation.json").exists():
+            (folder / "extrapolation.json").write_text(json.dumps(extrapolation(case, report)))
+        if latest_report(folder / "round2") is None:
+            round_two(folder)
+
+
+def discover(case: str, seed: int, noise: float, folder: Path) -> None:
+    """``otgb discover`` on the case's measured file (written first), timed."""
     measured = folder / "measured.npz"
     if not measured.exists():
         export(case, seed, noise, measured)
@@ -103,13 +114,11 @@ def run_case(case: str, seed: int, noise: float, out: Path) -> None:
     wall = time.time() - start
     (folder / "wall_time.json").write_text(json.dumps({"seconds": wall, "returncode": done.returncode, "machine": machine()}))
     print(f"{folder.name}: exit {done.returncode} in {wall / 60:.1f} min")
-    report = latest_report(folder)
-    if report is not None and report["found"]:
-        (folder / "extrapolation.json").write_text(json.dumps(extrapolation(case, report)))
-        round_two(folder)
 
 
 def latest_report(folder: Path) -> dict | None:
+    if not folder.exists():
+        return None
     reports = sorted(folder.glob("runs/*/version_*/report.json"), key=lambda p: p.stat().st_mtime)
     return json.loads(reports[-1].read_text()) if reports else None
 
@@ -119,6 +128,7 @@ def round_two(folder: Path) -> None:
     augmented = sorted(folder.glob("runs/*/version_*/augmented.yaml"))[-1]
     second = folder / "round2"
     second.mkdir(exist_ok=True)
+    print(f"{folder.name}: second round on {augmented}")
     with open(second / "discover.log", "w") as log:
         args = ["discover", "--config", str(augmented), "--trainer.enable_progress_bar=false"]
         subprocess.run([sys.executable, "-m", "otgb.cli", *args], cwd=second, stdout=log, stderr=subprocess.STDOUT)

@@ -230,7 +230,8 @@ def beats(scores_a: list[float], scores_b: list[float]) -> bool:
     if not torch.isfinite(b).all():
         return True
     difference = b - a
-    return bool(difference.mean() > 2 * difference.std() / len(difference) ** 0.5)
+    resolution = 1e-9 * float(b.abs().mean())  # below float rounding: a tie, e.g. a term fitted to zero
+    return bool(difference.mean() > 2 * difference.std() / len(difference) ** 0.5 + resolution)
 
 
 def choose_family(fits: list[FittedTerms], scores: dict[str, list[float]]) -> FittedTerms:
