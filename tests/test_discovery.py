@@ -15,7 +15,7 @@ from torch import nn
 from otgb.data import generate_measured
 from otgb.discovery.library import build_library, physical_name
 from otgb.discovery.locate import describe, locate
-from otgb.discovery.refine import fit
+from otgb.discovery.refine import FAMILIES, FAMILY_REPEATS, choose_family, discrepancies, fit
 from otgb.discovery.regression import design_matrix, regress
 from otgb.discovery.workflow import DiscoverySettings, Measurements, locate_step, run
 from otgb.errors import InputError
@@ -244,3 +244,36 @@ def test_workflow_names_advection_on_a_field():
     assert [(c.feature, c.component) for c in result.fitted.candidates] == [("d_s(T)", "T")]
     assert abs(result.fitted.priors[0].value + 0.1) < 0.01
     assert result.gap["augmented"]["c2st"] < 0.7 < result.gap["f_p"]["c2st"]
+
+
+@pytest.mark.slow
+def test_a_friction_that_varies_is_recovered_as_a_distribution():
+    pendulum = Pendulum()
+    dgp = pendulum.with_hidden_effect([ViscousFriction(Uniform(0.6, 1.5))])
+    train, val = _draws(dgp, 700, 1), _draws(dgp, 150, 2)
+    candidate = build_library(pendulum, ["velocity"])[2]
+    fits = [fit(pendulum, [candidate], [-1.0], family, train, val) for family in FAMILIES]
+    scores = {f.family: discrepancies(pendulum, f.candidates, f.priors, train, 0, FAMILY_REPEATS) for f in fits}
+    chosen = choose_family(fits, scores)
+    assert chosen.family in ("uniform", "normal")
+    low, high = (-chosen.priors[0].high, -chosen.priors[0].low) if chosen.family == "uniform" else (None, None)
+    if low is not None:
+        assert abs((low + high) / 2 - 1.05) < 0.105 and abs((high - low) - 0.9) < 0.09
+
+
+@pytest.mark.slow
+def test_workflow_names_linear_decay_on_a_field():
+    model = AdvectionDiffusion()
+    dgp = model.with_hidden_effect([LibraryTerm("T", "T", Constant(-0.5))])
+
+    class Decaying(nn.Module):
+        def forward(self, state, cond):
+            return -0.5 * state
+
+    module = KernelWeakOT(model, lambda physics, z: GreyBoxODE(physics, z, lambda *_: Decaying()), partial(MLPCritic, hidden=[8]))
+    data = Measurements(_draws(dgp, 300, 1), _draws(dgp, 100, 2), _draws(dgp, 100, 3))
+    settings = DiscoverySettings(**FAST)
+    result = run(module, data, settings, locate_step(model, data.train, settings))
+    assert [(c.feature, c.component) for c in result.fitted.candidates] == [("T", "T")]
+    assert abs(result.fitted.priors[0].value + 0.5) < 0.05
+    assert physical_name("T", "T", result.fitted.priors[0].value, model) == "linear decay"

@@ -181,7 +181,7 @@ def bootstrap_intervals(
             fitted.family,
             measured[rows],
             measured,
-            max(steps // 4, 10),
+            max(steps // 5, 10),
             batch,
             0.01,
             seed + 10 + b,

@@ -263,8 +263,8 @@ def add_step(physics: PhysicsModel, selections: list[Selection], designs: dict, 
     of the first 1, 2, ... of them (coefficients started at their least-squares values and
     fitted by distribution matching) are scored on the validation measurements. The search
     stops after two models that do not improve on the best; the sparsest model that the best
-    does not beat by more than two standard errors is kept (terms past it are reported as
-    dropped), and each prior family is fitted for it.
+    does not beat by more than two standard errors is kept, then pruned backwards (:func:`prune`);
+    the terms left out are reported as dropped. Each prior family is fitted for the result.
     """
     ordered = sorted(((t.size, t.candidate) for s in selections for t in s.terms), key=lambda pair: -pair[0])
     path = [c for _, c in ordered]
@@ -277,8 +277,8 @@ def add_step(physics: PhysicsModel, selections: list[Selection], designs: dict, 
         if k - best > 2:
             break
     best = min(fits, key=lambda f: f.heldout_energy)
-    current = next(f for f in fits if not beats(best.heldout, f.heldout))
-    dropped = [{"feature": c.feature, "component": c.component} for c in path[len(current.candidates) :]]
+    current = prune(physics, next(f for f in fits if not beats(best.heldout, f.heldout)), data, settings)
+    dropped = [{"feature": c.feature, "component": c.component} for c in path if c not in current.candidates]
     richer = [
         fit(physics, current.candidates, [p.value for p in current.priors], family, data.train, data.val, **_fit_args(settings))
         for family in settings.families
@@ -290,6 +290,31 @@ def add_step(physics: PhysicsModel, selections: list[Selection], designs: dict, 
     }
     chosen = choose_family(candidates, scores)
     return chosen, {family: float(torch.tensor(s).mean()) for family, s in scores.items()}, dropped
+
+
+def prune(physics: PhysicsModel, current: FittedTerms, data: Measurements, settings: DiscoverySettings) -> FittedTerms:
+    """Backward elimination: drop a kept term while the model without it is not beaten on held-out data.
+
+    The forward order comes from f_phi; the measurements may need a later term instead of an
+    earlier one (a network that learned drag as a mostly linear friction ranks velocity first):
+    the model without the earlier term then fits as well and the term goes.
+    """
+    while len(current.candidates) > 1:
+        trials = []
+        for k in range(len(current.candidates)):
+            keep = [i for i in range(len(current.candidates)) if i != k]
+            init = [current.priors[i].value for i in keep]
+            trials.append(
+                fit(physics, [current.candidates[i] for i in keep], init, "constant", data.train, data.val, **_fit_args(settings))
+            )
+        reduced = min(trials, key=lambda f: f.heldout_energy)
+        if beats(current.heldout, reduced.heldout):
+            return current
+        progress(
+            f"dropped {[c.feature for c in current.candidates if c not in reduced.candidates]}: not needed by the held-out data"
+        )
+        current = reduced
+    return current
 
 
 def final_regression(selections: list[Selection], designs: dict, kept: list[Candidate], settings: DiscoverySettings) -> list:
