@@ -60,14 +60,20 @@ class FittedTerms:
 
 
 class CoefficientPrior(torch.nn.Module):
-    """A differentiable prior family over K coefficients, started at ``init``."""
+    """A differentiable prior family over K coefficients, started at ``init``.
 
-    def __init__(self, family: str, init: list[float]) -> None:
+    The optimiser moves each coefficient in units of its ``scales`` (default: its start's size):
+    a term whose start is far too small (a network that learned drag mostly as linear friction
+    gives ``v*|v|`` a tiny slope) must still be able to reach its value.
+    """
+
+    def __init__(self, family: str, init: list[float], scales: list[float] | None = None) -> None:
         super().__init__()
         init = torch.tensor(init, dtype=torch.float32)
+        scale = init.abs() if scales is None else torch.maximum(torch.tensor(scales, dtype=torch.float32), init.abs())
         self.family = family
         self.register_buffer("init", init)
-        self.register_buffer("scale", torch.where(init.abs() > 0, init.abs(), torch.ones_like(init)))
+        self.register_buffer("scale", torch.where(scale > 0, scale, torch.ones_like(init)))
         self.shift = torch.nn.Parameter(torch.zeros_like(init))
         self.raw_width = torch.nn.Parameter(torch.full_like(init, -2.0))
 
@@ -134,9 +140,10 @@ def fit(
     lr: float = 0.05,
     seed: int = 0,
     score: bool = True,
+    scales: list[float] | None = None,
 ) -> FittedTerms:
     """Fit the coefficients' prior of one ``family`` to ``measured`` (m, T, *obs); score on ``heldout`` (if ``score``)."""
-    prior = CoefficientPrior(family, init)
+    prior = CoefficientPrior(family, init, scales)
     model = Augmented(base, [LibraryTerm(c.feature, c.component, Constant(v)) for c, v in zip(candidates, init)])
     optimiser = torch.optim.Adam(prior.parameters(), lr=lr)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, steps, eta_min=lr / 50)

@@ -26,6 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -233,13 +234,15 @@ def strong_candidates(selections: list[Selection], draws: dict[str, Tensor], phy
     return [(c, v if v is not None else 0.0) for c, v in chosen.items()]
 
 
-def cross_check_step(physics: PhysicsModel, strong: list[tuple], data: Measurements, settings: DiscoverySettings) -> list[dict]:
+def cross_check_step(
+    physics: PhysicsModel, strong: list[tuple], data: Measurements, settings: DiscoverySettings, designs: dict
+) -> list[dict]:
     """Each strong candidate alone added to f_p, its coefficient fitted: the share of f_p's held-out gap it closes."""
     baseline = discrepancies(physics, [], [], data.val, settings.seed)
     gap = sum(baseline) / len(baseline)
     rows = []
     for candidate, init in strong:
-        fitted = fit(physics, [candidate], [init], "constant", data.train, data.val, **_fit_args(settings))
+        fitted = fit(physics, [candidate], [init], "constant", data.train, data.val, **_fit_args(settings, [candidate], designs))
         rows.append(
             {
                 "feature": candidate.feature,
@@ -252,8 +255,18 @@ def cross_check_step(physics: PhysicsModel, strong: list[tuple], data: Measureme
     return sorted(rows, key=lambda r: -r["gap_closed"])
 
 
-def _fit_args(settings: DiscoverySettings) -> dict:
-    return {"steps": settings.fit_steps, "batch": settings.fit_batch, "seed": settings.seed}
+def _fit_args(settings: DiscoverySettings, candidates: list[Candidate] | None = None, designs: dict | None = None) -> dict:
+    """Keyword arguments of :func:`fit`; with ``designs``, each coefficient's natural scale: the slope at
+    which its term alone would be as large as f_phi on its component."""
+    args = {"steps": settings.fit_steps, "batch": settings.fit_batch, "seed": settings.seed}
+    if candidates is not None and designs is not None:
+        args["scales"] = [_natural_scale(c, designs[c.component]) for c in candidates]
+    return args
+
+
+def _natural_scale(candidate: Candidate, design: Any) -> float:
+    index = design.candidates.index(candidate)
+    return float(np.sqrt((design.y**2).mean()) / max(design.scale[index], 1e-12))
 
 
 def add_step(physics: PhysicsModel, selections: list[Selection], designs: dict, data: Measurements, settings: DiscoverySettings):
@@ -271,13 +284,13 @@ def add_step(physics: PhysicsModel, selections: list[Selection], designs: dict, 
     fits: list[FittedTerms] = []
     for k in range(1, len(path) + 1):
         init = _initial(path[:k], designs)
-        fits.append(fit(physics, path[:k], init, "constant", data.train, data.val, **_fit_args(settings)))
+        fits.append(fit(physics, path[:k], init, "constant", data.train, data.val, **_fit_args(settings, path[:k], designs)))
         progress(f"{k} term(s) {[c.feature for c in path[:k]]}: held-out energy {fits[-1].heldout_energy:.4g}")
         best = min(range(len(fits)), key=lambda i: fits[i].heldout_energy)
         if k - best > 2:
             break
     best = min(fits, key=lambda f: f.heldout_energy)
-    current = prune(physics, next(f for f in fits if not beats(best.heldout, f.heldout)), data, settings)
+    current = prune(physics, next(f for f in fits if not beats(best.heldout, f.heldout)), data, settings, designs)
     dropped = [{"feature": c.feature, "component": c.component} for c in path if c not in current.candidates]
     richer = [
         fit(physics, current.candidates, [p.value for p in current.priors], family, data.train, data.val, **_fit_args(settings))
@@ -292,7 +305,9 @@ def add_step(physics: PhysicsModel, selections: list[Selection], designs: dict, 
     return chosen, {family: float(torch.tensor(s).mean()) for family, s in scores.items()}, dropped
 
 
-def prune(physics: PhysicsModel, current: FittedTerms, data: Measurements, settings: DiscoverySettings) -> FittedTerms:
+def prune(
+    physics: PhysicsModel, current: FittedTerms, data: Measurements, settings: DiscoverySettings, designs: dict
+) -> FittedTerms:
     """Backward elimination: drop a kept term while the model without it is not beaten on held-out data.
 
     The forward order comes from f_phi; the measurements may need a later term instead of an
@@ -367,7 +382,7 @@ def run(module: Any, data: Measurements, settings: DiscoverySettings, before: Di
     selected = [(t.candidate, t.coefficient) for s in result.selections for t in s.terms]
     progress(f"named {[f'{c.feature} on d{c.component}/dt: {v:.4g}' for c, v in selected] or 'nothing'}")
     strong = strong_candidates(result.selections, draws, physics, settings.strong_candidates)
-    result.cross_check = cross_check_step(physics, strong, data, settings)
+    result.cross_check = cross_check_step(physics, strong, data, settings, designs)
     progress(f"cross-checked {len(strong)} candidates alone")
     if selected:
         result.fitted, result.family_scores, result.dropped = add_step(physics, result.selections, designs, data, settings)
