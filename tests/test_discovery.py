@@ -201,10 +201,10 @@ def test_discover_negative_control_names_nothing(tmp_path):
     assert not (tmp_path / run_dir / "checkpoints").exists(), "nothing to learn: no training"
 
 
-def test_discover_refuses_a_config_without_measurements(tmp_path):
-    args = ["discover", "--config", str(ROOT / "configs" / "pendulum.yaml")]
-    done = subprocess.run([sys.executable, "-m", "otgb.cli", *args], cwd=tmp_path, capture_output=True, text=True, timeout=300)
-    assert done.returncode == 2 and "works from measurements alone" in done.stderr.strip().splitlines()[-1]
+def test_discover_refuses_bad_settings_in_one_line(tmp_path):
+    done = _discover(tmp_path, _export(tmp_path, 0.0), "--discover.alpha=2")
+    assert done.returncode == 2 and done.stderr.strip().splitlines()[-1].startswith("otgb: error: discover: need")
+    assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").rglob("report.json"))
 
 
 @pytest.mark.slow

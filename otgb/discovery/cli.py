@@ -2,7 +2,9 @@
 
     otgb discover --config my_model.yaml --data.measured_path measurements.npz [--ckpt_path grey-box.ckpt]
 
-It takes the options of ``otgb fit`` (the same config files work), a ``discover:`` section
+It takes the options of ``otgb fit`` (the same config files work; with a config's hidden
+effect and no file, the measurements are generated from that DGP, which the workflow does not
+see, and the report adds pointwise errors against it), a ``discover:`` section
 (:class:`otgb.discovery.workflow.DiscoverySettings`) and ``--ckpt_path``, a grey-box trained on
 the same measurements, to skip training. It writes ``report.md``, ``report.json``,
 ``figures/`` and ``augmented.yaml`` into the run directory (``runs/<config stem>/version_N``,
@@ -20,6 +22,7 @@ import yaml
 from otgb.callbacks.components import component_analysis
 from otgb.cli import OTGBCLI
 from otgb.data import SimulationDataModule
+from otgb.discovery.known import pointwise_errors, write_measurements
 from otgb.discovery.locate import describe
 from otgb.discovery.report import augmented_config, write_augmented, write_report
 from otgb.discovery.workflow import Discovery, DiscoverySettings, Measurements, gap_step, locate_step, run, simulate_from_priors
@@ -46,11 +49,6 @@ def discover(args: list[str]) -> Path:
     cli = DiscoverCLI(KernelWeakOT, SimulationDataModule, args=args, run=False)
     settings: DiscoverySettings = cli.config_init["discover"]
     datamodule, module, trainer = cli.datamodule, cli.model, cli.trainer
-    if datamodule.mode != "marginal":
-        raise InputError(
-            "otgb discover works from measurements alone: give --data.measured_path FILE and --data.hidden_effect=[] "
-            "(scripts/export_measured.py writes a config's synthetic measurements to such a file)"
-        )
     data = Measurements.from_datamodule(datamodule)
     physics = datamodule.physics
     before = locate_step(physics, data.train, settings)
@@ -61,6 +59,9 @@ def discover(args: list[str]) -> Path:
         load_or_fit(cli, cli.config.get("ckpt_path"))
         components = component_analysis(module, datamodule, seed=settings.seed)
         result = run(module, data, settings, before)
+        if datamodule.mode == "joint" and not datamodule.dgp.is_stochastic:
+            augmented = result.fitted.model(physics) if result.found else None
+            result.pointwise = pointwise_errors(module, datamodule.dgp, augmented, datamodule.test_set, settings.seed)
     else:
         result = Discovery(before, describe(before))
         f_p = simulate_from_priors(physics, len(data.test), settings.seed, "gap-f_p")
@@ -73,6 +74,11 @@ def discover(args: list[str]) -> Path:
     report = write_report(run_dir, result, physics, facts, samples, components)
     if result.found:
         config = yaml.safe_load(cli.parser.dump(cli.config, format="yaml", skip_none=False))
+        if (
+            datamodule.mode == "joint"
+        ):  # the next round needs these measurements, not the DGP (it would add the named terms twice)
+            write_measurements(run_dir / "measured.npz", torch.cat([data.train, data.val, data.test]))
+            config["data"].update(measured_path=str((run_dir / "measured.npz").resolve()), hidden_effect=[])
         write_augmented(run_dir / "augmented.yaml", augmented_config(config, physics, result))
     print(f"otgb discover: {report['verdict']}")
     print(f"otgb discover: report in {run_dir}")

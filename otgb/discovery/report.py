@@ -105,6 +105,7 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
         "family_training_discrepancy": result.family_scores,
         "dropped_by_heldout_check": result.dropped,
         "correction_share": result.correction_share,
+        "pointwise": result.pointwise,
         "run": facts,
     }
 
@@ -203,6 +204,7 @@ def markdown(report: dict[str, Any], facts: dict[str, Any]) -> str:
         if key in report["gap"]:
             g = report["gap"][key]
             lines.append(f"| {label} | {g['mmd']:.4g} | {g['c2st']:.3f} ± {g['c2st_std']:.3f} | {g['energy']:.4g} |")
+    lines += _pointwise_section(report["pointwise"])
     lines += [
         "",
         "Reference: one half of the test measurements against the other, the noise floor of these metrics (half-size samples: "
@@ -273,6 +275,22 @@ def _naming_section(report: dict[str, Any]) -> list[str]:
     if report["locate"]["sentence_after"]:
         lines += ["", f"After the fix: {report['locate']['sentence_after']}."]
     return lines + [""]
+
+
+def _pointwise_section(pointwise: dict) -> list[str]:
+    """ABS ERR / N-RMSE against a known DGP, over the training horizon and the next one (extrapolation)."""
+    if not pointwise:
+        return []
+    lines = ["", "Against the known DGP, on the test inputs (the second horizon is extrapolation):", ""]
+    lines += ["| model | ABS ERR | N-RMSE | ABS ERR, 2nd horizon | N-RMSE, 2nd horizon |", "|---|---|---|---|---|"]
+    for key, label in GAP_ROWS.items():
+        if key in pointwise:
+            e = pointwise[key]
+            lines.append(
+                f"| {label} | {e['abs_err_horizon']:.4g} | {e['nrmse_horizon']:.4g} | {e['abs_err_twice_horizon']:.4g} "
+                f"| {e['nrmse_twice_horizon']:.4g} |"
+            )
+    return lines
 
 
 def code(text: str) -> str:

@@ -136,6 +136,7 @@ class Discovery:
     sentence_after: str | None = None
     gap: dict[str, dict[str, float]] = field(default_factory=dict)
     correction_share: float | None = None
+    pointwise: dict[str, dict[str, float]] = field(default_factory=dict)  # against a known DGP (otgb.discovery.known)
 
     @property
     def found(self) -> bool:
