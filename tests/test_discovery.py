@@ -33,7 +33,7 @@ from otgb.physics import (
 from otgb.training import KernelWeakOT
 
 ROOT = Path(__file__).parents[1]
-FAST = dict(n_permutations=199, n_trajectories=48, n_bootstrap=5, fit_steps=80, fit_batch=64, strong_candidates=1)
+FAST = dict(n_permutations=199, n_trajectories=48, n_bootstrap=5, fit_steps=30, fit_batch=256, strong_candidates=1)
 
 
 def _draws(model, n, seed):
@@ -139,7 +139,7 @@ def test_distribution_matching_recovers_the_coefficient():
     dgp = pendulum.with_hidden_effect([LibraryTerm("velocity*|velocity|", "velocity", Constant(-0.6))])
     candidate = build_library(pendulum, ["velocity"])[12]
     assert candidate.feature == "velocity*|velocity|"
-    fitted = fit(pendulum, [candidate], [-0.3], "constant", _draws(dgp, 400, 1), _draws(dgp, 100, 2), steps=150)
+    fitted = fit(pendulum, [candidate], [-0.3], "constant", _draws(dgp, 700, 1), _draws(dgp, 100, 2))
     assert abs(fitted.priors[0].value + 0.6) < 0.06
 
 

@@ -64,8 +64,8 @@ class DiscoverySettings:
         n_bootstrap: Bootstrap resamples (of trajectories) for inclusion probabilities and intervals.
         theta_products: Whether the library also offers each feature times each physics parameter.
         strong_candidates: Candidates per component cross-checked alone (besides the selected ones), by univariate R^2.
-        fit_steps: Optimiser steps of each distribution-matching fit of coefficients.
-        fit_batch: Simulated and measured trajectories per distribution-matching step.
+        fit_steps: L-BFGS iterations of each distribution-matching fit of coefficients.
+        fit_batch: Simulated (and at most as many measured) trajectories of each distribution-matching fit.
         families: Prior families tried for the coefficients, simplest first.
         c2st_classifier: The C2ST judge of the gap table ("auto", "mlp" or "conv").
         seed: Seed of every draw of the workflow.
@@ -80,8 +80,8 @@ class DiscoverySettings:
         n_bootstrap: int = 30,
         theta_products: bool = False,
         strong_candidates: int = 3,
-        fit_steps: int = 200,
-        fit_batch: int = 128,
+        fit_steps: int = 50,
+        fit_batch: int = 1024,
         families: tuple[str, ...] = FAMILIES,
         c2st_classifier: str = "auto",
         seed: int = 0,
