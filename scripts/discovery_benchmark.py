@@ -92,6 +92,8 @@ def run_case(case: str, seed: int, noise: float, out: Path) -> None:
             (folder / "extrapolation.json").write_text(json.dumps(extrapolation(case, report)))
         if latest_report(folder / "round2") is None:
             round_two(folder)
+        if seed == 0 and not noise and not (folder / "correction_after.json").exists():
+            correction_after(folder, CASES[case][-1])
 
 
 def discover(case: str, seed: int, noise: float, folder: Path) -> None:
@@ -132,6 +134,23 @@ def round_two(folder: Path) -> None:
     with open(second / "discover.log", "w") as log:
         args = ["discover", "--config", str(augmented), "--trainer.enable_progress_bar=false"]
         subprocess.run([sys.executable, "-m", "otgb.cli", *args], cwd=second, stdout=log, stderr=subprocess.STDOUT)
+
+
+def correction_after(folder: Path, overrides: list[str]) -> None:
+    """Train a grey-box on top of the augmented physics (``otgb fit --config augmented.yaml``): how large
+    a correction does it still learn? Compared with the first round's grey-box (components.json)."""
+    augmented = sorted(folder.glob("runs/*/version_*/augmented.yaml"))[-1]
+    refit = folder / "refit"
+    refit.mkdir(exist_ok=True)
+    with open(refit / "fit.log", "w") as log:
+        args = ["fit", "--config", str(augmented), "--trainer.enable_progress_bar=false", *overrides]
+        subprocess.run([sys.executable, "-m", "otgb.cli", *args], cwd=refit, stdout=log, stderr=subprocess.STDOUT)
+    shares = {}
+    for name, root in (("f_p", folder), ("augmented", refit)):
+        found = sorted(root.glob("runs/*/version_*/components.json"))
+        if found:
+            shares[name] = json.loads(found[-1].read_text())["summary"]["correction_share"]
+    (folder / "correction_after.json").write_text(json.dumps(shares))
 
 
 @torch.no_grad()
@@ -177,7 +196,7 @@ HEADER = (
 
 
 def table(out: Path) -> str:
-    rows, extrapolated = [HEADER], []
+    rows, extrapolated, corrections = [HEADER], [], []
     for folder in sorted(out.iterdir()):
         report = latest_report(folder)
         if report is None:
@@ -207,6 +226,11 @@ def table(out: Path) -> str:
             wall,
         ]
         rows.append("| " + " | ".join(cells) + " |")
+        if (folder / "correction_after.json").exists():
+            shares = json.loads((folder / "correction_after.json").read_text())
+            corrections.append(
+                f"| {case} | {shares.get('f_p', float('nan')):.3g} | {shares.get('augmented', float('nan')):.3g} |"
+            )
         if (folder / "extrapolation.json").exists():
             errors = json.loads((folder / "extrapolation.json").read_text())
             if errors:
@@ -217,6 +241,9 @@ def table(out: Path) -> str:
         text += "\nMean |y - y_DGP| on 200 DGP inputs, over the training horizon and over the second, unseen one:\n\n"
         text += "| case | seed | f_p, horizon | f_p, 2nd horizon | augmented, horizon | augmented, 2nd horizon |\n"
         text += "|---|---|---|---|---|---|\n" + "\n".join(extrapolated) + "\n"
+    if corrections:
+        text += "\nSize of the correction a grey-box learns, |f_phi| / (|f_p| + |f_phi|) along its solves (components.json):\n\n"
+        text += "| case | on f_p (first round) | on the augmented physics |\n|---|---|---|\n" + "\n".join(corrections) + "\n"
     return text.replace("|velocity|", "\\|velocity\\|")
 
 

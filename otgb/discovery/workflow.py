@@ -162,8 +162,7 @@ def greybox_draws(module: Any, n: int, seed: int) -> dict[str, Tensor]:
     physics = module.physics
     g = generator_for(seed, "discover", "greybox")
     x0, theta = physics.sample_initial_state(n, g), physics.sample_theta(n, g)
-    transport_map = module.map_average.module if module.map_average is not None else module.transport_map
-    device = module.device
+    transport_map, device = module.evaluation_map(), module.device
     rng = module.generator.get_state()
     parts = []
     for i in range(0, n, CHUNK):
@@ -171,11 +170,10 @@ def greybox_draws(module: Any, n: int, seed: int) -> dict[str, Tensor]:
         parts.append(transport_map.components(x0[i : i + CHUNK].to(device), theta[i : i + CHUNK].to(device), z))
     module.generator.set_state(rng)
     out = {key: torch.cat([p[key] for p in parts]).cpu() for key in parts[0]}
-    steps = out["states"].shape[1]
     flat = out["correction"].flatten(0, 1)
     out["correction"] = physics.add_correction(torch.zeros_like(out["states"].flatten(0, 1)), flat).reshape(out["states"].shape)
     out["observed"] = physics.observe(out["states"])
-    out["theta"], out["steps"] = theta, steps
+    out["theta"] = theta
     return out
 
 
