@@ -64,7 +64,7 @@ CASES = {
         ],
         500,
         1e-3,
-        [],
+        ["--discover.fit_batch=256", "--discover.n_trajectories=64"],  # a 2 x 32 x 32 field: fewer simulations per fit
     ),
 }
 
