@@ -277,3 +277,19 @@ def test_workflow_names_linear_decay_on_a_field():
     assert [(c.feature, c.component) for c in result.fitted.candidates] == [("T", "T")]
     assert abs(result.fitted.priors[0].value + 0.5) < 0.05
     assert physical_name("T", "T", result.fitted.priors[0].value, model) == "linear decay"
+
+
+@pytest.mark.slow
+def test_discover_on_a_known_dgp_adds_pointwise_errors(tmp_path):
+    args = ["discover", "--config", str(ROOT / "configs" / "pendulum.yaml"), f"--data.cache_dir={tmp_path / 'cache'}"]
+    args += ["--data.simulation_budget=16000", "--trainer.val_check_interval=250", "--trainer.enable_progress_bar=false"]
+    args += [f"--discover.{k}={v}" for k, v in FAST.items()]
+    done = subprocess.run([sys.executable, "-m", "otgb.cli", *args], cwd=tmp_path, capture_output=True, text=True, timeout=1800)
+    assert done.returncode == 0, done.stderr[-2000:]
+    run_dir = tmp_path / done.stdout.strip().splitlines()[-1].split("report in ")[1]
+    report = json.loads((run_dir / "report.json").read_text())
+    errors = report["pointwise"]
+    assert errors["augmented"]["abs_err_horizon"] < errors["f_p"]["abs_err_horizon"] / 5
+    assert errors["augmented"]["abs_err_twice_horizon"] < errors["f_p"]["abs_err_twice_horizon"] / 5
+    config = yaml.safe_load((run_dir / "augmented.yaml").read_text())
+    assert config["data"]["hidden_effect"] == [] and Path(config["data"]["measured_path"]).is_file()
