@@ -211,26 +211,20 @@ def name_step(module: Any, settings: DiscoverySettings) -> tuple[list[Selection]
     return selections, designs, draws, share
 
 
-def strong_candidates(selections: list[Selection], draws: dict[str, Tensor], physics: PhysicsModel, k: int) -> list[tuple]:
-    """(candidate, initial coefficient) to cross-check: the k largest selected terms and their alternatives,
+def strong_candidates(selections: list[Selection], designs: dict, k: int) -> list[tuple]:
+    """(candidate, its slope alone) to cross-check: the k largest selected terms and their alternatives,
     and per component the k candidates that alone explain most of f_phi."""
-    chosen: dict[Candidate, float] = {}
+    chosen: list[Candidate] = []
     for term in sorted((t for s in selections for t in s.terms), key=lambda t: -t.size)[:k]:
-        chosen.setdefault(term.candidate, term.coefficient)
-        for alternative in term.alternatives:
-            chosen.setdefault(alternative, None)
-    for selection in selections:
-        index = physics.state_names.index(selection.component)
-        candidates = build_library(physics, [selection.component])
-        design = design_matrix(physics, candidates, draws["states"], draws["theta"], draws["correction"][:, :, index])
+        chosen += [term.candidate, *term.alternatives]
+    slopes = {}
+    for design in designs.values():
         X, y = design.X, design.y
         slope = (X * y[:, None]).sum(0) / (X**2).sum(0).clip(1e-300)
         r2 = 1 - ((y[:, None] - X * slope) ** 2).sum(0) / max((y**2).sum(), 1e-300)
-        for j in r2.argsort()[::-1][:k]:
-            chosen.setdefault(candidates[j], None)
-            if chosen[candidates[j]] is None:
-                chosen[candidates[j]] = float(slope[j])
-    return [(c, v if v is not None else 0.0) for c, v in chosen.items()]
+        slopes.update({c: float(b) for c, b in zip(design.candidates, slope)})
+        chosen += [design.candidates[j] for j in r2.argsort()[::-1][:k]]
+    return [(c, slopes[c]) for c in dict.fromkeys(chosen)]
 
 
 def cross_check_step(
@@ -380,7 +374,7 @@ def run(module: Any, data: Measurements, settings: DiscoverySettings, before: Di
     result.selections, designs, draws, result.correction_share = name_step(module, settings)
     selected = [(t.candidate, t.coefficient) for s in result.selections for t in s.terms]
     progress(f"named {[f'{c.feature} on d{c.component}/dt: {v:.4g}' for c, v in selected] or 'nothing'}")
-    strong = strong_candidates(result.selections, draws, physics, settings.strong_candidates)
+    strong = strong_candidates(result.selections, designs, settings.strong_candidates)
     result.cross_check = cross_check_step(physics, strong, data, settings, designs)
     progress(f"cross-checked {len(strong)} candidates alone")
     if selected:
