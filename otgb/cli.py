@@ -148,12 +148,12 @@ def share_logger_version(loggers: object) -> list[Path]:
 def main(args: list[str] | None = None) -> None:
     """Run the ``otgb`` command; bad user input ends it with one line on stderr and status 2."""
     logging.getLogger("lightning.fabric.utilities.seed").setLevel(logging.WARNING)  # the seed is in config.yaml
-    args = sys.argv[1:] if args is None else args
+    argv = sys.argv[1:] if args is None else args
     try:
-        if args[:1] == ["discover"]:
+        if argv[:1] == ["discover"]:
             from otgb.discovery.cli import discover
 
-            discover(args[1:])
+            discover(argv[1:])
             return
         OTGBCLI(KernelWeakOT, SimulationDataModule, args=args)
     except InputError as error:

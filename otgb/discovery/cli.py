@@ -13,6 +13,7 @@ where the fit's logs and checkpoints also go) and prints that directory.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -46,7 +47,10 @@ class DiscoverCLI(OTGBCLI):
 
 def discover(args: list[str]) -> Path:
     """Run the workflow with ``otgb discover`` arguments; returns the run directory."""
-    cli = DiscoverCLI(KernelWeakOT, SimulationDataModule, args=args, run=False)
+    with warnings.catch_warnings():  # the arguments come from the command line, after the word "discover"
+        warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
+        parser = {"prog": "otgb discover", "description": __doc__.split("\n\n")[0]}
+        cli = DiscoverCLI(KernelWeakOT, SimulationDataModule, args=args, run=False, parser_kwargs=parser)
     settings: DiscoverySettings = cli.config_init["discover"]
     datamodule, module, trainer = cli.datamodule, cli.model, cli.trainer
     data = Measurements.from_datamodule(datamodule)
