@@ -80,7 +80,7 @@ def export(case: str, seed: int, noise: float, path: Path) -> None:
     np.savez(path, y=y.numpy())
 
 
-def run_case(case: str, seed: int, noise: float, out: Path) -> None:
+def run_case(case: str, seed: int, noise: float, out: Path, refit: bool = False) -> None:
     folder = out / f"{case}{'-noise' if noise else ''}-seed{seed}"
     if latest_report(folder) is None:
         discover(case, seed, noise, folder)
@@ -92,7 +92,7 @@ def run_case(case: str, seed: int, noise: float, out: Path) -> None:
             (folder / "extrapolation.json").write_text(json.dumps(extrapolation(case, report)))
         if latest_report(folder / "round2") is None:
             round_two(folder)
-        if seed == 0 and not noise and not (folder / "correction_after.json").exists():
+        if refit and not (folder / "correction_after.json").exists():
             correction_after(folder, CASES[case][-1])
 
 
@@ -260,6 +260,7 @@ def main() -> None:
     parser.add_argument("--seeds", nargs="*", type=int, default=[0], help="seeds of each case")
     parser.add_argument("--noise", type=float, default=0.0, help="Gaussian measurement noise, as a share of the data's std")
     parser.add_argument("--table", type=Path, help="only gather the finished runs into this Markdown file")
+    parser.add_argument("--refit", action="store_true", help="also train a grey-box on each found augmented physics")
     args = parser.parse_args()
     if args.table:
         args.table.write_text(table(args.out))
@@ -267,7 +268,7 @@ def main() -> None:
         return
     for case in args.cases:
         for seed in args.seeds:
-            run_case(case, seed, args.noise, args.out)
+            run_case(case, seed, args.noise, args.out, args.refit)
 
 
 if __name__ == "__main__":
