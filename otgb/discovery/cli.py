@@ -68,11 +68,9 @@ def discover(args: list[str]) -> Path:
             result.pointwise = pointwise_errors(module, datamodule.dgp, augmented, datamodule.test_set, settings.seed)
     else:
         result = Discovery(before, describe(before))
-        f_p = simulate_from_priors(physics, len(data.test), settings.seed, "gap-f_p")
-        result.gap = gap_step({"f_p": f_p}, data.test, settings)
-    samples = {"measured": data.test, "f_p": simulate_from_priors(physics, len(data.test), settings.seed, "gap-f_p")}
-    if result.found:
-        samples["augmented"] = simulate_from_priors(result.fitted.model(physics), len(data.test), settings.seed, "gap-augmented")
+        result.draws = {"f_p": simulate_from_priors(physics, len(data.test), settings.seed, "gap-f_p")}
+        result.gap = gap_step(result.draws, data.test, settings)
+    samples = {"measured": data.test, **{k: v for k, v in result.draws.items() if k != "greybox"}}
     facts = {"description": datamodule.describe(), "config": [str(c) for c in cli.config.get("config") or []]}
     run_dir.mkdir(parents=True, exist_ok=True)
     report = write_report(run_dir, result, physics, facts, samples, components)

@@ -167,20 +167,33 @@ def describe(result: DisagreementMap, a_name: str = "measured", b_name: str = "s
             f"at a false discovery rate of {result.alpha:g} ({result.n_permutations} permutations)"
         )
     times = result.times
-    first = onset(result.significant.any(2).any(1))
-    start = f"agree up to t = {times[first - 1]:.3g}; from t = {times[first]:.3g} on" if first > 0 else "differ from the start:"
+    flagged = result.significant.any(2).any(1)
+    first = onset(flagged)
+    earlier = int(flagged[:first].sum())
+    aside = f" (apart from {earlier} isolated earlier step{'s' if earlier > 1 else ''})" if earlier else ""
+    start = "differ from the start:"
+    if first > 0:
+        start = f"agree up to t = {times[first - 1]:.3g}{aside}; from t = {times[first]:.3g} on"
     parts = [_component_difference(result, c, a_name, b_name) for c in range(len(result.components))]
     return f"{b_name} and {a_name} trajectories {start} " + "; ".join(p for p in parts if p)
 
 
 def onset(flagged: Tensor) -> int:
-    """The first time step of the first run of two flagged steps (the first flagged one if there is no run).
+    """The first time step of the longest run of flagged steps.
 
-    The false discovery rate lets a few null cells through among many true ones (about alpha of
-    the flagged cells): a lone flagged step before the disagreement sets in is likely one of them.
+    At a false discovery rate of alpha, about alpha of the flagged cells are null ones, and when
+    most cells are truly different the Benjamini-Hochberg threshold nears alpha itself: a few
+    early steps (neighbours, so alike) can pass by chance. The longest run is where the
+    disagreement sets in.
     """
-    steps = flagged.nonzero().squeeze(1).tolist()
-    return next((i for i in steps if i + 1 < len(flagged) and flagged[i + 1]), steps[0])
+    runs, start = [], None
+    for i, value in enumerate([*flagged.tolist(), False]):
+        if value and start is None:
+            start = i
+        elif not value and start is not None:
+            runs.append((i - start, -start))
+            start = None
+    return -max(runs)[1]
 
 
 def _component_difference(result: DisagreementMap, c: int, a_name: str, b_name: str) -> str:

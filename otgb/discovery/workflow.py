@@ -137,6 +137,7 @@ class Discovery:
     gap: dict[str, dict[str, float]] = field(default_factory=dict)
     correction_share: float | None = None
     pointwise: dict[str, dict[str, float]] = field(default_factory=dict)  # against a known DGP (otgb.discovery.known)
+    draws: dict[str, Tensor] = field(default_factory=dict)  # the gap table's samples, as many as the test part
 
     @property
     def found(self) -> bool:
@@ -393,7 +394,7 @@ def run(module: Any, data: Measurements, settings: DiscoverySettings, before: Di
         sources["augmented"] = simulate_from_priors(augmented, len(data.test), settings.seed, "gap-augmented")
         result.after = locate_step(augmented, data.train, settings, "augmented")
         result.sentence_after = describe(result.after, b_name="augmented-physics")
-    result.gap = gap_step(sources, data.test, settings)
+    result.gap, result.draws = gap_step(sources, data.test, settings), sources
     return result
 
 
