@@ -248,7 +248,7 @@ def table(out: Path) -> str:
 
 
 def _named(t: dict) -> str:
-    interval = f" [{t['interval'][0]:.3g}, {t['interval'][1]:.3g}]" if t.get("interval") else ""
+    interval = f" [{t['interval'][0]:.4g}, {t['interval'][1]:.4g}]" if t.get("interval") else ""
     spread = f", {t['distribution']}" if t["distribution"] else ""
     return f"{t['name']}: {t['feature']} on d{t['component']}/dt {t['coefficient']:.4g}{interval}{spread}"
 
