@@ -125,13 +125,6 @@ def discrepancy(a: Tensor, b: Tensor) -> Tensor:
     return whole + batched_energy(cells(a), cells(b)).sum()
 
 
-def simulate_with(base: PhysicsModel, model: Augmented, coefficients: Tensor, generator: torch.Generator) -> Tensor:
-    """Finite trajectories (<= n, T, *obs) of the augmented model for coefficient draws (n, K), inputs from the priors."""
-    n = len(coefficients)
-    x0, theta = base.sample_initial_state(n, generator), base.sample_theta(n, generator)
-    return simulate_finite(model, x0, torch.cat([theta, coefficients], dim=1))
-
-
 def fit(
     base: PhysicsModel,
     candidates: list[Candidate],

@@ -30,6 +30,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from otgb.data.measured import simulate_in_chunks
 from otgb.data.seeding import generator_for
 from otgb.discovery.library import Candidate, build_library, physical_name
 from otgb.discovery.locate import DisagreementMap, describe, locate
@@ -154,7 +155,7 @@ def simulate_from_priors(physics: PhysicsModel, n: int, seed: int, name: str) ->
     """n observed trajectories of ``physics`` with inputs from its priors, (n, T, *obs)."""
     g = generator_for(seed, "discover", name)
     x0, theta = physics.sample_initial_state(n, g), physics.sample_theta(n, g)
-    return torch.cat([physics.simulate(x0[i : i + CHUNK], theta[i : i + CHUNK]) for i in range(0, n, CHUNK)])
+    return simulate_in_chunks(physics, x0, theta)
 
 
 @torch.no_grad()
