@@ -15,7 +15,7 @@ from torch import nn
 from otgb.data import generate_measured
 from otgb.discovery.library import build_library, physical_name
 from otgb.discovery.locate import describe, locate
-from otgb.discovery.refine import FAMILIES, FAMILY_REPEATS, choose_family, discrepancies, fit
+from otgb.discovery.refine import FAMILIES, FAMILY_REPEATS, Scores, beats, choose_family, discrepancies, fit, row_terms
 from otgb.discovery.regression import design_matrix, regress
 from otgb.discovery.workflow import DiscoverySettings, Measurements, locate_step, run
 from otgb.errors import InputError
@@ -141,6 +141,28 @@ def test_distribution_matching_recovers_the_coefficient():
     assert candidate.feature == "velocity*|velocity|"
     fitted = fit(pendulum, [candidate], [-0.3], "constant", _draws(dgp, 700, 1), _draws(dgp, 100, 2))
     assert abs(fitted.priors[0].value + 0.6) < 0.06
+
+
+def test_row_terms_are_each_measured_trajectorys_cross_distances(generator):
+    a, b = torch.randn(7, 3, 2, 4, generator=generator), torch.randn(5, 3, 2, 4, generator=generator)
+    expected = [
+        2
+        * sum(
+            float((a[j] - b[i]).norm()) + sum(float((a[j, t, c] - b[i, t, c]).norm()) for t in range(3) for c in range(2))
+            for j in range(7)
+        )
+        / 7
+        for i in range(5)
+    ]
+    assert torch.allclose(row_terms(a, b), torch.tensor(expected), rtol=1e-5)
+
+
+def test_a_lead_within_the_measured_samples_noise_is_no_win():
+    better_in_every_draw = Scores([1.0, 1.01, 0.99, 1.0], torch.zeros(100)), Scores([1.2, 1.21, 1.19, 1.2], torch.zeros(100))
+    assert beats(*better_in_every_draw)
+    spread = torch.linspace(-4, 4, 100)  # the measured trajectories disagree on which model fits them better
+    assert not beats(Scores([1.0, 1.01, 0.99, 1.0], spread), Scores([1.2, 1.21, 1.19, 1.2], -spread))
+    assert not beats(Scores([float("inf")] * 4), better_in_every_draw[1])
 
 
 # --- the workflow on a grey-box whose correction is the hidden term -------------------

@@ -20,14 +20,14 @@ held-out parts, which a spread that varies over time needs to be seen.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from otgb.discovery.library import Candidate
-from otgb.metrics.energy import batched_energy
+from otgb.metrics.energy import MAX_BLOCK_ENTRIES, batched_energy
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 from otgb.physics.priors import Constant, Normal, Prior, Uniform
@@ -39,18 +39,46 @@ FAMILY_REPEATS = 20  # simulation draws per score of a prior family on the train
 
 
 @dataclass
+class Scores:
+    """A model's :func:`discrepancy` to a measured set: one value per simulation draw (``draws``), and
+    per measured trajectory its cross term averaged over the draws (``rows``: twice its mean
+    distance to the simulated trajectories, summed over the discrepancy's parts).
+
+    Two models scored against the same measured set differ by the mean of their ``rows``
+    differences (the measured set's own within-sample term cancels) and by their simulated
+    samples; the first is how the measured sample's own randomness enters a comparison.
+    """
+
+    draws: list[float]
+    rows: Tensor = field(default_factory=lambda: torch.zeros(0))
+
+    @property
+    def mean(self) -> float:
+        return float(torch.tensor(self.draws).mean())
+
+    @property
+    def finite(self) -> bool:
+        return bool(torch.isfinite(torch.tensor(self.draws)).all())
+
+    @classmethod
+    def diverged(cls, repeats: int) -> Scores:
+        """The scores of a model that diverges for some inputs: it does not describe the data."""
+        return cls([float("inf")] * repeats)
+
+
+@dataclass
 class FittedTerms:
-    """Terms with fitted priors, the family, the held-out energy per simulation draw, the training loss."""
+    """Terms with fitted priors, the family, the held-out scores, the training loss."""
 
     family: str
     candidates: list[Candidate]
     priors: list[Prior]
-    heldout: list[float]
+    heldout: Scores
     loss: list[float]
 
     @property
     def heldout_energy(self) -> float:
-        return float(torch.tensor(self.heldout).mean())
+        return self.heldout.mean
 
     def terms(self) -> list[LibraryTerm]:
         return [LibraryTerm(c.feature, c.component, prior) for c, prior in zip(self.candidates, self.priors)]
@@ -121,8 +149,23 @@ def discrepancy(a: Tensor, b: Tensor) -> Tensor:
     distance between whole trajectories detects with far less power.
     """
     whole = batched_energy(a.flatten(1)[None], b.flatten(1)[None])[0]
-    cells = lambda y: y.reshape(len(y), y.shape[1] * y.shape[2], -1).transpose(0, 1)  # noqa: E731  (T * C, n, space)
-    return whole + batched_energy(cells(a), cells(b)).sum()
+    return whole + batched_energy(_cells(a), _cells(b)).sum()
+
+
+def _cells(y: Tensor) -> Tensor:
+    """Trajectories (n, T, C, *space) as (T * C, n, space): one sample per time step and component."""
+    return y.reshape(len(y), y.shape[1] * y.shape[2], -1).transpose(0, 1)
+
+
+def row_terms(a: Tensor, b: Tensor) -> Tensor:
+    """Per trajectory of b, its share of :func:`discrepancy`'s cross terms: twice its mean distance to
+    a's trajectories, whole and per cell, summed: (m,)."""
+    rows = torch.cdist(a.flatten(1)[None], b.flatten(1)[None])[0].mean(0)
+    cells_a, cells_b = _cells(a), _cells(b)
+    step = max(1, MAX_BLOCK_ENTRIES // (len(a) * len(b)))
+    for g in range(0, len(cells_a), step):
+        rows = rows + torch.cdist(cells_a[g : g + step], cells_b[g : g + step]).mean(1).sum(0)
+    return 2 * rows
 
 
 def fit(
@@ -168,10 +211,10 @@ def fit(
 
     optimiser.step(closure)
     if not losses or not (torch.isfinite(prior.centre).all() and torch.isfinite(prior.width).all()):
-        return FittedTerms(family, list(candidates), [Constant(v) for v in init], [float("inf")] * HELDOUT_REPEATS, losses)
+        return FittedTerms(family, list(candidates), [Constant(v) for v in init], Scores.diverged(HELDOUT_REPEATS), losses)
     priors = prior.priors()
     return FittedTerms(
-        family, list(candidates), priors, discrepancies(base, candidates, priors, heldout, seed) if score else [], losses
+        family, list(candidates), priors, discrepancies(base, candidates, priors, heldout, seed) if score else Scores([]), losses
     )
 
 
@@ -203,8 +246,8 @@ def discrepancies(
     measured: Tensor,
     seed: int,
     repeats: int = HELDOUT_REPEATS,
-) -> list[float]:
-    """:func:`discrepancy` to ``measured`` of ``repeats`` fresh simulation draws as large as it, coefficients from ``priors``.
+) -> Scores:
+    """:class:`Scores` to ``measured`` of ``repeats`` fresh simulation draws as large as it, coefficients from ``priors``.
 
     The inputs and the coefficients' noise come from two generators seeded alike for every
     model, so that two models' scores differ by their coefficients, not by the luck of the
@@ -212,7 +255,7 @@ def discrepancies(
     """
     model = Augmented(base, [LibraryTerm(c.feature, c.component, Constant(0.0)) for c in candidates])
     inputs, noise = torch.Generator().manual_seed(seed + 1), torch.Generator().manual_seed(seed + 2)
-    n, values = len(measured), []
+    n, values, rows = len(measured), [], torch.zeros(len(measured), dtype=torch.float64)
     for _ in range(repeats):
         x0, theta = base.sample_initial_state(n, inputs), base.sample_theta(n, inputs)
         coefficients = (
@@ -220,21 +263,30 @@ def discrepancies(
         )
         simulated = simulate_finite(model, x0, torch.cat([theta, coefficients.float()], dim=1))
         if len(simulated) < n:
-            return [float("inf")] * repeats  # a model that diverges for some inputs does not describe the data
+            return Scores.diverged(repeats)
         values.append(float(discrepancy(simulated.double(), measured.double())))
-    return values
+        rows += row_terms(simulated.double(), measured.double()) / repeats
+    return Scores(values, rows)
 
 
-def beats(scores_a: list[float], scores_b: list[float]) -> bool:
-    """Whether model a's discrepancies are lower than b's by more than two standard errors of the paired differences."""
-    a, b = torch.tensor(scores_a), torch.tensor(scores_b)
-    if not torch.isfinite(a).all():
+def beats(a: Scores, b: Scores) -> bool:
+    """Whether model a's discrepancy is lower than b's by more than two standard errors of the difference.
+
+    Two sources of error, independent: the simulation draws (the paired differences' spread over
+    the draws, common random numbers) and the measured sample, which is finite, and the same for
+    both (the spread over measured trajectories of the differences of their ``rows``): a model may
+    fit these measured trajectories better than another without describing the process better.
+    """
+    if not a.finite:
         return False
-    if not torch.isfinite(b).all():
+    if not b.finite:
         return True
-    difference = b - a
-    resolution = 1e-9 * float(b.abs().mean())  # below float rounding: a tie, e.g. a term fitted to zero
-    return bool(difference.mean() > 2 * difference.std() / len(difference) ** 0.5 + resolution)
+    difference = torch.tensor(b.draws) - torch.tensor(a.draws)
+    variance = difference.var() / len(difference)
+    if len(a.rows) > 1 and len(a.rows) == len(b.rows):
+        variance = variance + (b.rows - a.rows).var() / len(a.rows)
+    resolution = 1e-9 * abs(b.mean)  # below float rounding: a tie, e.g. a term fitted to zero
+    return bool(difference.mean() > 2 * float(variance) ** 0.5 + resolution)
 
 
 def choose_family(fits: list[FittedTerms], scores: dict[str, list[float]]) -> FittedTerms:

@@ -234,7 +234,7 @@ def cross_check_step(
 ) -> list[dict]:
     """Each strong candidate alone added to f_p, its coefficient fitted: the share of f_p's held-out gap it closes."""
     baseline = discrepancies(physics, [], [], data.val, settings.seed)
-    gap = sum(baseline) / len(baseline)
+    gap = baseline.mean
     rows = []
     for candidate, init in strong:
         fitted = fit(physics, [candidate], [init], "constant", data.train, data.val, **_fit_args(settings, [candidate], designs))
@@ -297,7 +297,7 @@ def add_step(physics: PhysicsModel, selections: list[Selection], designs: dict, 
         f.family: discrepancies(physics, f.candidates, f.priors, data.train, settings.seed, FAMILY_REPEATS) for f in candidates
     }
     chosen = choose_family(candidates, scores)
-    return chosen, {family: float(torch.tensor(s).mean()) for family, s in scores.items()}, dropped
+    return chosen, {family: s.mean for family, s in scores.items()}, dropped
 
 
 def prune(
