@@ -28,8 +28,10 @@ from lightning.pytorch.cli import LRSchedulerCallable, OptimizerCallable
 from torch import Tensor, nn
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
+from otgb.data.seeding import derive_seed
 from otgb.errors import InputError
 from otgb.ot import KERNELS, critic_loss, kernel_weak_cost
+from otgb.parallel import average_gradients, without_gradient_sync
 from otgb.physics.base import PhysicsModel
 
 MapFactory = Callable[[PhysicsModel, int], nn.Module]
@@ -121,7 +123,7 @@ class KernelWeakOT(LightningModule):
         self.restored_step: int | None = None  # global step of the checkpoint this module was loaded from
         self._fit_clock: float | None = None
         self._generator: torch.Generator | None = None
-        self._restored_rng: dict[str, Any] | None = None
+        self.draw_seed: int | None = None  # key of the module's draws in a Trainer; the run's seed, kept in checkpoints
 
     @staticmethod
     def _check_settings(
@@ -145,18 +147,20 @@ class KernelWeakOT(LightningModule):
     # --- the map ------------------------------------------------------------------------
     @property
     def generator(self) -> torch.Generator:
-        """The module's own RNG (latent z, penalty points), on its device and saved in checkpoints.
+        """The module's own RNG (latent z, penalty points), on its device.
 
-        Owning it keeps a resumed run on the same draws: the global RNG is also consumed by
-        Lightning's loaders, differently before and after a restart.
+        In a Trainer it is keyed afresh at every training step and evaluation epoch by (seed,
+        stage, process rank, global step) (:meth:`_key_draws`): each process draws its own z, a
+        resumed run repeats no draw and needs no RNG state, and how often validation runs does
+        not change training's draws. Outside a Trainer it is seeded by the global seed.
         """
         if self._generator is None or self._generator.device != self.device:
-            self._generator = torch.Generator(device=self.device)
-            self._generator.manual_seed(torch.initial_seed())
-            rng, self._restored_rng = self._restored_rng, None
-            if rng is not None and rng["device"] == self.device.type:
-                self._generator.set_state(rng["state"])
+            self._generator = torch.Generator(device=self.device).manual_seed(torch.initial_seed())
         return self._generator
+
+    def _key_draws(self, stage: str) -> None:
+        key = derive_seed(self.draw_seed, stage, self.global_rank, self.trainer.global_step)
+        self._generator = torch.Generator(device=self.device).manual_seed(key)
 
     def sample_z(self, n: int) -> Tensor:
         shape = (n, self.z_dim)
@@ -188,6 +192,7 @@ class KernelWeakOT(LightningModule):
         map_opt, critic_opt = self.optimizers()
         if batch["x0"].shape[0] != self.t_max:
             raise ValueError(f"a training item holds {batch['x0'].shape[0]} source batches, the model expects t_max={self.t_max}")
+        self._key_draws("train")
         self.toggle_optimizer(map_opt)
         for k in range(self.t_max):
             y_hat, parts = self._map_update(map_opt, batch["x"][k], batch["x0"][k], batch["theta"][k])
@@ -197,6 +202,7 @@ class KernelWeakOT(LightningModule):
         loss, critic_parts = critic_loss(self.critic, batch["y"], y_hat.detach().flatten(0, 1), self.gp_weight, self.generator)
         critic_opt.zero_grad(set_to_none=True)
         self.manual_backward(loss)
+        average_gradients(self.critic.parameters(), self.trainer.strategy)
         self._clip(critic_opt)
         critic_opt.step()
         self.untoggle_optimizer(critic_opt)
@@ -217,6 +223,7 @@ class KernelWeakOT(LightningModule):
         loss = cost - potential
         opt.zero_grad(set_to_none=True)
         self.manual_backward(loss)
+        average_gradients(self.transport_map.parameters(), self.trainer.strategy)
         self._clip(opt)
         self.trainer.strategy.optimizer_step(opt.optimizer, closure=lambda: None, model=self)
         self.map_updates += 1
@@ -244,9 +251,22 @@ class KernelWeakOT(LightningModule):
         return (optimizers, schedulers) if schedulers else optimizers
 
     # --- evaluation on the joint sets ---------------------------------------------------
+    def setup(self, stage: str) -> None:
+        if self.draw_seed is None:
+            self.draw_seed = torch.initial_seed()
+
     def on_fit_start(self) -> None:
         self._fit_clock = time.perf_counter()
         self.restored_step = None  # training moves on from the loaded checkpoint
+
+    def on_train_batch_start(self, batch: Any, batch_idx: int) -> None:
+        without_gradient_sync(self.trainer.strategy)
+
+    def on_validation_epoch_start(self) -> None:
+        self._key_draws("val")
+
+    def on_test_epoch_start(self) -> None:
+        self._key_draws("test")
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> dict[str, Tensor]:
         return {"y_hat": self.generate(batch["x"], batch["x0"], batch["theta"], batch["y"].shape[1])}
@@ -258,21 +278,18 @@ class KernelWeakOT(LightningModule):
         """Log training progress next to the metrics (those come from :class:`otgb.callbacks.Evaluation`)."""
         if self._fit_clock is not None and not self.trainer.sanity_checking:
             elapsed = self.elapsed_before + time.perf_counter() - self._fit_clock
-            self.log("val/wall_time_s", elapsed)
-            self.log("val/simulations", float(self.trainer.datamodule.simulations))
+            self.log("val/wall_time_s", elapsed, sync_dist=True)
+            self.log("val/simulations", float(self.trainer.datamodule.simulations), sync_dist=True)
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         elapsed = self.elapsed_before + (time.perf_counter() - self._fit_clock if self._fit_clock else 0.0)
-        rng = {"device": self.generator.device.type, "state": self.generator.get_state()}
-        checkpoint["otgb"] = {"map_updates": self.map_updates, "elapsed_s": elapsed, "rng": rng}
+        checkpoint["otgb"] = {"map_updates": self.map_updates, "elapsed_s": elapsed, "draw_seed": self.draw_seed}
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        """Restore counters and the module's RNG, so a resumed run continues with the same draws.
-
-        The RNG state only carries over to the same device type; across CPU/GPU it is reseeded.
-        """
+        """Restore the counters (the draws are keyed by the global step: :attr:`generator`)."""
         self.restored_step = checkpoint.get("global_step")
         state = checkpoint.get("otgb", {})
         self.map_updates = state.get("map_updates", 0)
         self.elapsed_before = state.get("elapsed_s", 0.0)
-        self._generator, self._restored_rng = None, state.get("rng")
+        self.draw_seed = state.get("draw_seed", self.draw_seed)
+        self._generator = None

@@ -29,3 +29,16 @@ class StopAt(Callback):
     def on_train_batch_end(self, trainer, *args) -> None:
         if trainer.global_step >= self.step:
             trainer.should_stop = True
+
+
+class RecordSources(Callback):
+    """Saves the source inputs (x0) each process trained on to ``<folder>/sources_rank<r>.pt``."""
+
+    def __init__(self, folder: str) -> None:
+        self.folder, self.x0 = folder, []
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        self.x0.append(batch["x0"].flatten(0, 1).cpu())
+
+    def on_train_end(self, trainer, pl_module) -> None:
+        torch.save(torch.cat(self.x0), f"{self.folder}/sources_rank{trainer.global_rank}.pt")

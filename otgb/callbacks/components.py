@@ -211,6 +211,7 @@ class ComponentAnalysis(Callback):
         self.n, self.seed, self.enabled = n, seed, enabled
 
     def on_train_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        log_dir = trainer.log_dir  # a collective call under DDP: every process makes it
         if not self.enabled or not trainer.is_global_zero:
             return
         if not hasattr(pl_module.evaluation_map(), "components"):
@@ -223,8 +224,8 @@ class ComponentAnalysis(Callback):
             logger.log_metrics(scalars, step=trainer.global_step)
             if isinstance(logger, TensorBoardLogger):
                 logger.experiment.add_figure("components", figure, global_step=trainer.global_step, close=False)
-        if trainer.log_dir is not None:
-            out = Path(trainer.log_dir)
+        if log_dir is not None:
+            out = Path(log_dir)
             (out / "figures").mkdir(parents=True, exist_ok=True)
             (out / "components.json").write_text(json.dumps(to_json(result), indent=1))
             figure.savefig(out / "figures" / "components.png", dpi=80)

@@ -185,11 +185,12 @@ class Evaluation(Callback):
         results = self._model_results(tests=True)
         results.update(self._baselines(datamodule.test_set, datamodule.mode))
         scalars = self._log(pl_module, "test", results)
-        if trainer.is_global_zero and trainer.log_dir is not None:
+        log_dir = trainer.log_dir  # a collective call under DDP: every process makes it
+        if trainer.is_global_zero and log_dir is not None:
             data = datamodule.test_set
             run = {
-                "log_dir": str(trainer.log_dir),
-                "name": Path(trainer.log_dir).parent.name,
+                "log_dir": str(log_dir),
+                "name": Path(log_dir).parent.name,
                 "ckpt_path": str(trainer.ckpt_path) if trainer.ckpt_path else None,
                 "global_step": trainer.global_step if pl_module.restored_step is None else pl_module.restored_step,
                 "seed": torch.initial_seed(),
@@ -198,7 +199,7 @@ class Evaluation(Callback):
                 "draws_per_input": data["y"].shape[1],
             }
             per_time = {name: value for name, value in results.items() if value.dim() > 0}
-            write_report(Path(trainer.log_dir), run, scalars, per_time, self._labels(pl_module))
+            write_report(Path(log_dir), run, scalars, per_time, self._labels(pl_module))
 
     @staticmethod
     def mode_facts(datamodule: Any) -> dict[str, Any]:
@@ -243,7 +244,11 @@ class Evaluation(Callback):
         return results
 
     def _log(self, pl_module: LightningModule, stage: str, results: dict[str, Tensor]) -> dict[str, Tensor]:
-        """Log the scalar results as ``<stage>/<name>`` and return them (vectors stay out of the loggers)."""
+        """Log the scalar results as ``<stage>/<name>`` and return them (vectors stay out of the loggers).
+
+        The metrics' states are synced across processes before they are computed, so every
+        process holds the same values; ``sync_dist`` averages them all the same (timings differ).
+        """
         scalars = {k: v.float() for k, v in results.items() if v.dim() == 0}
-        pl_module.log_dict({f"{stage}/{k}": v for k, v in scalars.items()})
+        pl_module.log_dict({f"{stage}/{k}": v for k, v in scalars.items()}, sync_dist=True)
         return scalars

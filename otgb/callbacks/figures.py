@@ -46,10 +46,12 @@ class ValidationFigure(Callback):
 
     @torch.no_grad()
     def on_validation_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
-        if trainer.sanity_checking or not trainer.is_global_zero:
+        if trainer.sanity_checking:
+            return
+        log_dir = trainer.log_dir  # a collective call under DDP: every process makes it
+        if not trainer.is_global_zero:
             return
         datamodule = trainer.datamodule
-        rng = pl_module.generator.get_state()  # the figure's latent draws must not move training's
         if datamodule.mode == "marginal":
             tag, figure = "distributions", self._distributions(datamodule, pl_module)
         else:
@@ -57,12 +59,11 @@ class ValidationFigure(Callback):
             y_hat = pl_module.generate(data["x"], data["x0"], data["theta"], data["y"].shape[1]).cpu()
             data = {k: v.cpu() for k, v in data.items()}
             tag, figure = self.tag, self.draw(data, y_hat, datamodule.physics)
-        pl_module.generator.set_state(rng)
         for logger in trainer.loggers:
             if isinstance(logger, TensorBoardLogger):
                 logger.experiment.add_figure(f"val/{tag}", figure, global_step=trainer.global_step, close=False)
-        if trainer.log_dir is not None:
-            out = Path(trainer.log_dir) / "figures"
+        if log_dir is not None:
+            out = Path(log_dir) / "figures"
             out.mkdir(parents=True, exist_ok=True)
             figure.savefig(out / f"{tag}_step{trainer.global_step:07d}.png", dpi=80)
         plt.close(figure)

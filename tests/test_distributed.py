@@ -1,0 +1,76 @@
+"""Real 2-process CPU runs under Lightning's DDP (gloo), each killed with all its processes past a hard timeout."""
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from otgb.cli import logger_override
+
+ROOT = Path(__file__).parents[1]
+DDP = ["--trainer.strategy=ddp", "--trainer.devices=2", "--trainer.accelerator=cpu"]
+TIMEOUT_S = 300
+
+
+def _otgb_ddp(cwd: Path, *args: str) -> subprocess.CompletedProcess:
+    """``python -m otgb.cli ...`` on 2 processes; a run still going after TIMEOUT_S (a hang) is killed and fails the test."""
+    path = os.pathsep.join([str(ROOT), str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")])
+    command = [sys.executable, "-m", "otgb.cli", *args, *DDP]
+    run = subprocess.Popen(
+        command, cwd=cwd, env={**os.environ, "PYTHONPATH": path}, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True,  # Lightning starts the second process as a child: kill the whole group
+    )  # fmt: skip
+    try:
+        out, err = run.communicate(timeout=TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        os.killpg(run.pid, signal.SIGKILL)
+        out, err = run.communicate()
+        pytest.fail(f"{' '.join(args[:3])}: no end after {TIMEOUT_S} s under DDP (a hang); stderr ends:\n{err[-2000:]}")
+    assert run.returncode == 0, err[-3000:]
+    assert "sync_dist" not in err and "Traceback" not in err, err[-3000:]
+    return subprocess.CompletedProcess(command, run.returncode, out, err)
+
+
+def _args(tmp_path: Path, config: str, *extra: str) -> list[str]:
+    return [
+        "--config", str(ROOT / "configs" / config), logger_override(str(tmp_path), "run"),
+        "--trainer.enable_progress_bar=false", f"--data.cache_dir={tmp_path / 'cache'}",
+        "--data.n_measured=64", "--data.n_val=24", "--data.n_test=20", "--evaluation.reference_repeats=2",
+        *extra,
+    ]  # fmt: skip
+
+
+def test_two_process_fit_and_test_of_the_pendulum(tmp_path):
+    record = f'--trainer.callbacks+={{"class_path": "conftest.RecordSources", "init_args": {{"folder": "{tmp_path}"}}}}'
+    steps = ["--data.simulation_budget=640", "--data.batch_size=16", "--model.t_max=2", "--trainer.val_check_interval=5"]
+    _otgb_ddp(tmp_path, "fit", *_args(tmp_path, "pendulum.yaml", *steps, record))
+    run = tmp_path / "run" / "version_0"
+    last = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)
+    assert last["global_step"] == 10, "640 simulations / (2 processes x 2 updates x 16 sources) = 10 steps"
+    assert last["SimulationDataModule"]["items_consumed"] == 10
+    sources = [torch.load(tmp_path / f"sources_rank{r}.pt") for r in (0, 1)]
+    assert all(len(s) == 320 for s in sources), "each process simulates half of the budget"
+    assert not (sources[0][:, None] == sources[1][None]).all(-1).any(), "the processes draw disjoint source streams"
+    with open(run / "metrics.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [float(r["step"]) for r in rows if r.get("val/abs_err")] == [4.0, 9.0], "one process writes the log, once"
+    assert sorted(p.name for p in (run / "figures").iterdir())[-1] == "trajectories_step0000010.png"
+
+    _otgb_ddp(tmp_path, "test", *_args(tmp_path, "pendulum.yaml"), f"--ckpt_path={run / 'checkpoints' / 'last.ckpt'}")
+    metrics = json.loads((tmp_path / "run" / "version_1" / "metrics.json").read_text())
+    assert metrics["run"]["global_step"] == 10 and metrics["model"]["abs_err"]["mean"] > 0
+
+
+def test_two_process_fit_and_test_of_advection_diffusion(tmp_path):
+    steps = ["--data.simulation_budget=256", "--data.batch_size=16", "--model.t_max=2", "--trainer.val_check_interval=4"]
+    _otgb_ddp(tmp_path, "fit", *_args(tmp_path, "advdiff.yaml", *steps))
+    last = tmp_path / "run" / "version_0" / "checkpoints" / "last.ckpt"
+    assert torch.load(last, weights_only=False)["global_step"] == 4
+    _otgb_ddp(tmp_path, "test", *_args(tmp_path, "advdiff.yaml"), f"--ckpt_path={last}")
+    assert json.loads((tmp_path / "run" / "version_1" / "metrics.json").read_text())["model"]["abs_err"]["mean"] > 0
