@@ -14,7 +14,7 @@ config section: :class:`otgb.callbacks.Evaluation` (``evaluation:``, e.g.
 e.g. ``--components.enabled false``), which writes ``components.json`` at the end of ``otgb fit``.
 ``otgb test`` writes ``metrics.json`` and ``metrics.md`` into its run directory. Bad user input
 (:class:`otgb.errors.InputError`) ends the command with one line ``otgb: error: <message>`` and
-exit status 2.
+exit status 2; a diverged training or f_p solve ends it with one such line and status 1.
 """
 
 from __future__ import annotations
@@ -32,6 +32,8 @@ from lightning.pytorch.cli import LightningCLI
 from otgb.callbacks import ComponentAnalysis, Evaluation
 from otgb.data import SimulationDataModule
 from otgb.errors import InputError
+from otgb.guard import TrainingDiverged
+from otgb.physics.base import SimulationDiverged
 from otgb.training import KernelWeakOT
 
 DEFAULTS = Path(__file__).parent / "configs" / "defaults.yaml"
@@ -159,6 +161,9 @@ def main(args: list[str] | None = None) -> None:
     except InputError as error:
         print(f"otgb: error: {error}", file=sys.stderr)
         raise SystemExit(2) from None
+    except (TrainingDiverged, SimulationDiverged) as error:
+        print(f"otgb: error: {error}", file=sys.stderr)
+        raise SystemExit(1) from None
 
 
 if __name__ == "__main__":

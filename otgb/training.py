@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -30,9 +31,10 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from otgb.data.seeding import derive_seed
 from otgb.errors import InputError
+from otgb.guard import TrainingDiverged, UpdateGuard
 from otgb.ot import KERNELS, critic_loss, kernel_weak_cost
 from otgb.parallel import average_gradients, without_gradient_sync
-from otgb.physics.base import PhysicsModel
+from otgb.physics.base import PhysicsModel, SimulationDiverged
 
 MapFactory = Callable[[PhysicsModel, int], nn.Module]
 CriticFactory = Callable[[tuple], nn.Module]
@@ -69,6 +71,9 @@ class KernelWeakOT(LightningModule):
             per training step (None: a constant learning rate).
         critic_scheduler: learning-rate schedule factory of the critic's optimiser, stepped
             once per training step (None: a constant learning rate).
+        max_consecutive_skips: An update whose loss or gradients are NaN/Inf (a solve that blew
+            up) is skipped and counted (``train/skipped_steps``); this many in a row stop the run
+            with a message naming what diverged, after saving the last good state as last.ckpt.
     """
 
     def __init__(
@@ -89,6 +94,7 @@ class KernelWeakOT(LightningModule):
         critic_optimizer: OptimizerCallable = _adam,
         map_scheduler: LRSchedulerCallable | None = None,
         critic_scheduler: LRSchedulerCallable | None = None,
+        max_consecutive_skips: int = 10,
     ) -> None:
         super().__init__()
         self._check_settings(z_dim, latent, n_z, gamma, t_max, gp_weight, grad_clip)
@@ -116,6 +122,9 @@ class KernelWeakOT(LightningModule):
         )
         self.z_dim, self.latent, self.n_z, self.gamma, self.kernel = z_dim, latent, n_z, gamma, KERNELS[kernel]
         self.t_max, self.gp_weight, self.grad_clip = t_max, gp_weight, grad_clip
+        if max_consecutive_skips < 1:
+            raise InputError(f"model.max_consecutive_skips={max_consecutive_skips}: expected >= 1")
+        self.guard = UpdateGuard(max_consecutive_skips)
         self.optimizer_factories = (map_optimizer, critic_optimizer)
         self.scheduler_factories = (map_scheduler, critic_scheduler)
         self.map_updates = 0
@@ -194,42 +203,99 @@ class KernelWeakOT(LightningModule):
             raise ValueError(f"a training item holds {batch['x0'].shape[0]} source batches, the model expects t_max={self.t_max}")
         self._key_draws("train")
         self.toggle_optimizer(map_opt)
+        y_hat, parts = None, {}
         for k in range(self.t_max):
-            y_hat, parts = self._map_update(map_opt, batch["x"][k], batch["x0"][k], batch["theta"][k])
+            y_hat_k, parts_k = self._map_update(map_opt, batch["x"][k], batch["x0"][k], batch["theta"][k])
+            if y_hat_k is not None:
+                y_hat, parts = y_hat_k, parts_k
         self.untoggle_optimizer(map_opt)
 
         self.toggle_optimizer(critic_opt)
-        loss, critic_parts = critic_loss(self.critic, batch["y"], y_hat.detach().flatten(0, 1), self.gp_weight, self.generator)
-        critic_opt.zero_grad(set_to_none=True)
-        self.manual_backward(loss)
-        average_gradients(self.critic.parameters(), self.trainer.strategy)
-        self._clip(critic_opt)
-        critic_opt.step()
+        if y_hat is None:  # no map output to train the critic on: the map is what diverged
+            critic_parts, blame = {}, ("map", "every map update of the step gave NaN/Inf")
+        else:
+            generated = y_hat.detach().flatten(0, 1)
+            loss, critic_parts = critic_loss(self.critic, batch["y"], generated, self.gp_weight, self.generator)
+            critic_parts["critic_loss"], blame = loss, ("critic", "loss or gradients NaN/Inf")
+        if self._guarded_backward(critic_opt, self.critic, blame[0], critic_parts.get("critic_loss"), blame[1]):
+            self._clip(critic_opt)
+        critic_opt.step()  # counts the iteration; after a skip there are no gradients and nothing changes
         self.untoggle_optimizer(critic_opt)
 
         for scheduler in self._schedulers():
             scheduler.step()
-        self.log_dict({f"train/{k}": v for k, v in {**parts, **critic_parts, "critic_loss": loss}.items()}, prog_bar=False)
-        self.log("train/wasserstein", critic_parts["critic_gap"], prog_bar=True)
-        self.log("train/map_updates", float(self.map_updates))
-        self.log(
-            "train/simulations", float(self.trainer.datamodule.simulations) if self.trainer.datamodule else 0.0, prog_bar=True
-        )
+        self._log_step({**parts, **critic_parts})
 
-    def _map_update(self, opt: Any, x: Tensor, x0: Tensor, theta: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
-        y_hat = self.generate(x, x0, theta, self.n_z, averaged=False)
-        cost = kernel_weak_cost(x, y_hat, self.gamma, self.kernel).mean()
-        potential = self.critic(y_hat.flatten(0, 1)).mean()
-        loss = cost - potential
-        opt.zero_grad(set_to_none=True)
-        self.manual_backward(loss)
-        average_gradients(self.transport_map.parameters(), self.trainer.strategy)
+    def _map_update(self, opt: Any, x: Tensor, x0: Tensor, theta: Tensor) -> tuple[Tensor | None, dict[str, Tensor]]:
+        """One map update; (None, {}) when it was skipped (its solve or its gradients not finite)."""
+        try:
+            y_hat = self.generate(x, x0, theta, self.n_z, averaged=False)
+        except SimulationDiverged as error:
+            y_hat, loss, reason = None, None, str(error)
+        else:
+            cost = kernel_weak_cost(x, y_hat, self.gamma, self.kernel).mean()
+            loss, reason = cost - self.critic(y_hat.flatten(0, 1)).mean(), "loss or gradients NaN/Inf"
+        if not self._guarded_backward(opt, self.transport_map, "map", loss, reason):
+            return None, {}
         self._clip(opt)
         self.trainer.strategy.optimizer_step(opt.optimizer, closure=lambda: None, model=self)
         self.map_updates += 1
         if self.map_average is not None:
             self.map_average.update_parameters(self.transport_map)
         return y_hat, {"map_loss": loss.detach(), "transport_cost": cost.detach()}
+
+    def _guarded_backward(self, opt: Any, network: nn.Module, name: str, loss: Tensor | None, reason: str) -> bool:
+        """Backward and average over processes; True if the loss and the gradients are finite, to step ``opt``.
+
+        Otherwise the gradients are cleared (no step: the optimiser's state stays clean) and the
+        skip is counted; a process with no finite loss contributes NaN gradients, so every process
+        sees the average fail and skips alike. After ``max_consecutive_skips`` skips in a row the
+        run stops (:class:`TrainingDiverged`).
+        """
+        opt.zero_grad(set_to_none=True)
+        finite = loss is not None and bool(torch.isfinite(loss))
+        if finite:
+            self.manual_backward(loss)
+        parameters = [p for p in network.parameters() if p.requires_grad]
+        if not finite:
+            for p in parameters:
+                p.grad = torch.full_like(p, float("nan"))
+        average_gradients(parameters, self.trainer.strategy)
+        if all(bool(torch.isfinite(p.grad).all()) for p in parameters if p.grad is not None):
+            self.guard.passed()
+            return True
+        opt.zero_grad(set_to_none=True)
+        if self.guard.failed(name, reason):
+            self._stop_diverged()
+        return False
+
+    def _stop_diverged(self) -> None:
+        """Save the current (last good) state as last.ckpt, write the logs, and stop with a message that says what to try."""
+        for logger in self.trainer.loggers:
+            logger.log_metrics({"train/skipped_steps": float(self.guard.skipped)}, step=self.global_step)
+            logger.save()
+        checkpoint = self.trainer.checkpoint_callback
+        saved = None
+        if checkpoint is not None and checkpoint.dirpath is not None:
+            saved = str(Path(checkpoint.dirpath) / "last.ckpt")
+            self.trainer.save_checkpoint(saved)
+        raise TrainingDiverged(self.guard.message(self._learning_rates(), saved))
+
+    def _learning_rates(self) -> dict[str, float]:
+        if self._trainer is None or not self.trainer.optimizers:
+            return {}
+        map_opt, critic_opt = self.trainer.optimizers
+        return {"map": map_opt.param_groups[0]["lr"], "critic": critic_opt.param_groups[0]["lr"]}
+
+    def _log_step(self, values: dict[str, Tensor]) -> None:
+        self.log_dict({f"train/{k}": v for k, v in values.items()}, prog_bar=False)
+        if "critic_gap" in values:
+            self.log("train/wasserstein", values["critic_gap"], prog_bar=True)
+        self.log("train/skipped_steps", float(self.guard.skipped))
+        self.log("train/map_updates", float(self.map_updates))
+        self.log(
+            "train/simulations", float(self.trainer.datamodule.simulations) if self.trainer.datamodule else 0.0, prog_bar=True
+        )
 
     def _clip(self, opt: Any) -> None:
         if self.grad_clip is not None:
@@ -269,10 +335,22 @@ class KernelWeakOT(LightningModule):
         self._key_draws("test")
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> dict[str, Tensor]:
-        return {"y_hat": self.generate(batch["x"], batch["x0"], batch["theta"], batch["y"].shape[1])}
+        return {"y_hat": self._evaluation_draws(batch, "validation")}
 
     def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> dict[str, Tensor]:
-        return {"y_hat": self.generate(batch["x"], batch["x0"], batch["theta"], batch["y"].shape[1])}
+        return {"y_hat": self._evaluation_draws(batch, "test")}
+
+    def _evaluation_draws(self, batch: dict[str, Tensor], stage: str) -> Tensor:
+        """The map's draws for an evaluation batch; a map whose solve diverges there stops the run with a diagnosis."""
+        try:
+            return self.generate(batch["x"], batch["x0"], batch["theta"], batch["y"].shape[1])
+        except SimulationDiverged as error:
+            self.guard.failed("map", f"its solve diverged on the {stage} inputs: {error}")
+            checkpoint = self.trainer.checkpoint_callback
+            last = Path(checkpoint.dirpath) / "last.ckpt" if checkpoint is not None and checkpoint.dirpath else None
+            raise TrainingDiverged(
+                self.guard.message(self._learning_rates(), str(last) if last and last.exists() else None)
+            ) from None
 
     def on_validation_epoch_end(self) -> None:
         """Log training progress next to the metrics (those come from :class:`otgb.callbacks.Evaluation`)."""

@@ -42,3 +42,14 @@ class RecordSources(Callback):
 
     def on_train_end(self, trainer, pl_module) -> None:
         torch.save(torch.cat(self.x0), f"{self.folder}/sources_rank{trainer.global_rank}.pt")
+
+
+class PoisonSources(Callback):
+    """Sets the initial states of map update ``k`` at training step ``step`` to NaN: that update's solve fails."""
+
+    def __init__(self, step: int, k: int = 0) -> None:
+        self.step, self.k = step, k
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        if trainer.global_step == self.step:
+            batch["x0"][self.k] = float("nan")
