@@ -26,10 +26,11 @@ from pathlib import Path
 from typing import Any
 
 from lightning import LightningModule, Trainer
-from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.callbacks import ModelCheckpoint, ProgressBar
 from lightning.pytorch.cli import LightningCLI
 
 from otgb.callbacks import ComponentAnalysis, Evaluation
+from otgb.callbacks.progress import SimulationProgressBar
 from otgb.data import SimulationDataModule
 from otgb.errors import InputError
 from otgb.guard import TrainingDiverged
@@ -95,6 +96,14 @@ class OTGBCLI(LightningCLI):
         name_loggers_after_config(config.trainer.logger, config.get("config"))
         self.new_log_dirs = share_logger_version(config.trainer.logger)
 
+    def instantiate_trainer(self, **kwargs: Any) -> Trainer:
+        """The trainer, with :class:`SimulationProgressBar` unless the progress bar is off or the config names one."""
+        config = self._get(self.config_init, "trainer", default={})
+        callbacks = config.get("callbacks") or []
+        if config.get("enable_progress_bar") is not False and not any(isinstance(c, ProgressBar) for c in callbacks):
+            self.trainer_defaults = {**self.trainer_defaults, "callbacks": [SimulationProgressBar()]}
+        return super().instantiate_trainer(**kwargs)
+
     def instantiate_classes(self) -> None:
         super().instantiate_classes()
         config = self.config[self.subcommand] if self.subcommand else self.config
@@ -116,7 +125,7 @@ def logger_override(save_dir: str, name: str) -> str:
     """A ``--trainer.logger`` argument for TensorBoard + CSV logs in ``<save_dir>/<name>/version_N``."""
     loggers = [
         f"{{class_path: lightning.pytorch.loggers.{cls}, init_args: {{save_dir: {save_dir}, name: {name}}}}}"
-        for cls in ("TensorBoardLogger", "CSVLogger")
+        for cls in ("CSVLogger", "TensorBoardLogger")  # CSV first: it wants an empty folder
     ]
     return f"--trainer.logger=[{', '.join(loggers)}]"
 

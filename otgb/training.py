@@ -293,9 +293,7 @@ class KernelWeakOT(LightningModule):
             self.log("train/wasserstein", values["critic_gap"], prog_bar=True)
         self.log("train/skipped_steps", float(self.guard.skipped))
         self.log("train/map_updates", float(self.map_updates))
-        self.log(
-            "train/simulations", float(self.trainer.datamodule.simulations) if self.trainer.datamodule else 0.0, prog_bar=True
-        )
+        self.log("train/simulations", float(self.trainer.datamodule.simulations) if self.trainer.datamodule else 0.0)
 
     def _clip(self, opt: Any) -> None:
         if self.grad_clip is not None:

@@ -62,7 +62,7 @@ def export(config: str, out: Path, record: list[str]) -> Path:
 def run_args(out: Path, name: str, config: str) -> list[str]:
     loggers = ", ".join(
         f"{{class_path: lightning.pytorch.loggers.{cls}, init_args: {{save_dir: {out}, name: {name}, version: 0}}}}"
-        for cls in ("TensorBoardLogger", "CSVLogger")
+        for cls in ("CSVLogger", "TensorBoardLogger")  # CSV first: it wants an empty folder
     )
     return ["--config", config, f"--trainer.logger=[{loggers}]", f"--data.cache_dir={out / 'cache'}"]
 

@@ -89,7 +89,7 @@ def test_budget_ends_training_and_sets_the_schedule_length(tmp_path):
     assert scheduler["_last_lr"][0] == pytest.approx(0.1 * scheduler["base_lrs"][0])
 
 
-def test_resume_continues_the_stream_and_matches_an_uninterrupted_run(tmp_path):
+def test_resume_continues_the_stream_and_matches_an_uninterrupted_run(tmp_path, recwarn):
     main(["fit", *_args(tmp_path / "a", "--trainer.max_steps=6", "--model.t_max=5")])
     stop = '--trainer.callbacks+={"class_path": "conftest.StopAt", "init_args": {"step": 3}}'
     main(["fit", *_args(tmp_path / "b", "--trainer.max_steps=6", "--model.t_max=5"), stop])
@@ -101,6 +101,8 @@ def test_resume_continues_the_stream_and_matches_an_uninterrupted_run(tmp_path):
     assert resumed["otgb"]["map_updates"] == 30
     for name, value in full["state_dict"].items():
         assert torch.allclose(value, resumed["state_dict"][name], atol=1e-5), name
+    messages = [str(w.message) for w in recwarn]
+    assert not [m for m in messages if "not resumable" in m or "will be deleted" in m], "the causes are fixed"
 
 
 def test_same_seed_same_numbers(tmp_path):

@@ -26,6 +26,12 @@ def test_stream_item_shapes_and_budget(pendulum):
     assert [it["index"] for it in items] == list(range(8))
 
 
+def test_stream_length_is_the_runs_whole_length(pendulum):
+    assert len(_stream(pendulum, max_items=5)) == 5, "max_steps ends the run before the budget"
+    resumed = _stream(pendulum, start=3)
+    assert len(resumed) == 8 and [it["index"] for it in resumed] == list(range(3, 8)), "counted from the run's start"
+
+
 def test_stream_is_deterministic_resumable_and_rank_aware(pendulum):
     full = list(_stream(pendulum))
     again = list(_stream(pendulum))

@@ -14,7 +14,7 @@ from torch.utils.data import DataLoader, Dataset
 from otgb.data.files import MeasuredFile, read_measured
 from otgb.data.measured import cache_key, cached, generate_joint, generate_measured, simulate_in_chunks, split_indices
 from otgb.data.seeding import generator_for
-from otgb.data.stream import SourceStream
+from otgb.data.stream import SourceStream, StreamLoader
 from otgb.errors import InputError
 from otgb.physics.base import PhysicsModel, Term
 
@@ -218,6 +218,7 @@ class SimulationDataModule(LightningDataModule):
     def source_stream(self) -> SourceStream:
         world = self.trainer.world_size if self.trainer is not None else 1
         rank = self.trainer.global_rank if self.trainer is not None else 0
+        max_steps = self.trainer.max_steps if self.trainer is not None else -1
         return SourceStream(
             self.physics,
             self.measured,
@@ -228,10 +229,11 @@ class SimulationDataModule(LightningDataModule):
             seed=self.stream_seed,
             rank=rank,
             start=self.items_consumed,
+            max_items=max_steps if max_steps is not None and max_steps >= 0 else None,
         )
 
     def train_dataloader(self) -> DataLoader:
-        return DataLoader(self.source_stream(), batch_size=None, num_workers=self.num_workers)
+        return StreamLoader(self.source_stream(), lambda: self.items_consumed, num_workers=self.num_workers)
 
     def val_dataloader(self) -> DataLoader:
         return DataLoader(JointDataset(self.val_set), batch_size=self.eval_batch_size, shuffle=False)

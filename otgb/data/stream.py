@@ -13,11 +13,11 @@ critic update. The f_p simulation itself runs on the training device, in the dat
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import torch
 from torch import Tensor
-from torch.utils.data import IterableDataset, get_worker_info
+from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from otgb.data.seeding import generator_for
 from otgb.physics.base import PhysicsModel
@@ -33,6 +33,7 @@ class SourceStream(IterableDataset):
         measured_batch_size: B_y, measured trajectories per critic update.
         budget: simulations this rank may spend; the stream ends before exceeding it.
         seed, rank: keys of the random draws. start: first item index (resume).
+        max_items: the run's last item (``trainer.max_steps``), if it ends before the budget does.
     """
 
     def __init__(
@@ -46,25 +47,33 @@ class SourceStream(IterableDataset):
         seed: int,
         rank: int = 0,
         start: int = 0,
+        max_items: int | None = None,
     ) -> None:
         super().__init__()
         self.physics, self.measured = physics, measured
         self.batch_size, self.batches_per_step = batch_size, batches_per_step
         self.measured_batch_size, self.budget = measured_batch_size, budget
-        self.seed, self.rank, self.start = seed, rank, start
+        self.seed, self.rank, self.start, self.max_items = seed, rank, start, max_items
 
     @property
     def simulations_per_item(self) -> int:
         return self.batch_size * self.batches_per_step
 
+    @property
+    def end(self) -> int:
+        """One past the last item index: where the budget or ``max_items`` ends the run, whichever comes first."""
+        end = self.budget // self.simulations_per_item
+        return end if self.max_items is None else min(end, self.max_items)
+
     def __len__(self) -> int:
-        return max(0, self.budget // self.simulations_per_item - self.start)
+        """Items in the whole run, those before ``start`` included: Lightning counts a resumed run's
+        batches on from where the checkpoint left them, so its progress bar and epoch end match."""
+        return self.end
 
     def __iter__(self) -> Iterator[dict[str, Tensor | int]]:
         info = get_worker_info()
         worker, workers = (info.id, info.num_workers) if info is not None else (0, 1)
-        end = self.budget // self.simulations_per_item
-        for index in range(self.start + worker, end, workers):
+        for index in range(self.start + worker, self.end, workers):
             yield self.item(index)
 
     def item(self, index: int) -> dict[str, Tensor | int]:
@@ -79,3 +88,19 @@ class SourceStream(IterableDataset):
             "theta": theta.reshape(k, self.batch_size, -1),
             "y": self.measured[pick],
         }
+
+
+class StreamLoader(DataLoader):
+    """The DataLoader of a :class:`SourceStream`, resumable in Lightning's sense (``state_dict`` /
+    ``load_state_dict``): its state is the number of items consumed (``position()``, the data
+    module's count), and restoring it restarts the stream there."""
+
+    def __init__(self, stream: SourceStream, position: Callable[[], int], num_workers: int = 0) -> None:
+        super().__init__(stream, batch_size=None, num_workers=num_workers)
+        self.position = position
+
+    def state_dict(self) -> dict[str, int]:
+        return {"items_consumed": self.position()}
+
+    def load_state_dict(self, state_dict: dict[str, int]) -> None:
+        self.dataset.start = int(state_dict["items_consumed"])
