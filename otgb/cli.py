@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import shutil
+import signal
 import sys
 from pathlib import Path
 from typing import Any
@@ -28,6 +29,8 @@ from typing import Any
 from lightning import LightningModule, Trainer
 from lightning.pytorch.callbacks import ModelCheckpoint, ProgressBar
 from lightning.pytorch.cli import LightningCLI
+from lightning.pytorch.utilities import rank_zero_info
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from otgb.callbacks import ComponentAnalysis, Evaluation
 from otgb.callbacks.progress import SimulationProgressBar
@@ -42,17 +45,27 @@ AUTO = "auto"  # logger name / checkpoint monitor chosen from the run (see OTGBC
 
 
 class BestAndLastCheckpoint(ModelCheckpoint):
-    """A ModelCheckpoint whose ``save_last`` writes ``last.ckpt`` at every validation, to resume from.
+    """A ModelCheckpoint whose ``save_last`` writes ``last.ckpt`` at every validation, to resume from,
+    and on SIGTERM; the loggers are flushed with it.
 
     Lightning 2.6 writes ``last.ckpt`` only at the validations that also save a best checkpoint,
     which would make it a copy of the best one rather than the latest state.
     """
+
+    def on_exception(self, trainer: Trainer, pl_module: LightningModule, exception: BaseException) -> None:
+        """On SIGTERM (Lightning stops between two steps), save that state as ``last.ckpt`` to resume from."""
+        if isinstance(exception, SIGTERMException) and self.dirpath is not None and trainer.state.fn == "fit":
+            path = Path(self.dirpath) / "last.ckpt"
+            trainer.save_checkpoint(path)
+            rank_zero_info(f"otgb: stopped by SIGTERM after step {trainer.global_step}; resume with --ckpt_path {path}")
 
     def on_validation_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
         super().on_validation_end(trainer, pl_module)
         skip = self._should_skip_saving_checkpoint(trainer)  # also true when a best checkpoint was just saved
         if self.save_last is True and not skip and not self._should_save_on_train_epoch_end(trainer):
             self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
+        for logger in trainer.loggers:  # the log holds every row up to the checkpoint: a resume from it loses none
+            logger.save()
 
 
 class OTGBCLI(LightningCLI):
@@ -173,6 +186,8 @@ def main(args: list[str] | None = None) -> None:
     except (TrainingDiverged, SimulationDiverged) as error:
         print(f"otgb: error: {error}", file=sys.stderr)
         raise SystemExit(1) from None
+    except SIGTERMException:  # the checkpoint callback said where the state is
+        raise SystemExit(128 + signal.SIGTERM) from None
 
 
 if __name__ == "__main__":

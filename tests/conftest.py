@@ -1,3 +1,6 @@
+import os
+import signal
+
 import pytest
 import torch
 from lightning import Callback
@@ -53,3 +56,14 @@ class PoisonSources(Callback):
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
         if trainer.global_step == self.step:
             batch["x0"][self.k] = float("nan")
+
+
+class SendSigterm(Callback):
+    """Sends SIGTERM to this process after training step ``step``, as a scheduler ending a job would."""
+
+    def __init__(self, step: int) -> None:
+        self.step = step
+
+    def on_train_batch_end(self, trainer, *args) -> None:
+        if trainer.global_step == self.step:
+            os.kill(os.getpid(), signal.SIGTERM)

@@ -139,8 +139,8 @@ def test_bad_config_value_is_named(tmp_path, override, message):
 
 
 def _otgb(cwd: Path, *args: str) -> subprocess.CompletedProcess:
-    """``python -m otgb.cli ...`` in ``cwd``, importing this checkout's otgb."""
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    """``python -m otgb.cli ...`` in ``cwd``, importing this checkout's otgb (and the tests' callbacks)."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")])}
     return subprocess.run([sys.executable, "-m", "otgb.cli", *args], cwd=cwd, env=env, capture_output=True, text=True)
 
 

@@ -40,3 +40,17 @@ def test_the_guard_counts_runs_of_skips():
     guard.passed()
     assert not guard.failed("critic", "NaN") and not guard.failed("critic", "NaN") and guard.failed("critic", "Inf")
     assert guard.skipped == 5 and "critic learning rate" in guard.message({"map": 1e-4, "critic": 1e-4}, None)
+
+
+def test_sigterm_saves_the_state_between_two_steps_and_the_run_resumes(tmp_path):
+    term = '--trainer.callbacks+={"class_path": "conftest.SendSigterm", "init_args": {"step": 4}}'
+    done = _otgb(tmp_path, "fit", *_args(tmp_path, "--trainer.max_steps=6", term))
+    assert done.returncode == 143
+    last = tmp_path / "run" / "version_0" / "checkpoints" / "last.ckpt"
+    assert f"stopped by SIGTERM after step 4; resume with --ckpt_path {last}" in done.stderr
+    assert torch.load(last, weights_only=False)["global_step"] == 4
+    with open(last.parent.parent / "metrics.csv") as f:
+        assert max(float(r["step"]) for r in csv.DictReader(f)) == 3.0, "every row up to the saved state (4 steps: 0-3)"
+    resumed = _otgb(tmp_path, "fit", *_args(tmp_path, "--trainer.max_steps=6"), f"--ckpt_path={last}")
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert torch.load(tmp_path / "run" / "version_1" / "checkpoints" / "last.ckpt", weights_only=False)["global_step"] == 6
