@@ -1,0 +1,38 @@
+"""GPU readiness: one short fit and test of each system on ``--trainer.accelerator gpu``, and the bfloat16 C2ST.
+
+Marked ``gpu``; skipped where no CUDA device is present (``pytest -m gpu`` on a GPU machine runs them).
+"""
+
+import json
+import math
+
+import pytest
+import torch
+from test_cli import CONFIGS, _tiny
+
+from otgb.cli import main
+from otgb.metrics.c2st import c2st
+
+pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")]
+SYSTEMS = [c for c in CONFIGS if c.stem in ("pendulum", "advdiff", "reactdiff")]
+
+
+@pytest.mark.parametrize("config", SYSTEMS, ids=lambda path: path.stem)
+def test_fit_and_test_on_the_gpu(tmp_path, monkeypatch, config):
+    monkeypatch.chdir(tmp_path)
+    tiny = [*_tiny(config, tmp_path / "cache"), "--trainer.accelerator=gpu", "--trainer.devices=1"]
+    main(["fit", "--config", str(config), *tiny])
+    last = tmp_path / "runs" / config.stem / "version_0" / "checkpoints" / "last.ckpt"
+    assert torch.load(last, weights_only=False)["global_step"] == 4
+    main(["test", "--config", str(config), *tiny, f"--ckpt_path={last}"])
+    report = json.loads((tmp_path / "runs" / config.stem / "version_1" / "metrics.json").read_text())
+    assert all(math.isfinite(value["mean"]) for value in report["model"].values()), report["model"]
+    assert 0.0 <= report["model"]["c2st"]["mean"] <= 1.0
+
+
+def test_c2st_in_bfloat16_on_the_gpu():
+    g = torch.Generator().manual_seed(0)
+    same = torch.randn(400, 60, generator=g).cuda(), torch.randn(400, 60, generator=g).cuda()
+    shifted = same[0], same[1] + 1.0
+    assert abs(float(c2st(*same, precision="bf16-mixed")["c2st"]) - 0.5) < 0.1
+    assert float(c2st(*shifted, precision="bf16-mixed")["c2st"]) > 0.9
