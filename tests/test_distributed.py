@@ -74,3 +74,20 @@ def test_two_process_fit_and_test_of_advection_diffusion(tmp_path):
     assert torch.load(last, weights_only=False)["global_step"] == 4
     _otgb_ddp(tmp_path, "test", *_args(tmp_path, "advdiff.yaml"), f"--ckpt_path={last}")
     assert json.loads((tmp_path / "run" / "version_1" / "metrics.json").read_text())["model"]["abs_err"]["mean"] > 0
+
+
+@pytest.mark.slow
+def test_a_resumed_two_process_run_matches_an_uninterrupted_one(tmp_path):
+    steps = ["--data.simulation_budget=640", "--data.batch_size=16", "--model.t_max=2", "--trainer.val_check_interval=5"]
+    (tmp_path / "a").mkdir(), (tmp_path / "b").mkdir()
+    _otgb_ddp(tmp_path / "a", "fit", *_args(tmp_path / "a", "pendulum.yaml", *steps))
+    stop = '--trainer.callbacks+={"class_path": "conftest.StopAt", "init_args": {"step": 5}}'
+    _otgb_ddp(tmp_path / "b", "fit", *_args(tmp_path / "b", "pendulum.yaml", *steps, stop))
+    last = tmp_path / "b" / "run" / "version_0" / "checkpoints" / "last.ckpt"
+    assert torch.load(last, weights_only=False)["global_step"] == 5
+    _otgb_ddp(tmp_path / "b", "fit", *_args(tmp_path / "b", "pendulum.yaml", *steps), f"--ckpt_path={last}")
+    full = torch.load(tmp_path / "a" / "run" / "version_0" / "checkpoints" / "last.ckpt", weights_only=False)
+    resumed = torch.load(tmp_path / "b" / "run" / "version_1" / "checkpoints" / "last.ckpt", weights_only=False)
+    assert resumed["global_step"] == full["global_step"] == 10
+    for name, value in full["state_dict"].items():
+        assert torch.allclose(value, resumed["state_dict"][name], atol=1e-6), name

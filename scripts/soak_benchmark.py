@@ -1,0 +1,176 @@
+"""Load and soak: simulations per second, memory over time, and a SIGKILL followed by a resume.
+
+``soak`` trains ``configs/pendulum_mm.yaml`` (one-to-many pendulum) on ``--budget`` simulations
+(the paper's 4e6 by default) with ``otgb fit``, samples the resident memory of the whole process
+group (every process of a DDP run) every ``--sample-s`` seconds into ``memory.csv``, and, with
+``--kill-after S``, SIGKILLs the group at a random moment in [S/2, S] (seeded) and resumes from
+the newest ``last.ckpt`` until the budget is spent. ``soak.json`` then says:
+
+- simulations per second (training only, from ``val/simulations`` and ``val/wall_time_s``);
+- memory: resident MB at the start and end of each half of the run (growth = a leak);
+- whether the resume lost simulations (the final step count against budget / simulations per
+  step) or log rows (every logged step of the run, 0 to the end, in some ``metrics.csv``).
+
+``throughput`` trains ``configs/pendulum.yaml`` for ``--steps`` steps in one process, then in
+two DDP processes on the same machine, and reports simulations per second of each.
+
+Both skip what is done and resume what is not: run the same command again after an interruption.
+Linux only (memory is read from /proc).
+
+    python scripts/soak_benchmark.py soak --out bench/soak --kill-after 600
+    python scripts/soak_benchmark.py soak --out bench/soak-gpu --accelerator gpu --devices 2
+    python scripts/soak_benchmark.py throughput --out bench/throughput --steps 200
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+import yaml
+
+ROOT = Path(__file__).parents[1]
+
+
+def fit_command(config: str, out: Path, extra: list[str]) -> list[str]:
+    logger = f"--trainer.logger=[{{class_path: lightning.pytorch.loggers.CSVLogger, init_args: {{save_dir: {out}, name: run}}}}]"
+    return [sys.executable, "-m", "otgb.cli", "fit", "--config", str(ROOT / "configs" / config), logger, *extra]
+
+
+def group_rss_mb(pgid: int) -> float:
+    """Resident memory (MB) of every process in process group ``pgid``, from /proc."""
+    total = 0
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            if int(fields[2]) == pgid:  # fields after the name: state, ppid, pgrp, ...
+                total += int(fields[21]) * os.sysconf("SC_PAGE_SIZE")
+        except (OSError, IndexError, ValueError):
+            continue  # the process ended meanwhile
+    return total / 2**20
+
+
+def run_sampled(command: list[str], out: Path, sample_s: float, kill_at: float | None) -> tuple[int, float]:
+    """Run ``command`` in its own process group, appending (time, MB) rows to memory.csv; SIGKILL it at ``kill_at`` s."""
+    start = time.time()
+    with open(out / "fit.log", "a") as log, open(out / "memory.csv", "a", newline="") as memory:
+        writer = csv.writer(memory)
+        run = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        while run.poll() is None:
+            writer.writerow([round(time.time(), 1), round(group_rss_mb(run.pid), 1)])
+            memory.flush()
+            if kill_at is not None and time.time() - start > kill_at:
+                os.killpg(run.pid, signal.SIGKILL)
+                run.wait()
+                return -signal.SIGKILL, time.time() - start
+            time.sleep(sample_s)
+    return run.returncode, time.time() - start
+
+
+def newest(out: Path, name: str) -> Path | None:
+    found = sorted(out.glob(f"run/version_*/**/{name}"), key=lambda p: p.stat().st_mtime)
+    return found[-1] if found else None
+
+
+def soak(args: argparse.Namespace) -> None:
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    extra = [
+        f"--data.simulation_budget={args.budget}", f"--trainer.accelerator={args.accelerator}",
+        f"--trainer.devices={args.devices}", "--trainer.enable_progress_bar=false", f"--seed_everything={args.seed}",
+        *(["--trainer.strategy=ddp"] if args.devices > 1 else []), *args.overrides,
+    ]  # fmt: skip
+    state = json.loads((out / "state.json").read_text()) if (out / "state.json").exists() else {"killed": None, "runs": []}
+    while not state["runs"] or state["runs"][-1]["returncode"] != 0:
+        last = newest(out, "last.ckpt")
+        kill_at = None
+        if args.kill_after and state["killed"] is None:
+            kill_at = random.Random(args.seed).uniform(args.kill_after / 2, args.kill_after)
+        command = fit_command("pendulum_mm.yaml", out, extra) + ([f"--ckpt_path={last}"] if last else [])
+        returncode, wall = run_sampled(command, out, args.sample_s, kill_at)
+        if returncode == -signal.SIGKILL:
+            state["killed"] = {"after_s": wall, "last_ckpt_before": str(last)}
+        elif returncode != 0:
+            raise SystemExit(f"otgb fit failed (exit {returncode}); see {out / 'fit.log'}")
+        state["runs"].append({"returncode": returncode, "wall_s": wall, "resumed_from": str(last) if last else None})
+        (out / "state.json").write_text(json.dumps(state, indent=1))
+    (out / "soak.json").write_text(json.dumps(summarise(out, args, state), indent=1))
+    print((out / "soak.json").read_text())
+
+
+def summarise(out: Path, args: argparse.Namespace, state: dict) -> dict:
+    rows = [row for path in sorted(out.glob("run/version_*/metrics.csv")) for row in csv.DictReader(open(path))]
+    val = [(float(r["val/simulations"]), float(r["val/wall_time_s"])) for r in rows if r.get("val/wall_time_s")]
+    last = torch.load(newest(out, "last.ckpt"), weights_only=False)
+    config = yaml.safe_load(newest(out, "config.yaml").read_text())
+    per_step = config["data"]["batch_size"] * config["model"]["t_max"] * args.devices
+    steps = {int(float(r["step"])) for r in rows if r.get("train/simulations")}
+    every = min((b - a for a, b in zip(sorted(steps), sorted(steps)[1:])), default=1)
+    memory = [float(r[1]) for r in csv.reader(open(out / "memory.csv"))]
+    half = len(memory) // 2
+    return {
+        "machine": f"{os.cpu_count()} CPUs, {args.accelerator} x {args.devices}",
+        "budget": args.budget,
+        "simulations_per_s": val[-1][0] / val[-1][1] if val else None,
+        "final_global_step": last["global_step"],
+        "expected_steps": args.budget // per_step,
+        "simulations_counted": last["global_step"] * per_step,
+        "log_rows_missing": sorted(set(range(min(steps), max(steps) + 1, every)) - steps) if steps else None,
+        "memory_mb": {"first_half": [memory[0], memory[half - 1]], "second_half": [memory[half], memory[-1]]} if half else None,
+        "killed": state["killed"],
+        "runs": state["runs"],
+    }
+
+
+def throughput(args: argparse.Namespace) -> None:
+    out = Path(args.out)
+    results = json.loads((out / "throughput.json").read_text()) if (out / "throughput.json").exists() else {}
+    for name, processes in (("1 process", 1), ("2 processes (DDP)", 2)):
+        if name in results:
+            continue
+        folder = out / name.split()[0]
+        folder.mkdir(parents=True, exist_ok=True)
+        steps = args.steps // processes  # the same number of simulations
+        extra = [f"--trainer.max_steps={steps}", f"--trainer.val_check_interval={steps}", "--trainer.enable_progress_bar=false",
+                 "--trainer.accelerator=cpu", f"--trainer.devices={processes}", "--components.enabled=false",
+                 *(["--trainer.strategy=ddp"] if processes > 1 else [])]  # fmt: skip
+        start = time.time()
+        subprocess.run(fit_command("pendulum.yaml", folder, extra), check=True, capture_output=True)
+        rows = [r for r in csv.DictReader(open(newest(folder, "metrics.csv"))) if r.get("val/wall_time_s")]
+        sims, seconds = float(rows[-1]["val/simulations"]), float(rows[-1]["val/wall_time_s"])
+        results[name] = {"simulations": sims, "training_s": seconds, "simulations_per_s": sims / seconds,
+                         "command_wall_s": time.time() - start}  # fmt: skip
+        (out / "throughput.json").write_text(json.dumps(results, indent=1))
+    print(json.dumps(results, indent=1))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    s = commands.add_parser("soak")
+    s.add_argument("--out", required=True)
+    s.add_argument("--budget", type=int, default=4_000_000)
+    s.add_argument("--accelerator", default="cpu")
+    s.add_argument("--devices", type=int, default=1)
+    s.add_argument("--kill-after", type=float, default=None, help="SIGKILL the run at a random moment in [S/2, S] seconds")
+    s.add_argument("--sample-s", type=float, default=10.0)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("overrides", nargs="*", help="more otgb fit overrides, after --")
+    t = commands.add_parser("throughput")
+    t.add_argument("--out", required=True)
+    t.add_argument("--steps", type=int, default=200, help="steps of the 1-process run (the 2-process run takes half)")
+    args = parser.parse_args()
+    soak(args) if args.command == "soak" else throughput(args)
+
+
+if __name__ == "__main__":
+    main()
