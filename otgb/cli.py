@@ -19,6 +19,7 @@ exit status 2; a diverged training or f_p solve ends it with one such line and s
 
 from __future__ import annotations
 
+import errno
 import logging
 import shutil
 import signal
@@ -35,7 +36,7 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 from otgb.callbacks import ComponentAnalysis, Evaluation
 from otgb.callbacks.progress import SimulationProgressBar
 from otgb.data import SimulationDataModule
-from otgb.errors import InputError
+from otgb.errors import InputError, OutputNotWritten
 from otgb.guard import TrainingDiverged
 from otgb.physics.base import SimulationDiverged
 from otgb.training import KernelWeakOT
@@ -58,6 +59,16 @@ class BestAndLastCheckpoint(ModelCheckpoint):
             path = Path(self.dirpath) / "last.ckpt"
             trainer.save_checkpoint(path)
             rank_zero_info(f"otgb: stopped by SIGTERM after step {trainer.global_step}; resume with --ckpt_path {path}")
+
+    def _save_checkpoint(self, trainer: Trainer, filepath: str) -> None:
+        """Save; if the write fails (a full disk), remove the partial file, which is no checkpoint, and say what is left."""
+        try:
+            super()._save_checkpoint(trainer, filepath)
+        except OSError as error:
+            Path(filepath).unlink(missing_ok=True)
+            last = Path(filepath).with_name("last.ckpt")
+            left = f"; {last} is complete: resume with --ckpt_path {last}" if last.exists() and str(last) != filepath else ""
+            raise OutputNotWritten(f"could not write the checkpoint {filepath} ({error.strerror}), removed it{left}") from None
 
     def on_validation_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
         super().on_validation_end(trainer, pl_module)
@@ -183,8 +194,13 @@ def main(args: list[str] | None = None) -> None:
     except InputError as error:
         print(f"otgb: error: {error}", file=sys.stderr)
         raise SystemExit(2) from None
-    except (TrainingDiverged, SimulationDiverged) as error:
+    except (TrainingDiverged, SimulationDiverged, OutputNotWritten) as error:
         print(f"otgb: error: {error}", file=sys.stderr)
+        raise SystemExit(1) from None
+    except OSError as error:  # a log or report that could not be written (a full disk, no permission)
+        if error.errno not in (errno.ENOSPC, errno.EACCES, errno.EDQUOT):
+            raise
+        print(f"otgb: error: could not write {error.filename}: {error.strerror}", file=sys.stderr)
         raise SystemExit(1) from None
     except SIGTERMException:  # the checkpoint callback said where the state is
         raise SystemExit(128 + signal.SIGTERM) from None

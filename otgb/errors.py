@@ -9,3 +9,7 @@ It subclasses ValueError, so code that catches ValueError keeps working.
 
 class InputError(ValueError):
     """Bad user input; the message names what, where, and what was expected."""
+
+
+class OutputNotWritten(OSError):
+    """A checkpoint, log or report could not be written (a full disk, no permission); the message says which."""
