@@ -46,8 +46,8 @@ AUTO = "auto"  # logger name / checkpoint monitor chosen from the run (see OTGBC
 
 
 class BestAndLastCheckpoint(ModelCheckpoint):
-    """A ModelCheckpoint whose ``save_last`` writes ``last.ckpt`` at every validation, to resume from,
-    and on SIGTERM; the loggers are flushed with it.
+    """A ModelCheckpoint whose ``save_last`` writes ``last.ckpt`` at every validation, at the end of
+    training and on SIGTERM, to resume from; the loggers are flushed with it.
 
     Lightning 2.6 writes ``last.ckpt`` only at the validations that also save a best checkpoint,
     which would make it a copy of the best one rather than the latest state.
@@ -59,6 +59,11 @@ class BestAndLastCheckpoint(ModelCheckpoint):
             path = Path(self.dirpath) / "last.ckpt"
             trainer.save_checkpoint(path)
             rank_zero_info(f"otgb: stopped by SIGTERM after step {trainer.global_step}; resume with --ckpt_path {path}")
+
+    def on_train_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        """Training ended between two validations (the budget or max_steps): save its final state as last.ckpt."""
+        if self.save_last is True and trainer.global_step != self._last_global_step_saved and self.dirpath is not None:
+            self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
 
     def _save_checkpoint(self, trainer: Trainer, filepath: str) -> None:
         """Save; if the write fails (a full disk), remove the partial file, which is no checkpoint, and say what is left."""

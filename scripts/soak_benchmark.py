@@ -3,8 +3,8 @@
 ``soak`` trains ``configs/pendulum_mm.yaml`` (one-to-many pendulum) on ``--budget`` simulations
 (the paper's 4e6 by default) with ``otgb fit``, samples the resident memory of the whole process
 group (every process of a DDP run) every ``--sample-s`` seconds into ``memory.csv``, and, with
-``--kill-after S``, SIGKILLs the group at a random moment in [S/2, S] (seeded) and resumes from
-the newest ``last.ckpt`` until the budget is spent. ``soak.json`` then says:
+``--kill-after S``, SIGKILLs the group at a random moment in [S/2, S] (seeded; later if no
+``last.ckpt`` exists yet) and resumes from the newest ``last.ckpt`` until the budget is spent. ``soak.json`` then says:
 
 - simulations per second (training only, from ``val/simulations`` and ``val/wall_time_s``);
 - memory: resident MB at the start and end of each half of the run (growth = a leak);
@@ -68,7 +68,7 @@ def run_sampled(command: list[str], out: Path, sample_s: float, kill_at: float |
         while run.poll() is None:
             writer.writerow([round(time.time(), 1), round(group_rss_mb(run.pid), 1)])
             memory.flush()
-            if kill_at is not None and time.time() - start > kill_at:
+            if kill_at is not None and time.time() - start > kill_at and newest(out, "last.ckpt") is not None:
                 os.killpg(run.pid, signal.SIGKILL)
                 run.wait()
                 return -signal.SIGKILL, time.time() - start
