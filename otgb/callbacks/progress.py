@@ -12,9 +12,14 @@ from lightning.pytorch.callbacks.progress.tqdm_progress import convert_inf
 class SimulationProgressBar(TQDMProgressBar):
     """Lightning's progress bar plus ``simulations: used/budget`` (over all processes).
 
-    Its total is the length of otgb's source stream: where ``max_steps`` or the simulation
-    budget ends training, whichever comes first, counted from the run's start (also when resumed).
+    Its total is where training ends: ``max_steps`` or the simulation budget (the length of
+    otgb's source stream), whichever comes first, counted from the run's start (also when resumed).
     """
+
+    @property
+    def total_train_batches(self) -> int | float:
+        total, max_steps = super().total_train_batches, self.trainer.max_steps
+        return min(total, max_steps) if max_steps is not None and max_steps >= 0 else total
 
     def on_train_start(self, trainer: Trainer, pl_module: LightningModule) -> None:
         """Set the total already here: a run resumed within its (single) epoch gets no epoch start."""

@@ -218,7 +218,6 @@ class SimulationDataModule(LightningDataModule):
     def source_stream(self) -> SourceStream:
         world = self.trainer.world_size if self.trainer is not None else 1
         rank = self.trainer.global_rank if self.trainer is not None else 0
-        max_steps = self.trainer.max_steps if self.trainer is not None else -1
         return SourceStream(
             self.physics,
             self.measured,
@@ -229,7 +228,6 @@ class SimulationDataModule(LightningDataModule):
             seed=self.stream_seed,
             rank=rank,
             start=self.items_consumed,
-            max_items=max_steps if max_steps is not None and max_steps >= 0 else None,
         )
 
     def train_dataloader(self) -> DataLoader:

@@ -33,7 +33,6 @@ class SourceStream(IterableDataset):
         measured_batch_size: B_y, measured trajectories per critic update.
         budget: simulations this rank may spend; the stream ends before exceeding it.
         seed, rank: keys of the random draws. start: first item index (resume).
-        max_items: the run's last item (``trainer.max_steps``), if it ends before the budget does.
     """
 
     def __init__(
@@ -47,13 +46,12 @@ class SourceStream(IterableDataset):
         seed: int,
         rank: int = 0,
         start: int = 0,
-        max_items: int | None = None,
     ) -> None:
         super().__init__()
         self.physics, self.measured = physics, measured
         self.batch_size, self.batches_per_step = batch_size, batches_per_step
         self.measured_batch_size, self.budget = measured_batch_size, budget
-        self.seed, self.rank, self.start, self.max_items = seed, rank, start, max_items
+        self.seed, self.rank, self.start = seed, rank, start
 
     @property
     def simulations_per_item(self) -> int:
@@ -61,9 +59,8 @@ class SourceStream(IterableDataset):
 
     @property
     def end(self) -> int:
-        """One past the last item index: where the budget or ``max_items`` ends the run, whichever comes first."""
-        end = self.budget // self.simulations_per_item
-        return end if self.max_items is None else min(end, self.max_items)
+        """One past the last item index: where the budget ends the run."""
+        return self.budget // self.simulations_per_item
 
     def __len__(self) -> int:
         """Items in the whole run, those before ``start`` included: Lightning counts a resumed run's
