@@ -360,7 +360,12 @@ class KernelWeakOT(LightningModule):
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         elapsed = self.elapsed_before + (time.perf_counter() - self._fit_clock if self._fit_clock else 0.0)
-        checkpoint["otgb"] = {"map_updates": self.map_updates, "elapsed_s": elapsed, "draw_seed": self.draw_seed}
+        checkpoint["otgb"] = {
+            "map_updates": self.map_updates,
+            "elapsed_s": elapsed,
+            "draw_seed": self.draw_seed,
+            "skipped_steps": self.guard.skipped,
+        }
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Restore the counters (the draws are keyed by the global step: :attr:`generator`)."""
@@ -369,4 +374,5 @@ class KernelWeakOT(LightningModule):
         self.map_updates = state.get("map_updates", 0)
         self.elapsed_before = state.get("elapsed_s", 0.0)
         self.draw_seed = state.get("draw_seed", self.draw_seed)
+        self.guard.skipped = state.get("skipped_steps", 0)
         self._generator = None
