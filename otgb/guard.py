@@ -43,11 +43,13 @@ class UpdateGuard:
         return self.consecutive >= self.limit
 
     def message(self, learning_rates: dict[str, float], saved: str | None) -> str:
-        rates = (
-            "; learning rates: " + ", ".join(f"{name} {lr:g}" for name, lr in learning_rates.items()) if learning_rates else ""
-        )
-        state = f"; the last good state is in {saved} (resume with --ckpt_path {saved})" if saved else ""
-        return (
-            f"training diverged: {self.consecutive} update(s) in a row gave NaN/Inf, the last one of the {self.network} "
-            f"({self.reason}){rates}; likely causes: {LIKELY_CAUSES[self.network]}{state}"
-        )
+        what = f"{self.consecutive} update(s) in a row gave NaN/Inf, the last one of the {self.network} ({self.reason})"
+        return diagnosis(what, self.network, learning_rates, saved)
+
+
+def diagnosis(what: str, network: str, learning_rates: dict[str, float], saved: str | None) -> str:
+    """One line: what diverged, the learning rates, the likely causes for ``network`` and where the last good state is."""
+    rates = ", ".join(f"{name} {lr:g}" for name, lr in learning_rates.items())
+    rates = f"; learning rates: {rates}" if rates else ""
+    state = f"; the last good state is in {saved} (resume with --ckpt_path {saved})" if saved else ""
+    return f"training diverged: {what}{rates}; likely causes: {LIKELY_CAUSES[network]}{state}"

@@ -31,7 +31,7 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from otgb.data.seeding import derive_seed
 from otgb.errors import InputError
-from otgb.guard import TrainingDiverged, UpdateGuard
+from otgb.guard import TrainingDiverged, UpdateGuard, diagnosis
 from otgb.ot import KERNELS, critic_loss, kernel_weak_cost
 from otgb.parallel import average_gradients, without_gradient_sync
 from otgb.physics.base import PhysicsModel, SimulationDiverged
@@ -343,13 +343,12 @@ class KernelWeakOT(LightningModule):
         """The map's draws for an evaluation batch; a map whose solve diverges there stops the run with a diagnosis."""
         try:
             return self.generate(batch["x"], batch["x0"], batch["theta"], batch["y"].shape[1])
-        except SimulationDiverged as error:
-            self.guard.failed("map", f"its solve diverged on the {stage} inputs: {error}")
+        except SimulationDiverged as error:  # the weights are those of a diverged map: no checkpoint of them
             checkpoint = self.trainer.checkpoint_callback
             last = Path(checkpoint.dirpath) / "last.ckpt" if checkpoint is not None and checkpoint.dirpath else None
-            raise TrainingDiverged(
-                self.guard.message(self._learning_rates(), str(last) if last and last.exists() else None)
-            ) from None
+            saved = str(last) if last is not None and last.exists() else None  # that of the previous validation
+            what = f"the map's solve gave NaN/Inf on the {stage} inputs ({error})"
+            raise TrainingDiverged(diagnosis(what, "map", self._learning_rates(), saved)) from None
 
     def on_validation_epoch_end(self) -> None:
         """Log training progress next to the metrics (those come from :class:`otgb.callbacks.Evaluation`)."""
