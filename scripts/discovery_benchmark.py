@@ -262,6 +262,7 @@ def main() -> None:
     parser.add_argument("--table", type=Path, help="only gather the finished runs into this Markdown file")
     parser.add_argument("--refit", action="store_true", help="also train a grey-box on each found augmented physics")
     args = parser.parse_args()
+    args.out = args.out.resolve()  # each run's subprocess works inside its own folder
     if args.table:
         args.table.write_text(table(args.out))
         print(f"wrote {args.table}")
