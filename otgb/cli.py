@@ -1,4 +1,4 @@
-"""The ``otgb`` command: LightningCLI over :class:`KernelWeakOT` and :class:`SimulationDataModule`.
+"""The ``otgb`` command: LightningCLI over :class:`MapTraining` and :class:`SimulationDataModule`.
 
     otgb fit --config configs/pendulum.yaml [--model.gamma 0.5 --trainer.max_steps 2000 ...]
     otgb validate|test --config configs/pendulum.yaml --ckpt_path runs/.../best.ckpt
@@ -39,7 +39,7 @@ from otgb.data import SimulationDataModule
 from otgb.errors import InputError, OutputNotWritten
 from otgb.guard import TrainingDiverged
 from otgb.physics.base import SimulationDiverged
-from otgb.training import KernelWeakOT
+from otgb.training import MapTraining
 
 DEFAULTS = Path(__file__).parent / "configs" / "defaults.yaml"
 AUTO = "auto"  # logger name / checkpoint monitor chosen from the run (see OTGBCLI)
@@ -84,10 +84,15 @@ class BestAndLastCheckpoint(ModelCheckpoint):
             logger.save()
 
 
+def source_batches(t_max: int, critic_steps: int) -> int:
+    """Source batches a training step uses: one per map update, one per critic update after the first."""
+    return t_max + critic_steps - 1
+
+
 class OTGBCLI(LightningCLI):
     """LightningCLI with otgb's shared defaults, a checkpoint section and two ``auto`` settings.
 
-    - ``trainer.logger[*].init_args.name: auto``: the stem of the last ``--config`` file
+    - ``trainer.logger[*].init_args.name: auto``: the ``--config`` files' stems joined by "-"
       (``lightning_logs`` without one), so runs go to ``runs/<stem>/version_N``.
     - ``checkpoint.monitor: auto``: the data module's ``selection_metric``.
 
@@ -114,7 +119,8 @@ class OTGBCLI(LightningCLI):
         super().setup_parser(add_subcommands, main_kwargs, subparser_kwargs)
 
     def add_arguments_to_parser(self, parser) -> None:
-        parser.link_arguments("model.t_max", "data.batches_per_step")
+        parser.link_arguments(("model.t_max", "model.critic_steps"), "data.batches_per_step", compute_fn=source_batches)
+        parser.link_arguments("model.critic_steps", "data.measured_batches_per_step")
         parser.link_arguments("data.physics", "model.physics", apply_on="instantiate")
         parser.add_lightning_class_args(Evaluation, "evaluation")
         parser.add_lightning_class_args(BestAndLastCheckpoint, "checkpoint")
@@ -142,8 +148,11 @@ class OTGBCLI(LightningCLI):
 
 
 def name_loggers_after_config(loggers: object, config_files: list | None) -> None:
-    """Replace logger name ``auto`` by the stem of the last config file (``lightning_logs`` without one)."""
-    name = Path(str(config_files[-1])).stem if config_files else "lightning_logs"
+    """Replace logger name ``auto`` by the config files' stems joined by "-" (``lightning_logs`` without one).
+
+    ``--config configs/pendulum.yaml --config configs/baselines/wgan.yaml`` logs to ``runs/pendulum-wgan``.
+    """
+    name = "-".join(Path(str(c)).stem for c in config_files) if config_files else "lightning_logs"
     for logger in loggers if isinstance(loggers, list) else [loggers]:
         args = getattr(logger, "init_args", None)
         if args is not None and getattr(args, "name", None) == AUTO:
@@ -195,7 +204,7 @@ def main(args: list[str] | None = None) -> None:
 
             discover(argv[1:])
             return
-        OTGBCLI(KernelWeakOT, SimulationDataModule, args=args)
+        OTGBCLI(MapTraining, SimulationDataModule, args=args)
     except InputError as error:
         print(f"otgb: error: {error}", file=sys.stderr)
         raise SystemExit(2) from None

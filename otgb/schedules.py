@@ -11,7 +11,7 @@ from torch.optim.lr_scheduler import LambdaLR
 class CosineOverRun(LambdaLR):
     """Cosine decay from the initial learning rate to ``final_factor`` times it.
 
-    ``total_steps`` defaults to the run's length in training steps, which :class:`KernelWeakOT`
+    ``total_steps`` defaults to the run's length in training steps, which :class:`MapTraining`
     fills in from the trainer (the simulation budget or ``max_steps``, whichever ends first),
     so the schedule follows a changed budget without editing the config.
 

@@ -1,19 +1,22 @@
-"""The maximin of kernel weak OT (paper eq. kernel-maximin) trained as in Algorithm 1.
+"""A map T_phi trained against a critic f_psi as in Algorithm 1 (paper eq. kernel-maximin).
 
 One training step is one iteration of Algorithm 1:
 
     for i in 1..T_max:                       # map updates, a fresh source batch each
         x = S_fp(x0, theta);  z ~ eta (|Z| draws per x)
-        L_T = mean_x [ C_hat_{k,gamma}(x, T_x(Z)) - mean_z f(T_x(z)) ]
+        L_T = objective(x, T_x(Z), f)        # kernel weak OT: mean_x [ C_hat_{k,gamma}(x, T_x(Z)) - mean_z f(T_x(z)) ]
         phi <- phi - grad L_T
-    y ~ nu                                   # critic update
-    L_f = mean f(y_hat) - mean f(y) + lambda * GP
-    psi <- psi - grad L_f
+    for j in 1..critic_steps:                # critic updates (1 in Algorithm 1; 5 in the WGAN-GP baseline)
+        y ~ nu;  y_hat = T(x) (the last map update's outputs, then a fresh source batch each)
+        L_f = mean f(y_hat) - mean f(y) + lambda * GP
+        psi <- psi - grad L_f
 
-Optimisation is manual. ``trainer.global_step`` counts critic updates, i.e. iterations of
-Algorithm 1: the T_max map updates of a step go through the strategy's precision plugin
-without touching Lightning's step counter, so ``max_steps``, ``val_check_interval`` and
-``log_every_n_steps`` all count iterations. Map updates are logged as ``train/map_updates``.
+The objective is a component (``model.objective``): :class:`otgb.ot.WeakTransport` (otgb's
+method) or :class:`otgb.ot.WassersteinGAN` (the baseline). Optimisation is manual.
+``trainer.global_step`` counts iterations of Algorithm 1: the map updates, and the critic
+updates but the last, go through the strategy's precision plugin without touching Lightning's
+step counter, so ``max_steps``, ``val_check_interval`` and ``log_every_n_steps`` all count
+iterations. Map updates are logged as ``train/map_updates``.
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from otgb.data.seeding import derive_seed
 from otgb.errors import InputError
 from otgb.guard import TrainingDiverged, UpdateGuard, diagnosis
-from otgb.ot import KERNELS, critic_loss, kernel_weak_cost
+from otgb.ot import Objective, WeakTransport, critic_loss
 from otgb.parallel import average_gradients, without_gradient_sync
 from otgb.physics.base import PhysicsModel, SimulationDiverged
 
@@ -45,8 +48,8 @@ def _adam(params: Any) -> torch.optim.Optimizer:
     return torch.optim.Adam(params, lr=1e-4)
 
 
-class KernelWeakOT(LightningModule):
-    """Learns T_phi(x; theta, z) by kernel weak OT against a critic f_psi.
+class MapTraining(LightningModule):
+    """Learns T_phi(x; theta, z) against a critic f_psi by an objective (kernel weak OT by default).
 
     Args:
         physics: f_p (linked from the data module by the CLI).
@@ -57,10 +60,11 @@ class KernelWeakOT(LightningModule):
             (one of the z_dim one-hot vectors, equally likely: a discrete latent for a missing
             effect with a few regimes, as the paper uses for some one-to-many tasks).
         n_z: |Z|, latent draws per source sample in the cost.
-        gamma: weight of the variance term of the weak cost (0 one-to-one, 1 one-to-many).
-        kernel: kernel of the weak cost, "distance" (-||a - b|| / 2, the paper's) or "linear"
-            (<a, b> / D: the weak quadratic cost, half the mean squared error one-to-one).
-        t_max: map updates per critic update.
+        objective: what the map minimises (:mod:`otgb.ot.objectives`; default: kernel weak OT
+            with gamma 0 and the distance kernel).
+        t_max: map updates per training step.
+        critic_steps: critic updates per training step (each on a fresh measured batch; all but
+            the first on a fresh source batch).
         gp_weight: lambda, weight of the gradient penalty.
         grad_clip: max gradient norm for both networks (None: no clipping).
         ema_decay: if set, validation, test and figures use an exponential moving average
@@ -84,9 +88,9 @@ class KernelWeakOT(LightningModule):
         z_dim: int = 0,
         latent: str = "normal",
         n_z: int = 1,
-        gamma: float = 0.0,
-        kernel: str = "distance",
+        objective: Objective | None = None,
         t_max: int = 5,
+        critic_steps: int = 1,
         gp_weight: float = 1.0,
         grad_clip: float | None = None,
         ema_decay: float | None = None,
@@ -97,11 +101,12 @@ class KernelWeakOT(LightningModule):
         max_consecutive_skips: int = 10,
     ) -> None:
         super().__init__()
-        self._check_settings(z_dim, latent, n_z, gamma, t_max, gp_weight, grad_clip)
-        if kernel not in KERNELS:
-            raise InputError(f"model.kernel={kernel!r}: expected one of {sorted(KERNELS)}")
+        self._check_settings(z_dim, latent, n_z, t_max, critic_steps, gp_weight, grad_clip)
+        self.objective = WeakTransport() if objective is None else objective
+        self.objective.check_draws(n_z)
         self.save_hyperparameters(
             ignore=[
+                "objective",
                 "physics",
                 "transport_map",
                 "critic",
@@ -120,8 +125,8 @@ class KernelWeakOT(LightningModule):
         self.map_average = (
             AveragedModel(self.transport_map, multi_avg_fn=get_ema_multi_avg_fn(ema_decay)) if ema_decay is not None else None
         )
-        self.z_dim, self.latent, self.n_z, self.gamma, self.kernel = z_dim, latent, n_z, gamma, KERNELS[kernel]
-        self.t_max, self.gp_weight, self.grad_clip = t_max, gp_weight, grad_clip
+        self.z_dim, self.latent, self.n_z = z_dim, latent, n_z
+        self.t_max, self.critic_steps, self.gp_weight, self.grad_clip = t_max, critic_steps, gp_weight, grad_clip
         if max_consecutive_skips < 1:
             raise InputError(f"model.max_consecutive_skips={max_consecutive_skips}: expected >= 1")
         self.guard = UpdateGuard(max_consecutive_skips)
@@ -136,18 +141,17 @@ class KernelWeakOT(LightningModule):
 
     @staticmethod
     def _check_settings(
-        z_dim: int, latent: str, n_z: int, gamma: float, t_max: int, gp_weight: float, grad_clip: float | None
+        z_dim: int, latent: str, n_z: int, t_max: int, critic_steps: int, gp_weight: float, grad_clip: float | None
     ) -> None:
-        if z_dim < 0 or n_z < 1 or t_max < 1:
-            raise InputError(f"model: need z_dim >= 0, n_z >= 1, t_max >= 1; got z_dim={z_dim}, n_z={n_z}, t_max={t_max}")
+        if z_dim < 0 or n_z < 1 or t_max < 1 or critic_steps < 1:
+            raise InputError(
+                "model: need z_dim >= 0, n_z >= 1, t_max >= 1, critic_steps >= 1; "
+                f"got z_dim={z_dim}, n_z={n_z}, t_max={t_max}, critic_steps={critic_steps}"
+            )
         if latent not in LATENTS:
             raise InputError(f"model.latent={latent!r}: expected one of {LATENTS}")
         if latent == "categorical" and z_dim < 2:
             raise InputError(f"model.latent='categorical' draws one of z_dim categories: needs z_dim >= 2, got {z_dim}")
-        if not 0.0 <= gamma <= 1.0:
-            raise InputError(f"model.gamma={gamma}: expected a value in [0, 1]")
-        if gamma > 0 and n_z < 2:
-            raise InputError(f"model.gamma={gamma} > 0 needs n_z >= 2 latent draws per source (got n_z={n_z})")
         if n_z > 1 and z_dim == 0:
             raise InputError(f"model.n_z={n_z} draws of a deterministic map (z_dim=0) are all equal: set z_dim > 0 or n_z = 1")
         if gp_weight < 0 or (grad_clip is not None and grad_clip <= 0):
@@ -199,8 +203,12 @@ class KernelWeakOT(LightningModule):
     # --- Algorithm 1 --------------------------------------------------------------------
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
         map_opt, critic_opt = self.optimizers()
-        if batch["x0"].shape[0] != self.t_max:
-            raise ValueError(f"a training item holds {batch['x0'].shape[0]} source batches, the model expects t_max={self.t_max}")
+        sources, measured = self.t_max + self.critic_steps - 1, self.critic_steps
+        if batch["x0"].shape[0] != sources or batch["y"].shape[0] != measured:
+            raise ValueError(
+                f"a training item holds {batch['x0'].shape[0]} source and {batch['y'].shape[0]} measured batches; the model "
+                f"expects t_max + critic_steps - 1 = {sources} and critic_steps = {measured}"
+            )
         self._key_draws("train")
         self.toggle_optimizer(map_opt)
         y_hat, parts = None, {}
@@ -211,30 +219,52 @@ class KernelWeakOT(LightningModule):
         self.untoggle_optimizer(map_opt)
 
         self.toggle_optimizer(critic_opt)
-        if y_hat is None:  # no map output to train the critic on: the map is what diverged
-            critic_parts, blame = {}, ("map", "every map update of the step gave NaN/Inf")
-        else:
-            generated = y_hat.detach().flatten(0, 1)
-            loss, critic_parts = critic_loss(self.critic, batch["y"], generated, self.gp_weight, self.generator)
-            critic_parts["critic_loss"], blame = loss, ("critic", "loss or gradients NaN/Inf")
-        if self._guarded_backward(critic_opt, self.critic, blame[0], critic_parts.get("critic_loss"), blame[1]):
-            self._clip(critic_opt)
-        critic_opt.step()  # counts the iteration; after a skip there are no gradients and nothing changes
+        for j in range(self.critic_steps):
+            if j > 0:  # a fresh source batch for each further critic update
+                k = self.t_max + j - 1
+                with torch.no_grad():
+                    y_hat = self._generate_or_none(batch["x"][k], batch["x0"][k], batch["theta"][k])
+            critic_parts = self._critic_update(critic_opt, batch["y"][j], y_hat, last=j == self.critic_steps - 1)
         self.untoggle_optimizer(critic_opt)
 
         for scheduler in self._schedulers():
             scheduler.step()
         self._log_step({**parts, **critic_parts})
 
+    def _critic_update(self, opt: Any, y: Tensor, y_hat: Tensor | None, last: bool) -> dict[str, Tensor]:
+        """One critic update on measured ``y`` and map outputs ``y_hat`` (None: the map diverged, skip).
+
+        The last update of a step goes through the LightningOptimizer (it counts the step); the
+        others, like the map's, through the strategy alone.
+        """
+        if y_hat is None:  # no map output to train the critic on: the map is what diverged
+            critic_parts, blame = {}, ("map", "every map update of the step gave NaN/Inf")
+        else:
+            loss, critic_parts = critic_loss(self.critic, y, y_hat.detach().flatten(0, 1), self.gp_weight, self.generator)
+            critic_parts["critic_loss"], blame = loss, ("critic", "loss or gradients NaN/Inf")
+        if self._guarded_backward(opt, self.critic, blame[0], critic_parts.get("critic_loss"), blame[1]):
+            self._clip(opt)
+        if last:
+            opt.step()  # counts the iteration; after a skip there are no gradients and nothing changes
+        else:
+            self.trainer.strategy.optimizer_step(opt.optimizer, closure=lambda: None, model=self)
+        return critic_parts
+
+    def _generate_or_none(self, x: Tensor, x0: Tensor, theta: Tensor) -> Tensor | None:
+        try:
+            return self.generate(x, x0, theta, self.n_z, averaged=False)
+        except SimulationDiverged:
+            return None
+
     def _map_update(self, opt: Any, x: Tensor, x0: Tensor, theta: Tensor) -> tuple[Tensor | None, dict[str, Tensor]]:
         """One map update; (None, {}) when it was skipped (its solve or its gradients not finite)."""
         try:
             y_hat = self.generate(x, x0, theta, self.n_z, averaged=False)
         except SimulationDiverged as error:
-            y_hat, loss, reason = None, None, str(error)
+            y_hat, loss, parts, reason = None, None, {}, str(error)
         else:
-            cost = kernel_weak_cost(x, y_hat, self.gamma, self.kernel).mean()
-            loss, reason = cost - self.critic(y_hat.flatten(0, 1)).mean(), "loss or gradients NaN/Inf"
+            loss, parts = self.objective.map_loss(x, y_hat, self.critic)
+            reason = "loss or gradients NaN/Inf"
         if not self._guarded_backward(opt, self.transport_map, "map", loss, reason):
             return None, {}
         self._clip(opt)
@@ -242,7 +272,7 @@ class KernelWeakOT(LightningModule):
         self.map_updates += 1
         if self.map_average is not None:
             self.map_average.update_parameters(self.transport_map)
-        return y_hat, {"map_loss": loss.detach(), "transport_cost": cost.detach()}
+        return y_hat, parts
 
     def _guarded_backward(self, opt: Any, network: nn.Module, name: str, loss: Tensor | None, reason: str) -> bool:
         """Backward and average over processes; True if the loss and the gradients are finite, to step ``opt``.

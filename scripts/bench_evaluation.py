@@ -22,7 +22,7 @@ from otgb.cli import OTGBCLI
 from otgb.data import SimulationDataModule
 from otgb.metrics import MMD, joint_samples
 from otgb.metrics.joint import JointEvaluator, reference_scores
-from otgb.training import KernelWeakOT
+from otgb.training import MapTraining
 
 
 def timed(label: str, fn):
@@ -38,7 +38,7 @@ def peak_rss_mb() -> float:
 
 
 @torch.no_grad()
-def model_draws(model: KernelWeakOT, ckpt: str, data: dict[str, torch.Tensor]) -> torch.Tensor:
+def model_draws(model: MapTraining, ckpt: str, data: dict[str, torch.Tensor]) -> torch.Tensor:
     """The checkpoint's draws (its moving average when it has one) for every test input, like `otgb test`."""
     model.load_state_dict(torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"])
     draws = data["y"].shape[1]
@@ -53,7 +53,7 @@ def main() -> None:
     parser.add_argument("--ckpt", default=None, help="a checkpoint of the config's model: also time its draws")
     args = parser.parse_args()
 
-    cli = OTGBCLI(KernelWeakOT, SimulationDataModule, run=False, args=["--config", args.config])
+    cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=["--config", args.config])
     data_module = cli.datamodule
     data_module.setup("test")
     data = data_module.test_set

@@ -21,7 +21,7 @@ import numpy as np
 
 from otgb.cli import OTGBCLI
 from otgb.data import SimulationDataModule, generate_measured
-from otgb.training import KernelWeakOT
+from otgb.training import MapTraining
 
 
 def main() -> None:
@@ -35,7 +35,7 @@ def main() -> None:
         raise SystemExit(f"export_measured: {args.out} exists; it is never overwritten")
     if args.out.suffix not in (".npz", ".csv"):
         raise SystemExit(f"export_measured: --out {args.out}: expected a .npz or .csv file")
-    cli = OTGBCLI(KernelWeakOT, SimulationDataModule, run=False, args=["--config", args.config, *overrides])
+    cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=["--config", args.config, *overrides])
     data = cli.datamodule
     sets = generate_measured(data.dgp, args.n or data.n_measured, data.seed)
     times = data.physics.observation_times().double().numpy().round(9)

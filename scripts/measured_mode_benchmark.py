@@ -39,7 +39,7 @@ from otgb.cli import OTGBCLI
 from otgb.data import SimulationDataModule
 from otgb.data.seeding import generator_for
 from otgb.metrics.joint import JointEvaluator
-from otgb.training import KernelWeakOT
+from otgb.training import MapTraining
 
 MARGINAL = ["--data.hidden_effect=[]"]
 METRICS = ("abs_err", "nrmse", "mmd", "energy", "c2st", "mmdagg_reject")
@@ -124,9 +124,9 @@ def separation(configs: list[str], out: Path, extra: list[str]) -> None:
 
 def ignores_theta(config: str, out: Path, extra: list[str], repeats: int = 20) -> None:
     measured = export(config, out, ["theta"])
-    dgp = OTGBCLI(KernelWeakOT, SimulationDataModule, run=False, args=["--config", config, *extra]).datamodule.dgp
+    dgp = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=["--config", config, *extra]).datamodule.dgp
     marginal_args = ["--config", config, *extra, *MARGINAL, f"--data.measured_path={measured}"]
-    data_module = OTGBCLI(KernelWeakOT, SimulationDataModule, run=False, args=marginal_args).datamodule
+    data_module = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=marginal_args).datamodule
     data_module.setup("test")
     data = data_module.test_set
     n, shape = len(data["y"]), tuple(dgp.trajectory_shape)

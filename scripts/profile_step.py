@@ -20,13 +20,13 @@ import torch
 
 from otgb.cli import OTGBCLI
 from otgb.data import SimulationDataModule
-from otgb.ot import critic_loss, kernel_weak_cost
-from otgb.training import KernelWeakOT
+from otgb.ot import critic_loss
+from otgb.training import MapTraining
 
 
-def build(config: str, overrides: list[str]) -> tuple[KernelWeakOT, SimulationDataModule]:
+def build(config: str, overrides: list[str]) -> tuple[MapTraining, SimulationDataModule]:
     args = ["--config", config, "--trainer.logger=false", *overrides]
-    cli = OTGBCLI(KernelWeakOT, SimulationDataModule, run=False, args=args)
+    cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=args)
     return cli.model, cli.datamodule
 
 
@@ -61,14 +61,14 @@ def main() -> None:
             with timed("map forward (grey-box solve)"):
                 y_hat = model.generate(x, x0, theta, model.n_z)
             with timed("map loss (cost + critic)"):
-                loss = kernel_weak_cost(x, y_hat, model.gamma, model.kernel).mean() - model.critic(y_hat.flatten(0, 1)).mean()
+                loss, _ = model.objective.map_loss(x, y_hat, model.critic)
             map_opt.zero_grad()
             with timed("map backward"):
                 loss.backward()
             with timed("optimizer steps"):
                 map_opt.step()
         with timed("critic forward + penalty"):
-            loss, _ = critic_loss(model.critic, batch["y"], y_hat.detach().flatten(0, 1), model.gp_weight)
+            loss, _ = critic_loss(model.critic, batch["y"][0], y_hat.detach().flatten(0, 1), model.gp_weight)
         critic_opt.zero_grad()
         with timed("critic backward"):
             loss.backward()

@@ -21,13 +21,13 @@ import torch
 from otgb.cli import OTGBCLI
 from otgb.data import SimulationDataModule
 from otgb.metrics import abs_err
-from otgb.training import KernelWeakOT
+from otgb.training import MapTraining
 
 CRITERIA = ("val/energy", "val/mmd", "val/mmd2_median")
 
 
 @torch.no_grad()
-def joint_abs_err(model: KernelWeakOT, data: dict[str, torch.Tensor]) -> float:
+def joint_abs_err(model: MapTraining, data: dict[str, torch.Tensor]) -> float:
     y_hat = model.generate(data["x"], data["x0"], data["theta"], 1)
     return float(abs_err(y_hat[:, 0], data["y"][:, 0]).mean())
 
@@ -37,7 +37,7 @@ def main() -> None:
     parser.add_argument("--config", required=True, help="a config whose data.hidden_effect is the DGP of the run's measurements")
     parser.add_argument("--run", type=Path, required=True, help="the run's version directory (metrics.csv, checkpoints/)")
     args, overrides = parser.parse_known_args()
-    cli = OTGBCLI(KernelWeakOT, SimulationDataModule, run=False, args=["--config", args.config, *overrides])
+    cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=["--config", args.config, *overrides])
     model, data = cli.model, cli.datamodule
     data.setup("validate")
     data.setup("test")

@@ -17,7 +17,7 @@ from lightning import Callback
 from otgb.cli import OTGBCLI, logger_override, main
 from otgb.data import SimulationDataModule
 from otgb.errors import InputError
-from otgb.training import KernelWeakOT
+from otgb.training import MapTraining
 
 ROOT = Path(__file__).parents[1]
 CONFIG = str(ROOT / "configs" / "pendulum.yaml")
@@ -114,7 +114,7 @@ def test_same_seed_same_numbers(tmp_path):
 
 
 def test_test_subcommand_and_overrides(tmp_path):
-    main(["fit", *_args(tmp_path, "--trainer.max_steps=3", "--model.gamma=0.0", "--model.gp_weight=0.5")])
+    main(["fit", *_args(tmp_path, "--trainer.max_steps=3", "--model.objective.gamma=0.0", "--model.gp_weight=0.5")])
     run = tmp_path / "run" / "version_0"
     assert "gp_weight: 0.5" in (run / "config.yaml").read_text()
     main(["test", *_args(tmp_path), f"--ckpt_path={run / 'checkpoints' / 'last.ckpt'}"])
@@ -127,7 +127,8 @@ def test_test_subcommand_and_overrides(tmp_path):
 @pytest.mark.parametrize(
     "override, message",
     [
-        (["--model.gamma=1.0"], "model.gamma=1.0 > 0 needs n_z >= 2"),
+        (["--model.objective.gamma=1.0"], "model.objective.gamma=1.0 > 0 needs n_z >= 2"),
+        (["--model.critic_steps=0"], "critic_steps >= 1.*critic_steps=0"),
         (["--model.latent=categorical", "--model.z_dim=1", "--model.n_z=2"], "categorical.*needs z_dim >= 2, got 1"),
         (["--evaluation.c2st_precision=bf16"], "c2st_precision='bf16'.*expected one of .*'bf16-mixed'"),
         (["--evaluation.c2st_classifier=svm"], "c2st_classifier='svm'.*expected one of .*'mlp'"),
@@ -135,7 +136,7 @@ def test_test_subcommand_and_overrides(tmp_path):
 )
 def test_bad_config_value_is_named(tmp_path, override, message):
     with pytest.raises(ValueError, match=message):
-        OTGBCLI(KernelWeakOT, SimulationDataModule, args=["fit", *_args(tmp_path, *override)])
+        OTGBCLI(MapTraining, SimulationDataModule, args=["fit", *_args(tmp_path, *override)])
 
 
 def _otgb(cwd: Path, *args: str) -> subprocess.CompletedProcess:
@@ -145,9 +146,10 @@ def _otgb(cwd: Path, *args: str) -> subprocess.CompletedProcess:
 
 
 def test_bad_input_is_one_line_status_2_and_no_run_directory(tmp_path):
-    done = _otgb(tmp_path, "fit", "--config", CONFIG, "--model.gamma=1.0", f"--data.cache_dir={tmp_path / 'cache'}")
+    done = _otgb(tmp_path, "fit", "--config", CONFIG, "--model.objective.gamma=1.0", f"--data.cache_dir={tmp_path / 'cache'}")
     assert done.returncode == 2
-    assert done.stderr.splitlines() == ["otgb: error: model.gamma=1.0 > 0 needs n_z >= 2 latent draws per source (got n_z=1)"]
+    message = "otgb: error: model.objective.gamma=1.0 > 0 needs n_z >= 2 latent draws per source (got n_z=1)"
+    assert done.stderr.splitlines() == [message]
     assert not (tmp_path / "runs").exists()
 
 
@@ -196,7 +198,8 @@ def test_one_to_many_config_selects_on_joint_c2st(tmp_path):
     assert _last(rows, "val/fp_c2st") > 0.8 and _last(rows, "val/fp_mmdagg_reject") == 1.0
     assert not any(r.get("val/abs_err") for r in rows), "pointwise errors are meaningless for one-to-many"
     ckpt = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)
-    assert ckpt["hyper_parameters"]["gamma"] == 1.0 and ckpt["hyper_parameters"]["n_z"] == 10
+    assert ckpt["hyper_parameters"]["n_z"] == 10
+    assert "gamma: 1.0" in (run / "config.yaml").read_text()
 
 
 def test_test_writes_metrics_json_and_table(tmp_path):
@@ -287,7 +290,7 @@ def test_config_fits_and_tests(tmp_path, monkeypatch, config):
 )
 def test_checkpoint_monitor_auto_follows_the_measured_process(tmp_path, config, override, monitor):
     args = _args(tmp_path, *override, config=str(ROOT / "configs" / f"{config}.yaml"))
-    cli = OTGBCLI(KernelWeakOT, SimulationDataModule, run=False, args=args)
+    cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=args)
     assert cli.trainer.checkpoint_callback.monitor == monitor and cli.config.checkpoint.monitor == monitor
     assert cli.datamodule.selection_metric == ("val/mmd" if config != "pendulum" else "val/abs_err")
     assert cli.trainer.checkpoint_callback.save_last is True and cli.trainer.checkpoint_callback.filename == "best-{step}"
@@ -300,21 +303,21 @@ def test_own_config_gets_the_defaults_and_names_the_run(tmp_path, monkeypatch):
     own.write_text(Path(CONFIG).read_text())
     delta = tmp_path / "slow_critic.yaml"
     delta.write_text("model:\n  critic_optimizer:\n    init_args: {lr: 1.0e-4}\n")
-    for configs, name in [([own], "my_pendulum"), ([own, delta], "slow_critic")]:
+    for configs, name in [([own], "my_pendulum"), ([own, delta], "my_pendulum-slow_critic")]:
         args = [arg for path in configs for arg in ("--config", str(path))]
-        cli = OTGBCLI(KernelWeakOT, SimulationDataModule, run=False, args=args)
+        cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=args)
         assert cli.model.map_average is not None and cli.model.t_max == 1, "model settings of the defaults file"
         assert [(logger.name, logger.version) for logger in cli.trainer.loggers] == [(name, 0), (name, 0)]
         assert Path(cli.trainer.loggers[0].log_dir) == Path("runs") / name / "version_0"
     assert cli.config.model.critic_optimizer.init_args.lr == 1.0e-4 and cli.config.model.map_optimizer.init_args.lr == 1.0e-3
-    named = OTGBCLI(KernelWeakOT, SimulationDataModule, run=False, args=["--config", str(own), logger_override("logs", "mine")])
+    named = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=["--config", str(own), logger_override("logs", "mine")])
     assert [logger.name for logger in named.trainer.loggers] == ["mine", "mine"], "a logger named by the user keeps its name"
 
 
 def test_categorical_latent_draws_equally_likely_one_hot_codes(tmp_path):
     config = str(Path(CONFIG).with_name("pendulum_2m.yaml"))
     args = _args(tmp_path, "--model.latent=categorical", "--model.z_dim=3", config=config)
-    model = OTGBCLI(KernelWeakOT, SimulationDataModule, run=False, args=args).model
+    model = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=args).model
     n = 3000
     z = model.sample_z(n)
     assert z.shape == (n, 3) and set(z.unique().tolist()) == {0.0, 1.0} and torch.all(z.sum(1) == 1)

@@ -15,7 +15,7 @@ from otgb.cli import logger_override, main
 from otgb.data import SimulationDataModule
 from otgb.models import ConditionalMLP, GreyBoxODE, MLPCritic
 from otgb.physics import Constant, Pendulum, Uniform, ViscousFriction
-from otgb.training import KernelWeakOT
+from otgb.training import MapTraining
 
 ROOT = Path(__file__).parents[1]
 CONFIG = str(ROOT / "configs" / "pendulum.yaml")
@@ -28,8 +28,8 @@ class Friction(nn.Module):
         return -1.2 * state[:, 1:2]
 
 
-def _model(correction, z_dim: int = 0, ema_decay: float | None = None) -> KernelWeakOT:
-    return KernelWeakOT(
+def _model(correction, z_dim: int = 0, ema_decay: float | None = None) -> MapTraining:
+    return MapTraining(
         Pendulum(),
         lambda physics, z: GreyBoxODE(physics, z, correction),
         partial(MLPCritic, hidden=[8]),
@@ -107,6 +107,6 @@ def test_a_measured_file_has_no_function_level_error(tmp_path, recorded):
 
 
 def test_a_map_without_components_is_refused(tmp_path):
-    model = KernelWeakOT(Pendulum(), lambda physics, z: nn.Identity(), partial(MLPCritic, hidden=[8]))
+    model = MapTraining(Pendulum(), lambda physics, z: nn.Identity(), partial(MLPCritic, hidden=[8]))
     with pytest.raises(TypeError, match="needs a grey-box map with components"):
         component_analysis(model, _data(tmp_path))

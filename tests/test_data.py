@@ -12,6 +12,7 @@ def _stream(pendulum, **kw):
         batch_size=4,
         batches_per_step=3,
         measured_batch_size=5,
+        measured_batches_per_step=2,
         budget=100,
         seed=7,
     )
@@ -22,7 +23,7 @@ def test_stream_item_shapes_and_budget(pendulum):
     stream = _stream(pendulum)
     items = list(stream)
     assert len(items) == len(stream) == 100 // 12 == 8
-    assert items[0]["x0"].shape == (3, 4, 2) and items[0]["theta"].shape == (3, 4, 1) and items[0]["y"].shape == (5, 50, 1)
+    assert items[0]["x0"].shape == (3, 4, 2) and items[0]["theta"].shape == (3, 4, 1) and items[0]["y"].shape == (2, 5, 50, 1)
     assert [it["index"] for it in items] == list(range(8))
 
 

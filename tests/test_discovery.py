@@ -30,7 +30,7 @@ from otgb.physics import (
     Uniform,
     ViscousFriction,
 )
-from otgb.training import KernelWeakOT
+from otgb.training import MapTraining
 
 ROOT = Path(__file__).parents[1]
 FAST = dict(n_permutations=199, n_trajectories=48, n_bootstrap=5, fit_steps=30, fit_batch=256, strong_candidates=1)
@@ -180,7 +180,7 @@ class Exact(nn.Module):
 def test_workflow_names_adds_and_closes_the_gap():
     pendulum = Pendulum()
     dgp = pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))])
-    module = KernelWeakOT(
+    module = MapTraining(
         pendulum, lambda physics, z: GreyBoxODE(physics, z, lambda *_: Exact(1.2)), partial(MLPCritic, hidden=[8])
     )
     data = Measurements(_draws(dgp, 300, 1), _draws(dgp, 100, 2), _draws(dgp, 100, 3))
@@ -257,9 +257,7 @@ def test_workflow_names_advection_on_a_field():
         def forward(self, state, cond):
             return -0.1 * model.derivative(state)
 
-    module = KernelWeakOT(
-        model, lambda physics, z: GreyBoxODE(physics, z, lambda *_: Advecting()), partial(MLPCritic, hidden=[8])
-    )
+    module = MapTraining(model, lambda physics, z: GreyBoxODE(physics, z, lambda *_: Advecting()), partial(MLPCritic, hidden=[8]))
     data = Measurements(_draws(dgp, 300, 1), _draws(dgp, 100, 2), _draws(dgp, 100, 3))
     settings = DiscoverySettings(**FAST)
     result = run(module, data, settings, locate_step(model, data.train, settings))
@@ -292,7 +290,7 @@ def test_workflow_names_linear_decay_on_a_field():
         def forward(self, state, cond):
             return -0.5 * state
 
-    module = KernelWeakOT(model, lambda physics, z: GreyBoxODE(physics, z, lambda *_: Decaying()), partial(MLPCritic, hidden=[8]))
+    module = MapTraining(model, lambda physics, z: GreyBoxODE(physics, z, lambda *_: Decaying()), partial(MLPCritic, hidden=[8]))
     data = Measurements(_draws(dgp, 300, 1), _draws(dgp, 100, 2), _draws(dgp, 100, 3))
     settings = DiscoverySettings(**FAST)
     result = run(module, data, settings, locate_step(model, data.train, settings))

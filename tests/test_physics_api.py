@@ -227,7 +227,7 @@ def test_joint_prior_draws_follow_each_prior(generator):
 
 def test_a_prior_argument_goes_through_the_cli(tmp_path, capsys):
     from otgb.cli import OTGBCLI, main
-    from otgb.training import KernelWeakOT
+    from otgb.training import MapTraining
 
     config = str(Path(__file__).parents[1] / "configs" / "pendulum.yaml")
     override = ["--data.physics.init_args.omega", "{class_path: otgb.physics.Uniform, init_args: {low: 1, high: 2}}"]
@@ -239,5 +239,5 @@ def test_a_prior_argument_goes_through_the_cli(tmp_path, capsys):
     )
     assert "velocity:\n        class_path: otgb.physics.Constant\n        init_args:\n          value: 0.0" in printed
     args = ["--config", config, *override, f"--data.cache_dir={tmp_path}", "--trainer.logger=false"]
-    physics = OTGBCLI(KernelWeakOT, SimulationDataModule, run=False, args=args).datamodule.physics
+    physics = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=args).datamodule.physics
     assert repr(physics) == repr(Pendulum(omega=Uniform(1.0, 2.0)))

@@ -35,7 +35,7 @@ from otgb.data import SimulationDataModule  # noqa: E402
 from otgb.errors import InputError  # noqa: E402
 from otgb.metrics.energy import energy_per_time  # noqa: E402
 from otgb.physics.base import PhysicsModel  # noqa: E402
-from otgb.training import KernelWeakOT  # noqa: E402
+from otgb.training import MapTraining  # noqa: E402
 
 
 def per_time(values: Tensor) -> Tensor:
@@ -43,7 +43,7 @@ def per_time(values: Tensor) -> Tensor:
     return values.abs().transpose(0, 1).flatten(1).mean(1)
 
 
-def solve_components(model: KernelWeakOT, x0: Tensor, theta: Tensor, seed: int) -> dict[str, Tensor]:
+def solve_components(model: MapTraining, x0: Tensor, theta: Tensor, seed: int) -> dict[str, Tensor]:
     """The evaluation map's components along its solve for x0 (B, *state), theta (B, P), on the CPU.
 
     z comes from ``model.sample_z`` with ``model.generator`` seeded by ``seed`` for the draw
@@ -100,7 +100,7 @@ def true_field(dgp: PhysicsModel | None, states: Tensor, theta: Tensor, seed: in
 
 
 @torch.no_grad()
-def component_analysis(model: KernelWeakOT, datamodule: SimulationDataModule, n: int = 64, seed: int = 0) -> dict[str, Any]:
+def component_analysis(model: MapTraining, datamodule: SimulationDataModule, n: int = 64, seed: int = 0) -> dict[str, Any]:
     """The paper's component analysis (Figure 3) on the first ``n`` validation inputs.
 
     The model's evaluation map (the moving average of its weights when there is one) must

@@ -57,7 +57,10 @@ class SimulationDataModule(LightningDataModule):
         hidden_effect: Terms the data-generating process adds to f_p, hidden from the model (joint mode).
         batch_size: Source inputs per map update.
         measured_batch_size: Measured trajectories per critic update (default: batch_size).
-        batches_per_step: Map updates per critic update (T_max; linked from the model's t_max).
+        batches_per_step: Source batches per training step: one per map update and one per critic update
+            after the first (linked from the model: t_max + critic_steps - 1).
+        measured_batches_per_step: Measured batches per training step, one per critic update (linked from
+            the model's critic_steps).
         simulation_budget: Total f_p simulations for training; training stops when it is spent.
         n_measured: Size |Y| of the generated measured set (joint mode).
         measured_path: A file of measured trajectories (.pt, .npz or .csv): selects the marginal mode.
@@ -81,6 +84,7 @@ class SimulationDataModule(LightningDataModule):
         batch_size: int = 64,
         measured_batch_size: int | None = None,
         batches_per_step: int = 1,
+        measured_batches_per_step: int = 1,
         simulation_budget: int = 1_000_000,
         n_measured: int = 1000,
         measured_path: str | None = None,
@@ -102,6 +106,7 @@ class SimulationDataModule(LightningDataModule):
             ("batch_size", batch_size),
             ("measured_batch_size", measured_batch_size),
             ("batches_per_step", batches_per_step),
+            ("measured_batches_per_step", measured_batches_per_step),
             ("n_val", n_val),
             ("n_test", n_test),
             ("draws_per_input", draws_per_input),
@@ -127,7 +132,7 @@ class SimulationDataModule(LightningDataModule):
             )
         self.physics = physics
         self.batch_size, self.batches_per_step = batch_size, batches_per_step
-        self.measured_batch_size = measured_batch_size
+        self.measured_batch_size, self.measured_batches_per_step = measured_batch_size, measured_batches_per_step
         self.simulation_budget = simulation_budget
         self.n_measured, self.measured_path = n_measured, measured_path
         self.n_val, self.n_test, self.draws_per_input = n_val, n_test, draws_per_input
@@ -224,6 +229,7 @@ class SimulationDataModule(LightningDataModule):
             self.batch_size,
             self.batches_per_step,
             self.measured_batch_size,
+            self.measured_batches_per_step,
             budget=self.simulation_budget // world,
             seed=self.stream_seed,
             rank=rank,

@@ -7,8 +7,9 @@ one rank take the items i = start + worker_id, start + worker_id + num_workers, 
 the DataLoader hands back in index order.
 
 One item is one iteration of Algorithm 1: ``batches_per_step`` source batches of
-``batch_size`` inputs (one per map update) and a batch of measured trajectories for the
-critic update. The f_p simulation itself runs on the training device, in the data module.
+``batch_size`` inputs (one per map update, and one per critic update after the first)
+and ``measured_batches_per_step`` batches of measured trajectories (one per critic
+update). The f_p simulation itself runs on the training device, in the data module.
 """
 
 from __future__ import annotations
@@ -24,13 +25,14 @@ from otgb.physics.base import PhysicsModel
 
 
 class SourceStream(IterableDataset):
-    """Yields dicts with ``index``, ``x0`` (K, B, *state), ``theta`` (K, B, P) and ``y`` (B_y, T, *obs).
+    """Yields dicts with ``index``, ``x0`` (K, B, *state), ``theta`` (K, B, P) and ``y`` (K_y, B_y, T, *obs).
 
     Args:
         physics: f_p, whose priors are sampled.
         measured: the fixed measured set (N, T, *obs); batches are drawn with replacement.
-        batch_size: B, source inputs per map update. batches_per_step: K (T_max).
+        batch_size: B, source inputs per map update. batches_per_step: K, source batches per item.
         measured_batch_size: B_y, measured trajectories per critic update.
+        measured_batches_per_step: K_y, critic updates per item.
         budget: simulations this rank may spend; the stream ends before exceeding it.
         seed, rank: keys of the random draws. start: first item index (resume).
     """
@@ -42,6 +44,7 @@ class SourceStream(IterableDataset):
         batch_size: int,
         batches_per_step: int,
         measured_batch_size: int,
+        measured_batches_per_step: int,
         budget: int,
         seed: int,
         rank: int = 0,
@@ -50,7 +53,8 @@ class SourceStream(IterableDataset):
         super().__init__()
         self.physics, self.measured = physics, measured
         self.batch_size, self.batches_per_step = batch_size, batches_per_step
-        self.measured_batch_size, self.budget = measured_batch_size, budget
+        self.measured_batch_size, self.measured_batches_per_step = measured_batch_size, measured_batches_per_step
+        self.budget = budget
         self.seed, self.rank, self.start = seed, rank, start
 
     @property
@@ -78,7 +82,7 @@ class SourceStream(IterableDataset):
         n, k = self.simulations_per_item, self.batches_per_step
         x0 = self.physics.sample_initial_state(n, g)
         theta = self.physics.sample_theta(n, g)
-        pick = torch.randint(len(self.measured), (self.measured_batch_size,), generator=g)
+        pick = torch.randint(len(self.measured), (self.measured_batches_per_step, self.measured_batch_size), generator=g)
         return {
             "index": index,
             "x0": x0.reshape(k, self.batch_size, *x0.shape[1:]),

@@ -28,7 +28,7 @@ from otgb.discovery.locate import describe
 from otgb.discovery.report import augmented_config, write_augmented, write_report
 from otgb.discovery.workflow import Discovery, DiscoverySettings, Measurements, gap_step, locate_step, run, simulate_from_priors
 from otgb.errors import InputError
-from otgb.training import KernelWeakOT
+from otgb.training import MapTraining
 
 
 class DiscoverCLI(OTGBCLI):
@@ -50,7 +50,7 @@ def discover(args: list[str]) -> Path:
     with warnings.catch_warnings():  # the arguments come from the command line, after the word "discover"
         warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
         parser = {"prog": "otgb discover", "description": __doc__.split("\n\n")[0]}
-        cli = DiscoverCLI(KernelWeakOT, SimulationDataModule, args=args, run=False, parser_kwargs=parser)
+        cli = DiscoverCLI(MapTraining, SimulationDataModule, args=args, run=False, parser_kwargs=parser)
     settings: DiscoverySettings = cli.config_init["discover"]
     datamodule, module, trainer = cli.datamodule, cli.model, cli.trainer
     data = Measurements.from_datamodule(datamodule)

@@ -370,7 +370,7 @@ def scores(p: Tensor, q: Tensor, settings: DiscoverySettings) -> dict[str, float
 
 
 def run(module: Any, data: Measurements, settings: DiscoverySettings, before: DisagreementMap) -> Discovery:
-    """Steps 3-5 on a trained grey-box ``module`` (a KernelWeakOT), after a significant locate."""
+    """Steps 3-5 on a trained grey-box ``module`` (a MapTraining), after a significant locate."""
     physics = module.physics
     result = Discovery(before, describe(before))
     result.selections, designs, draws, result.correction_share = name_step(module, settings)
