@@ -48,7 +48,9 @@ def test_objective_settings_are_checked(build, message):
         build()
 
 
-@pytest.mark.parametrize("system", sorted(BLACK_BOX))
+@pytest.mark.parametrize(
+    "system", ["advdiff", "pendulum", pytest.param("reactdiff", marks=pytest.mark.slow)]
+)  # reaction-diffusion's config smoke test stays in the default suite
 @pytest.mark.parametrize("variant", ["bb-ot", "gb-wgan", "bb-wgan"])
 def test_objective_and_map_train_through_the_cli(tmp_path, monkeypatch, system, variant):
     """Every {OT, WGAN} x {grey-box, black-box} pair trains and validates on every system (grey-box OT: test_cli)."""
