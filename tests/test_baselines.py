@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_cli import _last, _rows, _tiny
+from test_cli import _last, _otgb, _rows, _tiny
 from torch import nn
 
 from otgb.cli import main
@@ -46,6 +46,14 @@ def test_wgan_map_loss_is_minus_the_mean_critic_and_ot_adds_the_cost():
 def test_objective_settings_are_checked(build, message):
     with pytest.raises(InputError, match=message):
         build()
+
+
+def test_a_black_box_map_for_another_system_is_a_one_line_error(tmp_path):
+    configs = ["--config", str(ROOT / "configs" / "pendulum.yaml"), "--config", str(BASELINES / "resnet1d.yaml")]
+    done = _otgb(tmp_path, "fit", *configs, f"--data.cache_dir={tmp_path / 'cache'}")
+    expected = "model.transport_map: ResNet1dMap needs trajectories (T, C, S) on one spatial axis, got (50, 1) from Pendulum"
+    assert done.returncode == 2 and done.stderr.splitlines() == [f"otgb: error: {expected}"]
+    assert not (tmp_path / "runs").exists(), "no run directory is left behind"
 
 
 @pytest.mark.parametrize(

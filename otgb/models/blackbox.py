@@ -23,6 +23,7 @@ from abc import ABC, abstractmethod
 import torch
 from torch import Tensor, nn
 
+from otgb.errors import InputError
 from otgb.models.layers import activation
 from otgb.physics.base import PhysicsModel, raise_if_diverged
 
@@ -135,7 +136,10 @@ class ResNet1dMap(BlackBoxMap):
     ) -> None:
         super().__init__(physics, z_dim, cond_features, activation_name)
         if len(self.trajectory_shape) != 3:
-            raise ValueError(f"ResNet1dMap needs trajectories (T, C, S) on one spatial axis, got {self.trajectory_shape}")
+            raise InputError(
+                f"model.transport_map: ResNet1dMap needs trajectories (T, C, S) on one spatial axis, "
+                f"got {self.trajectory_shape} from {type(physics).__name__}"
+            )
         frames = self.trajectory_shape[0] * self.trajectory_shape[1]
         pad = dict(padding=kernel_size // 2, padding_mode=padding_mode)
         self.stem = nn.Conv1d(frames + self.cond_features, channels, kernel_size, **pad)
@@ -181,11 +185,15 @@ class UNet3dMap(BlackBoxMap):
     ) -> None:
         super().__init__(physics, z_dim, cond_features, activation_name)
         if len(self.trajectory_shape) != 4:
-            raise ValueError(f"UNet3dMap needs trajectories (T, C, H, W) on two spatial axes, got {self.trajectory_shape}")
+            raise InputError(
+                f"model.transport_map: UNet3dMap needs trajectories (T, C, H, W) on two spatial axes, "
+                f"got {self.trajectory_shape} from {type(physics).__name__}"
+            )
         factor = 2 ** (len(channels) - 1)
         if any(n % factor for n in self.trajectory_shape[2:]):
             grid = self.trajectory_shape[2:]
-            raise ValueError(f"UNet3dMap: the grid {grid} must be divisible by {factor} for {len(channels)} levels")
+            levels = len(channels)
+            raise InputError(f"model.transport_map: UNet3dMap's grid {grid} must be divisible by {factor} for {levels} levels")
         fields, code = self.trajectory_shape[1], self.cond_features
         conv = lambda c_in, c_out: nn.Conv3d(c_in + code, c_out, 3, padding=1, padding_mode=padding_mode)  # noqa: E731
         widths = [fields, *channels]
