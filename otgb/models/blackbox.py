@@ -24,14 +24,8 @@ import torch
 from torch import Tensor, nn
 
 from otgb.errors import InputError
-from otgb.models.layers import activation
+from otgb.models.layers import activation, condition_encoder, scale_initial_output
 from otgb.physics.base import PhysicsModel, raise_if_diverged
-
-
-def _scale_output(layer: nn.Module, output_scale: float) -> None:
-    with torch.no_grad():
-        layer.weight.mul_(output_scale)
-        layer.bias.zero_()
 
 
 class BlackBoxMap(nn.Module, ABC):
@@ -42,9 +36,7 @@ class BlackBoxMap(nn.Module, ABC):
         self.trajectory_shape = tuple(physics.trajectory_shape)
         self.cond_dim = physics.theta_dim + z_dim
         self.cond_features = cond_features if self.cond_dim > 0 else 0
-        self.encoder = (
-            nn.Sequential(nn.Linear(self.cond_dim, cond_features), activation(activation_name)) if self.cond_features else None
-        )
+        self.encoder = condition_encoder(self.cond_dim, self.cond_features, activation_name)
 
     def code(self, theta: Tensor, z: Tensor) -> Tensor:
         """The condition's code (B, cond_features); (B, 0) without a condition."""
@@ -89,7 +81,7 @@ class LSTMMap(BlackBoxMap):
         features = math.prod(self.trajectory_shape[1:])
         self.lstm = nn.LSTM(features + self.cond_features, hidden, num_layers=layers, batch_first=True)
         self.out = nn.Linear(hidden, features)
-        _scale_output(self.out, output_scale)
+        scale_initial_output(self.out, output_scale)
 
     def residual(self, x: Tensor, code: Tensor) -> Tensor:
         steps = x.shape[1]
@@ -148,7 +140,7 @@ class ResNet1dMap(BlackBoxMap):
         )
         self.out = nn.Conv1d(channels + self.cond_features, frames, kernel_size, **pad)
         self.act = activation(activation_name)
-        _scale_output(self.out, output_scale)
+        scale_initial_output(self.out, output_scale)
 
     def residual(self, x: Tensor, code: Tensor) -> Tensor:
         cells = x.shape[-1]
@@ -203,7 +195,7 @@ class UNet3dMap(BlackBoxMap):
         self.pool = nn.AvgPool3d((1, 2, 2))
         self.upsample = nn.Upsample(scale_factor=(1, 2, 2), mode="nearest")
         self.act = activation(activation_name)
-        _scale_output(self.out, output_scale)
+        scale_initial_output(self.out, output_scale)
 
     def residual(self, x: Tensor, code: Tensor) -> Tensor:
         with_code = lambda h: torch.cat([h, code[:, :, None, None, None].expand(-1, -1, *h.shape[2:])], dim=1)  # noqa: E731

@@ -17,6 +17,20 @@ def activation(name: str) -> nn.Module:
     return cls()
 
 
+def condition_encoder(cond_dim: int, features: int, activation_name: str) -> nn.Module | None:
+    """The learned encoder of a condition (theta, z) into ``features`` numbers; None without a condition."""
+    if cond_dim <= 0 or features <= 0:
+        return None
+    return nn.Sequential(nn.Linear(cond_dim, features), activation(activation_name))
+
+
+def scale_initial_output(layer: nn.Module, output_scale: float) -> None:
+    """Scale an output layer's initial weights by ``output_scale`` and zero its bias, so that a map starts near its base."""
+    with torch.no_grad():
+        layer.weight.mul_(output_scale)
+        layer.bias.zero_()
+
+
 class ConditionalMLP(nn.Module):
     """MLP f(u, c) whose condition c is encoded once and fed to every hidden layer.
 
@@ -51,14 +65,12 @@ class ConditionalMLP(nn.Module):
         self.out_shape = tuple(out_shape)
         in_dim, out_dim = math.prod(in_shape), math.prod(out_shape)
         code = cond_features if cond_dim > 0 else 0
-        self.encoder = nn.Sequential(nn.Linear(cond_dim, code), activation(activation_name)) if code else None
+        self.encoder = condition_encoder(cond_dim, code, activation_name)
         widths = [in_dim, *hidden]
         self.hidden = nn.ModuleList(nn.Linear(w + code, w_next) for w, w_next in zip(widths[:-1], widths[1:]))
         self.act = activation(activation_name)
         self.out = nn.Linear(widths[-1] + code, out_dim)
-        with torch.no_grad():
-            self.out.weight.mul_(output_scale)
-            self.out.bias.zero_()
+        scale_initial_output(self.out, output_scale)
 
     def forward(self, u: Tensor, cond: Tensor) -> Tensor:
         h = u.flatten(1)
@@ -120,16 +132,14 @@ class ConditionalConvNet(nn.Module):
             raise ValueError(f"ConditionalConvNet: input {tuple(in_shape)} and output {tuple(out_shape)} need the same grid")
         conv = convolution(len(in_shape) - 1)
         code = cond_features if cond_dim > 0 else 0
-        self.encoder = nn.Sequential(nn.Linear(cond_dim, code), activation(activation_name)) if code else None
+        self.encoder = condition_encoder(cond_dim, code, activation_name)
         widths = [in_shape[0], *channels, out_shape[0]]
         self.layers = nn.ModuleList(
             conv(w + code, w_next, kernel_size, padding=kernel_size // 2, padding_mode=padding_mode)
             for w, w_next in zip(widths[:-1], widths[1:])
         )
         self.act = activation(activation_name)
-        with torch.no_grad():
-            self.layers[-1].weight.mul_(output_scale)
-            self.layers[-1].bias.zero_()
+        scale_initial_output(self.layers[-1], output_scale)
 
     def forward(self, u: Tensor, cond: Tensor) -> Tensor:
         code = None
