@@ -46,6 +46,12 @@ def map_draws(model: MapTraining, data: dict[str, torch.Tensor], n_draws: int, c
     return torch.cat(parts)
 
 
+def whole(measured: torch.Tensor, drawn: torch.Tensor, data: dict[str, torch.Tensor], seed: int) -> float:
+    """The same judge on whole trajectories (theta, x0, y)."""
+    p, q = (joint_samples(data["theta"], data["x0"], y).float() for y in (measured, drawn))
+    return float(c2st(p, q, folds=5, seed=seed, classifier="mlp", trajectory_shape=tuple(measured.shape[2:]))["c2st"])
+
+
 def per_frame(measured: torch.Tensor, drawn: torch.Tensor, data: dict[str, torch.Tensor], seed: int) -> list[dict]:
     """Spread, bias and C2ST of each frame; measured and drawn are (N, M, T, *obs)."""
     rows = []
@@ -106,6 +112,7 @@ def main() -> None:
     rows = per_frame(measured, drawn, data, args.seed)
     times = datamodule.physics.observation_times()[-measured.shape[2] :]
     print(f"{args.config}, {args.ckpt_path.name}: {len(measured)} test inputs x {measured.shape[1]} draws")
+    print(f"C2ST on whole trajectories, the same MLP judge: {whole(measured, drawn, data, args.seed):.3f}")
     print("| t | spread measured | spread map | bias | C2ST (this frame) |\n|---|---|---|---|---|")
     for r, t in zip(rows, times.tolist()):
         print(f"| {t:.3g} | {r['spread_measured']:.4f} | {r['spread_map']:.4f} | {r['bias']:.4f} | {r['c2st']:.3f} |")
