@@ -59,8 +59,8 @@ def test_a_black_box_map_for_another_system_is_a_one_line_error(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "system", ["advdiff", "pendulum", pytest.param("reactdiff", marks=pytest.mark.slow)]
-)  # reaction-diffusion's config smoke test stays in the default suite
+    "system", ["pendulum", pytest.param("advdiff", marks=pytest.mark.slow), pytest.param("reactdiff", marks=pytest.mark.slow)]
+)  # the default suite keeps every pair on the pendulum, and each field config's smoke test (test_cli)
 @pytest.mark.parametrize("variant", ["bb-ot", "gb-wgan", "bb-wgan"])
 def test_objective_and_map_train_through_the_cli(tmp_path, monkeypatch, system, variant):
     """Every {OT, WGAN} x {grey-box, black-box} pair trains and validates on every system (grey-box OT: test_cli)."""
@@ -102,7 +102,7 @@ def test_reproduce_table_quick_runs_the_grid_resumes_and_writes_the_table(tmp_pa
 FP_GAP = {"pendulum": (0.15, None), "advdiff": (0.031, 0.036), "reactdiff": (0.095, 0.107)}
 
 
-@pytest.mark.parametrize("system", ["pendulum", "advdiff", pytest.param("reactdiff", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("system", ["pendulum", *(pytest.param(s, marks=pytest.mark.slow) for s in ("advdiff", "reactdiff"))])
 def test_f_p_only_scores_the_reference_gap_and_complete_physics_the_floor(tmp_path, monkeypatch, system):
     """The two rows with nothing to learn, scored by `otgb test` like a trained map: IdentityMap at the gap that
     REFERENCE.md measured for f_p, CompletePhysicsMap (the DGP's simulator at the training step) near the floor."""
