@@ -98,6 +98,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True, help="the figure (PNG)")
     parser.add_argument("--seed", type=int, default=0)
     args, overrides = parser.parse_known_args()
+    if not args.ckpt_path.is_file():
+        raise SystemExit(f"--ckpt_path {args.ckpt_path}: no such checkpoint file")
     arguments = ["--config", args.config, "--trainer.logger=false", *overrides]
     cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=arguments)
     model, datamodule = cli.model, cli.datamodule
