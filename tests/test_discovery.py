@@ -17,6 +17,7 @@ from otgb.discovery.library import build_library, physical_name
 from otgb.discovery.locate import describe, locate
 from otgb.discovery.refine import FAMILIES, FAMILY_REPEATS, Scores, beats, choose_family, discrepancies, fit, row_terms
 from otgb.discovery.regression import design_matrix, regress
+from otgb.discovery.search import best_subsets, subset_values
 from otgb.discovery.workflow import DiscoverySettings, Measurements, locate_step, run
 from otgb.errors import InputError
 from otgb.models import GreyBoxODE, MLPCritic
@@ -191,6 +192,42 @@ def test_workflow_names_adds_and_closes_the_gap():
     assert abs(result.fitted.priors[0].value + 1.2) < 0.12 and result.fitted.family == "constant"
     assert result.gap["f_p"]["c2st"] > 0.85 and result.gap["augmented"]["c2st"] < 0.7
     assert result.after is not None and result.after.significant.sum() < before.significant.sum()
+
+
+class MeanOnly(nn.Module):
+    """f_phi that learned a hidden term's average over the visited states and not its shape: a constant."""
+
+    def forward(self, state, cond):
+        return torch.full_like(state[:, 1:2], -0.3)
+
+
+@pytest.mark.slow
+def test_search_names_the_effect_a_mean_only_correction_missed():
+    pendulum = Pendulum()
+    dgp = pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))])
+    greybox = partial(GreyBoxODE, correction=lambda *_: MeanOnly())
+    module = MapTraining(pendulum, lambda physics, z: greybox(physics, z), partial(MLPCritic, hidden=[8]))
+    data = Measurements(_draws(dgp, 300, 1), _draws(dgp, 100, 2), _draws(dgp, 100, 3))
+    settings = DiscoverySettings(**FAST)
+    result = run(module, data, settings, locate_step(pendulum, data.train, settings))
+    assert [t.candidate.feature for s in result.selections for t in s.terms] == ["1"]  # f_phi's route names a constant
+    assert result.search and result.route == "library search"
+    assert [c.feature for c in result.search[0].candidates] == ["velocity"]
+    assert [c.feature for c in result.fitted.candidates] == ["velocity"]
+    assert abs(result.fitted.priors[0].value + 1.2) < 0.12
+    assert result.gap["augmented"]["c2st"] < 0.7 and not result.after.any_significant
+
+
+def test_best_subsets_tries_every_subset_where_forward_selection_fails():
+    x = torch.linspace(0.05, 0.95, 400, dtype=torch.float64).numpy()
+    X = np.stack([np.ones_like(x), x, x**2, x**3, x**4], 1)
+    y = x - x**3 - 0.2
+    greedy_first = int(np.argmax(np.abs((X / np.sqrt((X**2).mean(0))).T @ y)))
+    subset, residual = best_subsets(X, y, 3)
+    assert sorted(subset) == [0, 1, 3] and residual < 1e-4
+    assert greedy_first not in (1, 3) or best_subsets(X, y, 1)[1] > 0.01  # the best single term is not the answer
+    assert best_subsets(X, y, 2)[1] > 1e-3 and best_subsets(X, y, 6) is None
+    assert np.allclose(subset_values(X, y, subset), [-0.2, 1.0, -1.0])
 
 
 # --- otgb discover ----------------------------------------------------------------------

@@ -101,6 +101,15 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
         },  # fmt: skip
         "regression": [_selection_dict(s) for s in result.selections],
         "cross_check": result.cross_check,
+        "route": result.route if result.found else None,
+        "search": [
+            {
+                "terms": [{"feature": c.feature, "component": c.component} for c in step.candidates],
+                "g_residual": step.g_residual,
+                "heldout_energy": step.fitted.heldout_energy,
+            }
+            for step in result.search
+        ],
         "family": result.fitted.family if result.fitted else None,
         "family_training_discrepancy": result.family_scores,
         "dropped_by_heldout_check": result.dropped,
@@ -264,6 +273,7 @@ def _naming_section(report: dict[str, Any]) -> list[str]:
     for row in report["cross_check"]:
         closed = f"{row['gap_closed']:.2f}" if math.isfinite(row["gap_closed"]) else "diverges"
         lines.append(f"| {code(row['feature'])} | d{row['component']}/dt | {row['coefficient']:.4g} | {closed} |")
+    lines += _search_section(report)
     if report["dropped_by_heldout_check"]:
         lines.append("")
         lines.append("Dropped (no held-out gain): " + ", ".join(f"`{d['feature']}`" for d in report["dropped_by_heldout_check"]))
@@ -275,6 +285,23 @@ def _naming_section(report: dict[str, Any]) -> list[str]:
     if report["locate"]["sentence_after"]:
         lines += ["", f"After the fix: {report['locate']['sentence_after']}."]
     return lines + [""]
+
+
+def _search_section(report: dict) -> list[str]:
+    """The library search's path (when f_phi's route left the gap open), and which route named the terms."""
+    if not report["search"]:
+        return []
+    lines = [
+        "",
+        "### Library search: every local candidate fitted together, then the best subset of each size",
+        "",
+        "| terms | residual of g (relative RMS) | held-out energy |",
+        "|---|---|---|",
+    ]
+    for step in report["search"]:
+        terms = ", ".join(f"{code(t['feature'])} on d{t['component']}/dt" for t in step["terms"])
+        lines.append(f"| {terms} | {step['g_residual']:.3f} | {step['heldout_energy']:.4g} |")
+    return lines + ["", f"Terms named by: **{report['route']}**." if report["route"] else "Nothing kept."]
 
 
 def _pointwise_section(pointwise: dict) -> list[str]:

@@ -45,6 +45,7 @@ from otgb.discovery.refine import (
     fit,
 )
 from otgb.discovery.regression import SelectedTerm, Selection, describe_terms, design_matrix, regress, subset_coefficients
+from otgb.discovery.search import SearchStep, search
 from otgb.errors import InputError
 from otgb.metrics.c2st import c2st
 from otgb.metrics.energy import energy_distance
@@ -139,6 +140,8 @@ class Discovery:
     correction_share: float | None = None
     pointwise: dict[str, dict[str, float]] = field(default_factory=dict)  # against a known DGP (otgb.discovery.known)
     draws: dict[str, Tensor] = field(default_factory=dict)  # the gap table's samples, as many as the test part
+    search: list[SearchStep] = field(default_factory=list)  # the library search's path, when it ran
+    route: str = "f_phi regression"  # which route named the kept terms
 
     @property
     def found(self) -> bool:
@@ -287,6 +290,12 @@ def add_step(physics: PhysicsModel, selections: list[Selection], designs: dict, 
     best = min(fits, key=lambda f: f.heldout_energy)
     current = prune(physics, next(f for f in fits if not beats(best.heldout, f.heldout)), data, settings, designs)
     dropped = [{"feature": c.feature, "component": c.component} for c in path if c not in current.candidates]
+    chosen, scores = choose_prior(physics, current, data, settings)
+    return chosen, scores, dropped
+
+
+def choose_prior(physics: PhysicsModel, current: FittedTerms, data: Measurements, settings: DiscoverySettings):
+    """Each prior family fitted for ``current``'s terms; the simplest that no richer one beats, and every family's score."""
     richer = [
         fit(physics, current.candidates, [p.value for p in current.priors], family, data.train, data.val, **_fit_args(settings))
         for family in settings.families
@@ -296,8 +305,7 @@ def add_step(physics: PhysicsModel, selections: list[Selection], designs: dict, 
     scores = {
         f.family: discrepancies(physics, f.candidates, f.priors, data.train, settings.seed, FAMILY_REPEATS) for f in candidates
     }
-    chosen = choose_family(candidates, scores)
-    return chosen, {family: s.mean for family, s in scores.items()}, dropped
+    return choose_family(candidates, scores), {family: s.mean for family, s in scores.items()}
 
 
 def prune(
@@ -382,21 +390,41 @@ def run(module: Any, data: Measurements, settings: DiscoverySettings, before: Di
     if selected:
         result.fitted, result.family_scores, result.dropped = add_step(physics, result.selections, designs, data, settings)
         progress(f"fitted {result.fitted.family} coefficients {result.fitted.priors}")
-        result.final_terms = final_regression(result.selections, designs, result.fitted.candidates, settings)
-        result.intervals = bootstrap_intervals(
-            physics, result.fitted, data.train, settings.n_bootstrap, settings.fit_steps, settings.fit_batch, settings.seed
-        )
+        result.after = locate_step(result.fitted.model(physics), data.train, settings, "augmented")
+    if result.after is None or result.after.any_significant:
+        search_step(physics, result, designs, data, settings)
     sources = {
         "f_p": simulate_from_priors(physics, len(data.test), settings.seed, "gap-f_p"),
         "greybox": generated(module, len(data.test), settings.seed),
     }
     if result.found:
-        augmented = result.fitted.model(physics)
-        sources["augmented"] = simulate_from_priors(augmented, len(data.test), settings.seed, "gap-augmented")
-        result.after = locate_step(augmented, data.train, settings, "augmented")
+        result.final_terms = final_regression(result.selections, designs, result.fitted.candidates, settings)
+        result.intervals = bootstrap_intervals(
+            physics, result.fitted, data.train, settings.n_bootstrap, settings.fit_steps, settings.fit_batch, settings.seed
+        )
+        sources["augmented"] = simulate_from_priors(result.fitted.model(physics), len(data.test), settings.seed, "gap-augmented")
         result.sentence_after = describe(result.after, b_name="augmented-physics")
     result.gap, result.draws = gap_step(sources, data.test, settings), sources
     return result
+
+
+def search_step(physics: PhysicsModel, result: Discovery, designs: dict, data: Measurements, settings: DiscoverySettings) -> None:
+    """The library search (:mod:`otgb.discovery.search`), when f_phi's route named nothing or the physics it
+    augmented still disagrees with the measurements; its model replaces that route's if it beats it on held-out data."""
+    progress("the augmented physics still disagrees with the measurements: searching the local library")
+    candidates = [c for design in designs.values() for c in design.candidates]
+    fitted = [] if result.fitted is None else zip(result.fitted.candidates, result.fitted.priors)
+    current = {c: p.quantile(torch.tensor(0.5)).item() for c, p in fitted}  # the medians
+    init = [current.get(c, 0.0) for c in candidates]
+    scales = dict(zip(candidates, _fit_args(settings, candidates, designs)["scales"]))
+    kept, result.search = search(physics, candidates, init, data, _fit_args(settings), scales, progress)
+    if kept is None or (result.fitted is not None and not beats(kept.heldout, result.fitted.heldout)):
+        progress("search: kept the terms named from f_phi")
+        return
+    result.fitted, result.family_scores = choose_prior(physics, kept, data, settings)
+    result.dropped, result.route = [], "library search"
+    progress(f"search: fitted {result.fitted.family} coefficients {result.fitted.priors}")
+    result.after = locate_step(result.fitted.model(physics), data.train, settings, "augmented")
 
 
 @torch.no_grad()

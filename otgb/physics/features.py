@@ -118,3 +118,9 @@ def _atom(factor: Factor, state: Tensor, theta: Tensor, model: object) -> Tensor
         return model.laplacian(u)
     order, axis = _spatial_ops(model)[factor.op]
     return model.derivative(u, axis) if order == 1 else model.second_derivative(u, axis)
+
+
+def is_local(feature: str, model: object) -> bool:
+    """Whether ``feature`` depends on the state at one point only (no spatial derivative in it)."""
+    spatial = {*_spatial_ops(model), "lap"}
+    return all(factor.op not in spatial for factor in parse_feature(feature, model))

@@ -1,0 +1,151 @@
+"""Search: name an effect whose shape the grey-box's correction missed, from a fit of the whole local library.
+
+The OT grey-box's correction f_phi can learn an effect's average over the visited states and
+not its shape (reaction-diffusion: f_phi is the reaction's mean, a constant; see
+docs/discovery.md), and its regression then names the wrong terms. The measurements still
+determine the shape. When the physics augmented along f_phi's route still disagrees with the
+measurements, this route:
+
+1. fits every *local* candidate of the acting components together, by distribution matching
+   (:func:`otgb.discovery.refine.fit`), from f_phi's least-squares coefficients. Local: a
+   function of the state at one point (constants, monomials, sin/cos, v|v|, sign); spatial
+   derivatives stay with f_phi's route, since free coefficients on them make the PDE ill-posed
+   (a negative diffusion blows up) and the joint fit unstable. The columns are collinear along
+   the visited states, so the coefficients are not identified, but the correction g they sum
+   to is;
+2. evaluates g along the fitted model's trajectories and finds, for each number of terms k, the
+   subset whose least-squares fit of g leaves the smallest residual. Every subset is tried
+   (from the Gram matrix of the unit-RMS columns): forward selection fails on collinear
+   columns, where the best pair need not contain the best single term;
+3. fits the best subset of each size by distribution matching and scores it on the validation
+   measurements. Sizes grow until two in a row do not improve; the sparsest model that the best
+   does not beat by two standard errors (:func:`otgb.discovery.refine.beats`) is kept.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import combinations
+from math import comb
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from otgb.discovery.library import Candidate
+from otgb.discovery.refine import FittedTerms, beats, fit
+from otgb.discovery.regression import design_matrix
+from otgb.physics.base import PhysicsModel
+from otgb.physics.features import is_local
+
+MAX_SUBSETS = 200_000  # subsets of one size enumerated at most (compute bound; the held-out check picks the size)
+TRAJECTORIES = 64  # fitted-model trajectories along which g is evaluated
+
+
+@dataclass
+class SearchStep:
+    """One size of the search: the best subset of g's least squares and its distribution fit."""
+
+    candidates: list[Candidate]
+    g_residual: float  # relative RMS residual of the subset's least-squares fit of g
+    fitted: FittedTerms
+
+
+def local_candidates(physics: PhysicsModel, candidates: list[Candidate]) -> list[Candidate]:
+    return [c for c in candidates if is_local(c.feature, physics)]
+
+
+@torch.no_grad()
+def fitted_correction(physics: PhysicsModel, dense: FittedTerms, n: int, seed: int) -> tuple[Tensor, Tensor, Tensor]:
+    """States (n, T, *state), theta and the fitted terms' correction (n, T, *state) along n trajectories of the fitted model."""
+    model = dense.model(physics)
+    g = torch.Generator().manual_seed(seed + 5)
+    x0, theta = physics.sample_initial_state(n, g), physics.sample_theta(n, g)
+    coefficients = torch.tensor([p.quantile(torch.tensor(0.5)).item() for p in dense.priors]).expand(n, -1)
+    states = model.solve(lambda t, s: model.vector_field(s, torch.cat([theta, coefficients], 1)), x0)
+    steps = states.shape[1]
+    flat, theta_rows = states.flatten(0, 1), theta.repeat_interleave(steps, 0)
+    with_terms = model.vector_field(flat, torch.cat([theta_rows, coefficients[:1].expand(len(flat), -1)], 1))
+    correction = (with_terms - physics.vector_field(flat, theta_rows)).reshape(states.shape)
+    return states, theta, correction
+
+
+def stacked_design(
+    physics: PhysicsModel, candidates: list[Candidate], states: Tensor, theta: Tensor, correction: Tensor, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of every acting component stacked: a candidate's column is zero on the other components' rows."""
+    blocks, targets = [], []
+    for component in dict.fromkeys(c.component for c in candidates):
+        index = physics.state_names.index(component)
+        design = design_matrix(physics, candidates, states, theta, correction[:, :, index], seed)
+        mask = np.array([c.component == component for c in candidates], dtype=float)
+        blocks.append(design.X * mask)
+        targets.append(design.y)
+    return np.concatenate(blocks), np.concatenate(targets)
+
+
+def best_subsets(X: np.ndarray, y: np.ndarray, size: int) -> tuple[list[int], float] | None:
+    """The ``size`` columns whose least-squares fit of y leaves the smallest residual, and its relative RMS;
+    None when there are more subsets than ``MAX_SUBSETS``."""
+    usable = np.flatnonzero(np.sqrt((X**2).mean(0)) > 0)
+    if size > len(usable) or comb(len(usable), size) > MAX_SUBSETS:
+        return None
+    Xs = X[:, usable] / np.sqrt((X[:, usable] ** 2).mean(0))
+    gram, moments, total = Xs.T @ Xs, Xs.T @ y, float(y @ y)
+    subsets = np.array(list(combinations(range(len(usable)), size)))
+    grams = gram[subsets[:, :, None], subsets[:, None, :]] + 1e-12 * np.eye(size) * len(y)
+    solutions = np.linalg.solve(grams, moments[subsets][..., None])[..., 0]
+    explained = (moments[subsets] * solutions).sum(1)
+    best = int(np.argmax(explained))
+    return [int(usable[j]) for j in subsets[best]], float(np.sqrt(max(total - explained[best], 0.0) / max(total, 1e-300)))
+
+
+def subset_values(X: np.ndarray, y: np.ndarray, subset: list[int]) -> list[float]:
+    return list(np.linalg.lstsq(X[:, subset], y, rcond=None)[0])
+
+
+def search(
+    physics: PhysicsModel,
+    candidates: list[Candidate],
+    init: list[float],
+    data: Any,
+    fit_args: dict,
+    scales: dict[Candidate, float],
+    report: Any = print,
+) -> tuple[FittedTerms | None, list[SearchStep]]:
+    """Steps 1-3 of the module docstring on ``candidates`` (started at ``init``, each coefficient's natural
+    size in ``scales``): the model kept and the path. ``fit_args``: steps, batch and seed of each fit."""
+    pairs = [(c, v) for c, v in zip(candidates, init) if is_local(c.feature, physics)]
+    if not pairs:
+        return None, []
+    local, values = [c for c, _ in pairs], [v for _, v in pairs]
+
+    def fitted(terms: list[Candidate], start: list[float]) -> FittedTerms:
+        sizes = [scales[c] for c in terms]
+        return fit(physics, terms, start, "constant", data.train, data.val, scales=sizes, **fit_args)
+
+    dense = fitted(local, values)
+    report(f"search: {len(local)} local candidates fitted together, held-out energy {dense.heldout_energy:.4g}")
+    if not dense.heldout.finite:
+        return None, []
+    states, theta, correction = fitted_correction(physics, dense, TRAJECTORIES, fit_args.get("seed", 0))
+    X, y = stacked_design(physics, local, states, theta, correction, fit_args.get("seed", 0))
+    path: list[SearchStep] = []
+    for size in range(1, len(local) + 1):
+        found = best_subsets(X, y, size)
+        if found is None:
+            break
+        subset, residual = found
+        chosen = [local[j] for j in subset]
+        path.append(SearchStep(chosen, residual, fitted(chosen, subset_values(X, y, subset))))
+        names = [f"{c.feature} on d{c.component}/dt" for c in chosen]
+        report(f"search: {size} term(s) {names}: held-out energy {path[-1].fitted.heldout_energy:.4g}")
+        best = min(range(len(path)), key=lambda i: path[i].fitted.heldout_energy)
+        if size - 1 - best >= 2:
+            break
+    if not path:
+        return None, []
+    best = min(path, key=lambda s: s.fitted.heldout_energy).fitted
+    kept = next(s.fitted for s in path if not beats(best.heldout, s.fitted.heldout))
+    return kept, path
