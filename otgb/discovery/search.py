@@ -17,9 +17,11 @@ measurements, this route:
    subset whose least-squares fit of g leaves the smallest residual. Every subset is tried
    (from the Gram matrix of the unit-RMS columns): forward selection fails on collinear
    columns, where the best pair need not contain the best single term;
-3. fits the best subset of each size by distribution matching and scores it on the validation
-   measurements. Sizes grow until two in a row do not improve; the sparsest model that the best
-   does not beat by two standard errors (:func:`otgb.discovery.refine.beats`) is kept.
+3. scores the ten best subsets of each size on the validation measurements with their
+   least-squares coefficients (g's residual alone ranks near-collinear subsets by noise), fits
+   the best of them by distribution matching and scores it again. Sizes grow until two in a
+   row do not improve; the sparsest model that the best does not beat by two standard errors
+   (:func:`otgb.discovery.refine.beats`) is kept.
 """
 
 from __future__ import annotations
@@ -34,13 +36,16 @@ import torch
 from torch import Tensor
 
 from otgb.discovery.library import Candidate
-from otgb.discovery.refine import FittedTerms, beats, fit
+from otgb.discovery.refine import FittedTerms, beats, discrepancies, fit
 from otgb.discovery.regression import design_matrix
 from otgb.physics.base import PhysicsModel
 from otgb.physics.features import is_local
+from otgb.physics.priors import Constant
 
 MAX_SUBSETS = 200_000  # subsets of one size enumerated at most (compute bound; the held-out check picks the size)
 TRAJECTORIES = 64  # fitted-model trajectories along which g is evaluated
+PROPOSALS = 10  # subsets of each size (the best by g's residual) scored on held-out data before one is fitted
+PROXY_REPEATS = 3  # simulation draws of that score
 
 
 @dataclass
@@ -85,9 +90,9 @@ def stacked_design(
     return np.concatenate(blocks), np.concatenate(targets)
 
 
-def best_subsets(X: np.ndarray, y: np.ndarray, size: int) -> tuple[list[int], float] | None:
-    """The ``size`` columns whose least-squares fit of y leaves the smallest residual, and its relative RMS;
-    None when there are more subsets than ``MAX_SUBSETS``."""
+def best_subsets(X: np.ndarray, y: np.ndarray, size: int, keep: int = 1) -> list[tuple[list[int], float]] | None:
+    """The ``keep`` subsets of ``size`` columns whose least-squares fits of y leave the smallest residuals, best
+    first, each with its relative RMS residual; None when there are more subsets than ``MAX_SUBSETS``."""
     usable = np.flatnonzero(np.sqrt((X**2).mean(0)) > 0)
     if size > len(usable) or comb(len(usable), size) > MAX_SUBSETS:
         return None
@@ -96,13 +101,18 @@ def best_subsets(X: np.ndarray, y: np.ndarray, size: int) -> tuple[list[int], fl
     subsets = np.array(list(combinations(range(len(usable)), size)))
     grams = gram[subsets[:, :, None], subsets[:, None, :]] + 1e-12 * np.eye(size) * len(y)
     solutions = np.linalg.solve(grams, moments[subsets][..., None])[..., 0]
-    explained = (moments[subsets] * solutions).sum(1)
-    best = int(np.argmax(explained))
-    return [int(usable[j]) for j in subsets[best]], float(np.sqrt(max(total - explained[best], 0.0) / max(total, 1e-300)))
+    residual = np.sqrt(np.clip(total - (moments[subsets] * solutions).sum(1), 0.0, None) / max(total, 1e-300))
+    order = np.argsort(residual, kind="stable")[:keep]
+    return [([int(usable[j]) for j in subsets[i]], float(residual[i])) for i in order]
 
 
 def subset_values(X: np.ndarray, y: np.ndarray, subset: list[int]) -> list[float]:
     return list(np.linalg.lstsq(X[:, subset], y, rcond=None)[0])
+
+
+def _proxy(physics: PhysicsModel, terms: list[Candidate], values: list[float], data: Any, seed: int) -> float:
+    """A proposal's held-out discrepancy with its least-squares coefficients on g, before any fit (cheap: no gradients)."""
+    return discrepancies(physics, terms, [Constant(float(v)) for v in values], data.val, seed, PROXY_REPEATS).mean
 
 
 def search(
@@ -133,12 +143,15 @@ def search(
     X, y = stacked_design(physics, local, states, theta, correction, fit_args.get("seed", 0))
     path: list[SearchStep] = []
     for size in range(1, len(local) + 1):
-        found = best_subsets(X, y, size)
-        if found is None:
+        ranked = best_subsets(X, y, size, PROPOSALS)
+        if ranked is None:
             break
-        subset, residual = found
+        subset, residual, start = min(
+            ((subset, residual, subset_values(X, y, subset)) for subset, residual in ranked),
+            key=lambda proposal: _proxy(physics, [local[j] for j in proposal[0]], proposal[2], data, fit_args.get("seed", 0)),
+        )
         chosen = [local[j] for j in subset]
-        path.append(SearchStep(chosen, residual, fitted(chosen, subset_values(X, y, subset))))
+        path.append(SearchStep(chosen, residual, fitted(chosen, start)))
         names = [f"{c.feature} on d{c.component}/dt" for c in chosen]
         report(f"search: {size} term(s) {names}: held-out energy {path[-1].fitted.heldout_energy:.4g}")
         best = min(range(len(path)), key=lambda i: path[i].fitted.heldout_energy)
