@@ -17,6 +17,7 @@ from otgb.discovery.library import build_library, physical_name
 from otgb.discovery.locate import describe, locate
 from otgb.discovery.refine import FAMILIES, FAMILY_REPEATS, Scores, beats, choose_family, discrepancies, fit, row_terms
 from otgb.discovery.regression import design_matrix, regress
+from otgb.discovery.report import write_report
 from otgb.discovery.search import best_subsets, subset_values
 from otgb.discovery.workflow import DiscoverySettings, Measurements, locate_step, run
 from otgb.errors import InputError
@@ -202,7 +203,7 @@ class MeanOnly(nn.Module):
 
 
 @pytest.mark.slow
-def test_search_names_the_effect_a_mean_only_correction_missed():
+def test_search_names_the_effect_a_mean_only_correction_missed(tmp_path):
     pendulum = Pendulum()
     dgp = pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))])
     greybox = partial(GreyBoxODE, correction=lambda *_: MeanOnly())
@@ -216,6 +217,11 @@ def test_search_names_the_effect_a_mean_only_correction_missed():
     assert [c.feature for c in result.fitted.candidates] == ["velocity"]
     assert abs(result.fitted.priors[0].value + 1.2) < 0.12
     assert result.gap["augmented"]["c2st"] < 0.7 and not result.after.any_significant
+    samples = {"measured": data.test, **{k: v for k, v in result.draws.items() if k != "greybox"}}
+    report = write_report(tmp_path, result, pendulum, {}, samples)
+    assert report["route"] == "library search"
+    assert report["search"][0]["terms"] == [{"feature": "velocity", "component": "velocity"}]
+    assert "Library search" in (tmp_path / "report.md").read_text() and report["terms"][0]["name"] == "viscous friction"
 
 
 def test_best_subsets_tries_every_subset_where_forward_selection_fails():
