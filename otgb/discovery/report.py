@@ -86,6 +86,7 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
         for t in result.final_terms
         if t.alternatives
     ]
+    ambiguous += _search_alternatives(result)
     return {
         "found": result.found,
         "verdict": verdict(result, physics),
@@ -107,6 +108,7 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
                 "terms": [{"feature": c.feature, "component": c.component} for c in step.candidates],
                 "g_residual": step.g_residual,
                 "heldout_energy": step.fitted.heldout_energy,
+                "alternatives": [[{"feature": c.feature, "component": c.component} for c in a] for a in step.alternatives],
             }
             for step in result.search
         ],
@@ -117,6 +119,20 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
         "pointwise": result.pointwise,
         "run": facts,
     }
+
+
+def _search_alternatives(result: Discovery) -> list[dict[str, Any]]:
+    """When the library search named the terms: per kept term, what another subset the kept one does not beat has instead."""
+    if result.route != "library search":
+        return []
+    kept = result.fitted.candidates
+    step = next(s for s in result.search if s.candidates == kept)
+    entries = []
+    for c in kept:
+        instead = sorted({a.feature for alt in step.alternatives if c not in alt for a in alt if a not in kept})
+        if instead:
+            entries.append({"feature": c.feature, "component": c.component, "alternatives": instead})
+    return entries
 
 
 def _selection_dict(selection: Any) -> dict[str, Any]:

@@ -19,14 +19,15 @@ measurements, this route:
    columns, where the best pair need not contain the best single term;
 3. scores the ten best subsets of each size on the validation measurements with their
    least-squares coefficients (g's residual alone ranks near-collinear subsets by noise), fits
-   the best of them by distribution matching and scores it again. Sizes grow until two in a
+   the three best of them by distribution matching and scores them again; the subsets the best
+   one does not beat are reported as alternatives (ambiguous). Sizes grow until two in a
    row do not improve; the sparsest model that the best does not beat by two standard errors
    (:func:`otgb.discovery.refine.beats`) is kept.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from itertools import combinations
 from math import comb
 from typing import Any
@@ -46,19 +47,17 @@ MAX_SUBSETS = 200_000  # subsets of one size enumerated at most (compute bound; 
 TRAJECTORIES = 64  # fitted-model trajectories along which g is evaluated
 PROPOSALS = 10  # subsets of each size (the best by g's residual) scored on held-out data before one is fitted
 PROXY_REPEATS = 3  # simulation draws of that score
+REFITS = 3  # of those, the best by that score fitted by distribution matching
 
 
 @dataclass
 class SearchStep:
-    """One size of the search: the best subset of g's least squares and its distribution fit."""
+    """One size of the search: the subset fitted best by distribution matching, and those it does not beat."""
 
     candidates: list[Candidate]
     g_residual: float  # relative RMS residual of the subset's least-squares fit of g
     fitted: FittedTerms
-
-
-def local_candidates(physics: PhysicsModel, candidates: list[Candidate]) -> list[Candidate]:
-    return [c for c in candidates if is_local(c.feature, physics)]
+    alternatives: list[list[Candidate]] = field(default_factory=list)  # subsets of this size it does not beat
 
 
 @torch.no_grad()
@@ -146,12 +145,16 @@ def search(
         ranked = best_subsets(X, y, size, PROPOSALS)
         if ranked is None:
             break
-        subset, residual, start = min(
-            ((subset, residual, subset_values(X, y, subset)) for subset, residual in ranked),
-            key=lambda proposal: _proxy(physics, [local[j] for j in proposal[0]], proposal[2], data, fit_args.get("seed", 0)),
-        )
-        chosen = [local[j] for j in subset]
-        path.append(SearchStep(chosen, residual, fitted(chosen, start)))
+        proposals = [(subset, residual, subset_values(X, y, subset)) for subset, residual in ranked]
+        proposals.sort(key=lambda p: _proxy(physics, [local[j] for j in p[0]], p[2], data, fit_args.get("seed", 0)))
+        steps = [
+            SearchStep(chosen, residual, fitted(chosen, start))
+            for chosen, residual, start in (([local[j] for j in p[0]], p[1], p[2]) for p in proposals[:REFITS])
+        ]
+        step = min(steps, key=lambda s: s.fitted.heldout_energy)
+        step.alternatives = [s.candidates for s in steps if s is not step and not beats(step.fitted.heldout, s.fitted.heldout)]
+        path.append(step)
+        chosen = step.candidates
         names = [f"{c.feature} on d{c.component}/dt" for c in chosen]
         report(f"search: {size} term(s) {names}: held-out energy {path[-1].fitted.heldout_energy:.4g}")
         best = min(range(len(path)), key=lambda i: path[i].fitted.heldout_energy)
