@@ -114,6 +114,21 @@ def _proxy(physics: PhysicsModel, terms: list[Candidate], values: list[float], d
     return discrepancies(physics, terms, [Constant(float(v)) for v in values], data.val, seed, PROXY_REPEATS).mean
 
 
+def _best_of_size(
+    physics: PhysicsModel, local: list[Candidate], X: np.ndarray, y: np.ndarray, size: int, data: Any, seed: int, fitted: Any
+) -> SearchStep | None:
+    """Step 3 for one size: proposals by g's residual, ranked by their held-out score, the best few fitted."""
+    ranked = best_subsets(X, y, size, PROPOSALS)
+    if ranked is None:
+        return None
+    proposals = [([local[j] for j in subset], residual, subset_values(X, y, subset)) for subset, residual in ranked]
+    proposals.sort(key=lambda p: _proxy(physics, p[0], p[2], data, seed))
+    steps = [SearchStep(terms, residual, fitted(terms, start)) for terms, residual, start in proposals[:REFITS]]
+    step = min(steps, key=lambda s: s.fitted.heldout_energy)
+    step.alternatives = [s.candidates for s in steps if s is not step and not beats(step.fitted.heldout, s.fitted.heldout)]
+    return step
+
+
 def search(
     physics: PhysicsModel,
     candidates: list[Candidate],
@@ -142,21 +157,12 @@ def search(
     X, y = stacked_design(physics, local, states, theta, correction, fit_args.get("seed", 0))
     path: list[SearchStep] = []
     for size in range(1, len(local) + 1):
-        ranked = best_subsets(X, y, size, PROPOSALS)
-        if ranked is None:
+        step = _best_of_size(physics, local, X, y, size, data, fit_args.get("seed", 0), fitted)
+        if step is None:
             break
-        proposals = [(subset, residual, subset_values(X, y, subset)) for subset, residual in ranked]
-        proposals.sort(key=lambda p: _proxy(physics, [local[j] for j in p[0]], p[2], data, fit_args.get("seed", 0)))
-        steps = [
-            SearchStep(chosen, residual, fitted(chosen, start))
-            for chosen, residual, start in (([local[j] for j in p[0]], p[1], p[2]) for p in proposals[:REFITS])
-        ]
-        step = min(steps, key=lambda s: s.fitted.heldout_energy)
-        step.alternatives = [s.candidates for s in steps if s is not step and not beats(step.fitted.heldout, s.fitted.heldout)]
         path.append(step)
-        chosen = step.candidates
-        names = [f"{c.feature} on d{c.component}/dt" for c in chosen]
-        report(f"search: {size} term(s) {names}: held-out energy {path[-1].fitted.heldout_energy:.4g}")
+        names = [f"{c.feature} on d{c.component}/dt" for c in step.candidates]
+        report(f"search: {size} term(s) {names}: held-out energy {step.fitted.heldout_energy:.4g}")
         best = min(range(len(path)), key=lambda i: path[i].fitted.heldout_energy)
         if size - 1 - best >= 2:
             break
