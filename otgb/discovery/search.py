@@ -166,8 +166,7 @@ def search(
         best = min(range(len(path)), key=lambda i: path[i].fitted.heldout_energy)
         if size - 1 - best >= 2:
             break
-    if not path:
-        return None, []
-    best = min(path, key=lambda s: s.fitted.heldout_energy).fitted
-    kept = next(s.fitted for s in path if not beats(best.heldout, s.fitted.heldout))
-    return kept, path
+    best = min(path, key=lambda s: s.fitted.heldout_energy).fitted if path else None
+    if best is None or not best.heldout.finite:  # nothing fitted, or every fitted subset diverges
+        return None, path
+    return next(s.fitted for s in path if not beats(best.heldout, s.fitted.heldout)), path

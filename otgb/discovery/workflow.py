@@ -411,7 +411,8 @@ def run(module: Any, data: Measurements, settings: DiscoverySettings, before: Di
 def search_step(physics: PhysicsModel, result: Discovery, designs: dict, data: Measurements, settings: DiscoverySettings) -> None:
     """The library search (:mod:`otgb.discovery.search`), when f_phi's route named nothing or the physics it
     augmented still disagrees with the measurements; its model replaces that route's if it beats it on held-out data."""
-    progress("the augmented physics still disagrees with the measurements: searching the local library")
+    why = "f_phi named nothing" if result.fitted is None else "the augmented physics still disagrees with the measurements"
+    progress(f"{why}: searching the local library")
     candidates = [c for design in designs.values() for c in design.candidates]
     fitted = [] if result.fitted is None else zip(result.fitted.candidates, result.fitted.priors)
     current = {c: p.quantile(torch.tensor(0.5)).item() for c, p in fitted}  # the medians
@@ -419,7 +420,7 @@ def search_step(physics: PhysicsModel, result: Discovery, designs: dict, data: M
     scales = dict(zip(candidates, _fit_args(settings, candidates, designs)["scales"]))
     kept, result.search = search(physics, candidates, init, data, _fit_args(settings), scales, progress)
     if kept is None or (result.fitted is not None and not beats(kept.heldout, result.fitted.heldout)):
-        progress("search: kept the terms named from f_phi")
+        progress("search: nothing better than " + ("f_phi's terms" if result.fitted else "f_p alone"))
         return
     result.fitted, result.family_scores = choose_prior(physics, kept, data, settings)
     result.dropped, result.route = [], "library search"
