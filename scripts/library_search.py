@@ -55,6 +55,8 @@ def main() -> None:
     parser.add_argument("--start", default="1:u", help="FEATURE:COMPONENT fitted first (f_phi's largest term)")
     parser.add_argument("--batch", type=int, default=256, help="simulations per distribution-matching fit")
     args = parser.parse_args()
+    if args.start.count(":") != 1:
+        parser.error(f"--start {args.start!r}: expected FEATURE:COMPONENT, e.g. 1:u or velocity:velocity")
     folder = args.out / f"{args.case}-seed{args.seed}"
     if not (folder / "measured.npz").exists():
         export(args.case, args.seed, 0.0, folder / "measured.npz")
@@ -78,6 +80,9 @@ def main() -> None:
 def run_search(physics, data: Measurements, args: argparse.Namespace, truth: list) -> dict:
     library = build_library(physics, acting_components(physics))
     first_term = Candidate(*args.start.split(":"))
+    if first_term not in library:
+        example = f"{library[0].feature}:{library[0].component}"
+        raise SystemExit(f"library_search.py: --start {args.start!r} is not a candidate of this model; e.g. {example}")
     fit_args = {"steps": 50, "batch": args.batch, "seed": args.seed}
     started = time.time()
     first = fit(physics, [first_term], [0.0], "constant", data.train, data.val, **fit_args).priors[0].value
