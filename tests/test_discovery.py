@@ -145,6 +145,17 @@ def test_distribution_matching_recovers_the_coefficient():
     assert abs(fitted.priors[0].value + 0.6) < 0.06
 
 
+def test_a_fit_whose_first_steps_diverge_backtracks_to_the_coefficient():
+    """A coefficient scale 250x too large: L-BFGS's first trial steps make the pendulum blow up (or its distances
+    overflow); the line search must back off from them, not stop there or take them."""
+    pendulum = Pendulum()
+    dgp = pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))])
+    candidate = build_library(pendulum, ["velocity"])[2]
+    assert candidate.feature == "velocity"
+    fitted = fit(pendulum, [candidate], [0.0], "constant", _draws(dgp, 300, 1), _draws(dgp, 100, 2), steps=30, scales=[300.0])
+    assert abs(fitted.priors[0].value + 1.2) < 0.12 and fitted.heldout.finite
+
+
 def test_row_terms_are_each_measured_trajectorys_cross_distances(generator):
     a, b = torch.randn(7, 3, 2, 4, generator=generator), torch.randn(5, 3, 2, 4, generator=generator)
     expected = [

@@ -26,7 +26,16 @@ from otgb.data import SimulationDataModule
 from otgb.discovery.known import pointwise_errors, write_measurements
 from otgb.discovery.locate import describe
 from otgb.discovery.report import augmented_config, write_augmented, write_report
-from otgb.discovery.workflow import Discovery, DiscoverySettings, Measurements, gap_step, locate_step, run, simulate_from_priors
+from otgb.discovery.workflow import (
+    Discovery,
+    DiscoverySettings,
+    Measurements,
+    gap_step,
+    locate_step,
+    progress,
+    run,
+    simulate_from_priors,
+)
 from otgb.errors import InputError
 from otgb.training import MapTraining
 
@@ -56,7 +65,7 @@ def discover(args: list[str]) -> Path:
     data = Measurements.from_datamodule(datamodule)
     physics = datamodule.physics
     before = locate_step(physics, data.train, settings)
-    print(f"otgb discover: {describe(before)}", flush=True)
+    progress(describe(before))
     run_dir = Path(trainer.log_dir)
     components = None
     if before.any_significant:
@@ -90,6 +99,7 @@ def discover(args: list[str]) -> Path:
 def load_or_fit(cli: Any, ckpt_path: str | None) -> None:
     """Load the grey-box's weights from ``ckpt_path``, or train it and load its best checkpoint."""
     if ckpt_path is None:
+        progress("learning: training the OT grey-box on the measured training part")
         cli.trainer.fit(cli.model, cli.datamodule)
         best = getattr(cli.trainer.checkpoint_callback, "best_model_path", "")
         if not best:

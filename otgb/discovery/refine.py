@@ -36,6 +36,9 @@ from otgb.physics.terms import LibraryTerm
 FAMILIES = ("constant", "uniform", "normal")  # simplest first
 HELDOUT_REPEATS = 10  # simulation draws per held-out score
 FAMILY_REPEATS = 20  # simulation draws per score of a prior family on the training measurements
+# The loss a fit's L-BFGS sees where the model diverges: finite, so that its strong-Wolfe line search
+# backtracks (from an infinite value its cubic interpolation gives NaN, and every parameter becomes NaN).
+DIVERGED_LOSS = 1e10
 
 
 @dataclass
@@ -202,9 +205,9 @@ def fit(
     def closure() -> Tensor:
         optimiser.zero_grad()
         simulated = simulate_finite(model, x0, torch.cat([theta, prior.draw(noise)], dim=1))
-        if len(simulated) < n:  # some trajectories diverged: no step may go there
-            return torch.tensor(float("inf"))
-        loss = discrepancy(simulated, targets)
+        loss = discrepancy(simulated, targets) if len(simulated) == n else torch.tensor(float("nan"))
+        if not torch.isfinite(loss):  # trajectories diverged, or grew so large that their distances overflow
+            return torch.tensor(DIVERGED_LOSS)
         loss.backward()
         losses.append(float(loss.detach()))
         return loss

@@ -23,6 +23,7 @@ table the test part.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -53,6 +54,7 @@ from otgb.metrics.mmd import mmd_multiscale
 from otgb.physics.base import PhysicsModel
 
 CHUNK = 256
+_LOADED = time.monotonic()
 
 
 class DiscoverySettings:
@@ -149,7 +151,8 @@ class Discovery:
 
 
 def progress(message: str) -> None:
-    print(f"otgb discover: {message}", flush=True)
+    """A progress line, with the minutes since the workflow was loaded (where the time goes)."""
+    print(f"otgb discover [{(time.monotonic() - _LOADED) / 60:.1f} min]: {message}", flush=True)
 
 
 # --- simulation helpers ---------------------------------------------------------------
@@ -272,20 +275,24 @@ def add_step(physics: PhysicsModel, selections: list[Selection], designs: dict, 
 
     The selected terms are ordered by the size of their contribution to f_phi; the models made
     of the first 1, 2, ... of them (coefficients started at their least-squares values and
-    fitted by distribution matching) are scored on the validation measurements. The search
-    stops after two models that do not improve on the best; the sparsest model that the best
+    fitted by distribution matching) are scored on the validation measurements. The path
+    stops after two models in a row that do not beat the leader (the last model that beat every
+    earlier one) by two standard errors: f_phi's regression may select many small terms, each
+    lowering the held-out score a little (reaction-diffusion). The sparsest model that the best
     does not beat by more than two standard errors is kept, then pruned backwards (:func:`prune`);
     the terms left out are reported as dropped. Each prior family is fitted for the result.
     """
     ordered = sorted(((t.size, t.candidate) for s in selections for t in s.terms), key=lambda pair: -pair[0])
     path = [c for _, c in ordered]
     fits: list[FittedTerms] = []
+    leader = 0  # the last model that beat every earlier one
     for k in range(1, len(path) + 1):
         init = _initial(path[:k], designs)
         fits.append(fit(physics, path[:k], init, "constant", data.train, data.val, **_fit_args(settings, path[:k], designs)))
         progress(f"{k} term(s) {[c.feature for c in path[:k]]}: held-out energy {fits[-1].heldout_energy:.4g}")
-        best = min(range(len(fits)), key=lambda i: fits[i].heldout_energy)
-        if k - best > 2:
+        if beats(fits[-1].heldout, fits[leader].heldout):
+            leader = k - 1
+        elif k - 1 - leader >= 2:
             break
     best = min(fits, key=lambda f: f.heldout_energy)
     current = prune(physics, next(f for f in fits if not beats(best.heldout, f.heldout)), data, settings, designs)
@@ -399,11 +406,13 @@ def run(module: Any, data: Measurements, settings: DiscoverySettings, before: Di
     }
     if result.found:
         result.final_terms = final_regression(result.selections, designs, result.fitted.candidates, settings)
+        progress(f"intervals: the fit repeated on {settings.n_bootstrap} resamples of the measured training part")
         result.intervals = bootstrap_intervals(
             physics, result.fitted, data.train, settings.n_bootstrap, settings.fit_steps, settings.fit_batch, settings.seed
         )
         sources["augmented"] = simulate_from_priors(result.fitted.model(physics), len(data.test), settings.seed, "gap-augmented")
         result.sentence_after = describe(result.after, b_name="augmented-physics")
+    progress("verifying on the test part")
     result.gap, result.draws = gap_step(sources, data.test, settings), sources
     return result
 
