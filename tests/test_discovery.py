@@ -15,7 +15,17 @@ from torch import nn
 from otgb.data import generate_measured
 from otgb.discovery.library import build_library, physical_name
 from otgb.discovery.locate import describe, locate
-from otgb.discovery.refine import FAMILIES, FAMILY_REPEATS, Scores, beats, choose_family, discrepancies, fit, row_terms
+from otgb.discovery.refine import (
+    FAMILIES,
+    FAMILY_REPEATS,
+    CoefficientPrior,
+    Scores,
+    beats,
+    choose_family,
+    discrepancies,
+    fit,
+    row_terms,
+)
 from otgb.discovery.regression import design_matrix, regress
 from otgb.discovery.report import write_report
 from otgb.discovery.search import best_subsets, subset_values
@@ -154,6 +164,17 @@ def test_a_fit_whose_first_steps_diverge_backtracks_to_the_coefficient():
     assert candidate.feature == "velocity"
     fitted = fit(pendulum, [candidate], [0.0], "constant", _draws(dgp, 300, 1), _draws(dgp, 100, 2), steps=30, scales=[300.0])
     assert abs(fitted.priors[0].value + 1.2) < 0.12 and fitted.heldout.finite
+
+
+@pytest.mark.parametrize("family", ["uniform", "normal"])
+def test_a_width_fitted_to_nothing_still_gives_a_valid_prior(family):
+    """A coefficient that does not vary: the fit drives the width's parameter far below zero (seen on reaction-diffusion)."""
+    prior = CoefficientPrior(family, [0.9794641733169556, -1.0], [0.4, 0.4])
+    with torch.no_grad():
+        prior.raw_width.fill_(-200.0)
+    priors = prior.priors()
+    assert [round(p.quantile(torch.tensor(0.5)).item(), 6) for p in priors] == [0.979464, -1.0]
+    assert all(0 < float(p.sample(1000, torch.Generator().manual_seed(0)).std()) < 1e-5 for p in priors)
 
 
 def test_row_terms_are_each_measured_trajectorys_cross_distances(generator):

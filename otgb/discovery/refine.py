@@ -39,6 +39,7 @@ FAMILY_REPEATS = 20  # simulation draws per score of a prior family on the train
 # The loss a fit's L-BFGS sees where the model diverges: finite, so that its strong-Wolfe line search
 # backtracks (from an infinite value its cubic interpolation gives NaN, and every parameter becomes NaN).
 DIVERGED_LOSS = 1e10
+MIN_WIDTH = 1e-6  # a prior's smallest width, in units of its coefficient's scale
 
 
 @dataclass
@@ -114,7 +115,9 @@ class CoefficientPrior(torch.nn.Module):
 
     @property
     def width(self) -> Tensor:
-        return self.scale * F.softplus(self.raw_width)
+        """Half-width (uniform) or standard deviation (normal); at least ``MIN_WIDTH`` scales, so that a fit
+        that shrinks it to nothing (a coefficient that does not vary) still gives a valid prior."""
+        return self.scale * (F.softplus(self.raw_width) + MIN_WIDTH)
 
     def noise(self, n: int, generator: torch.Generator) -> Tensor:
         """Standardised draws (n, K) that :meth:`draw` maps to coefficients: U(-1, 1) or N(0, 1)."""
