@@ -253,6 +253,8 @@ def test_search_names_the_effect_a_mean_only_correction_missed(tmp_path):
     report = write_report(tmp_path, result, pendulum, {}, samples)
     assert report["route"] == "library search"
     assert report["search"][0]["terms"] == [{"feature": "velocity", "component": "velocity"}]
+    searched = {a["feature"] for step in report["search"] for alternative in step["alternatives"] for a in alternative}
+    assert all(set(entry["alternatives"]) <= searched for entry in report["ambiguous"])  # not f_phi's (a constant's)
     assert "Library search" in (tmp_path / "report.md").read_text() and report["terms"][0]["name"] == "viscous friction"
 
 

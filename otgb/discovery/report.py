@@ -81,12 +81,7 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
                 "distribution": distribution(prior),
             }
         )
-    ambiguous = [
-        {"feature": t.candidate.feature, "component": t.candidate.component, "alternatives": [a.feature for a in t.alternatives]}
-        for t in result.final_terms
-        if t.alternatives
-    ]
-    ambiguous += _search_alternatives(result)
+    ambiguous = _search_alternatives(result) if result.route == "library search" else _regression_alternatives(result)
     return {
         "found": result.found,
         "verdict": verdict(result, physics),
@@ -121,10 +116,18 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
     }
 
 
+def _regression_alternatives(result: Discovery) -> list[dict[str, Any]]:
+    """When f_phi's regression named the terms: per kept term, the candidates that replace it in f_phi's fit."""
+    return [
+        {"feature": t.candidate.feature, "component": t.candidate.component, "alternatives": [a.feature for a in t.alternatives]}
+        for t in result.final_terms
+        if t.alternatives
+    ]
+
+
 def _search_alternatives(result: Discovery) -> list[dict[str, Any]]:
-    """When the library search named the terms: per kept term, what another subset the kept one does not beat has instead."""
-    if result.route != "library search":
-        return []
+    """When the library search named the terms (f_phi did not describe them, so its regression's alternatives say
+    nothing about them): per kept term, what another subset the kept one does not beat has instead."""
     kept = result.fitted.candidates
     step = next(s for s in result.search if s.candidates == kept)
     entries = []
