@@ -276,8 +276,8 @@ def add_step(physics: PhysicsModel, selections: list[Selection], designs: dict, 
     The selected terms are ordered by the size of their contribution to f_phi; the models made
     of the first 1, 2, ... of them (coefficients started at their least-squares values and
     fitted by distribution matching) are scored on the validation measurements. The path
-    stops after two models in a row that do not beat the leader (the last model that beat every
-    earlier one) by two standard errors: f_phi's regression may select many small terms, each
+    stops after two models in a row that do not beat the leader (the last model that beat the
+    leader before it) by two standard errors: f_phi's regression may select many small terms, each
     lowering the held-out score a little (reaction-diffusion). The sparsest model that the best
     does not beat by more than two standard errors is kept, then pruned backwards (:func:`prune`);
     the terms left out are reported as dropped. Each prior family is fitted for the result.
@@ -285,7 +285,7 @@ def add_step(physics: PhysicsModel, selections: list[Selection], designs: dict, 
     ordered = sorted(((t.size, t.candidate) for s in selections for t in s.terms), key=lambda pair: -pair[0])
     path = [c for _, c in ordered]
     fits: list[FittedTerms] = []
-    leader = 0  # the last model that beat every earlier one
+    leader = 0  # the last model that beat the leader before it
     for k in range(1, len(path) + 1):
         init = _initial(path[:k], designs)
         fits.append(fit(physics, path[:k], init, "constant", data.train, data.val, **_fit_args(settings, path[:k], designs)))
