@@ -378,6 +378,7 @@ def test_workflow_names_linear_decay_on_a_field():
     assert [(c.feature, c.component) for c in result.fitted.candidates] == [("T", "T")]
     assert abs(result.fitted.priors[0].value + 0.5) < 0.05
     assert physical_name("T", "T", result.fitted.priors[0].value, model) == "linear decay"
+    assert result.gap["augmented"]["c2st"] < 0.7 < result.gap["f_p"]["c2st"]
 
 
 @pytest.mark.slow
