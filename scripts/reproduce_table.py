@@ -4,6 +4,7 @@
     python scripts/reproduce_table.py --out bench/table --tasks Pendulum-1-m Adv-diff-1-m --seeds 0 1 2
     python scripts/reproduce_table.py --out bench/table --gather docs/results.md   # only write the table
     python scripts/reproduce_table.py --out /tmp/quick --quick --gather /tmp/quick/results.md   # minutes
+    python scripts/reproduce_table.py --out bench/table --tasks React-diff-1-m -- --trainer.accelerator=gpu
 
 Each run is ``otgb fit`` with the task's config and the method's overlays
 (``configs/baselines/*.yaml``) and ``--seed_everything S``, then ``otgb test`` on its best
@@ -27,6 +28,7 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -81,14 +83,25 @@ def configs(task: str, method: str) -> list[str]:
     return [arg for path in files for arg in ("--config", str(path))]
 
 
-def otgb(args: list[str], log: Path) -> float:
-    """``otgb <args>`` with its output in ``log``; its wall time in seconds (exits on failure)."""
+def otgb(args: list[str], log: Path, on_exit: Callable[[float], None] = lambda seconds: None) -> None:
+    """``otgb <args>`` with its output in ``log``; ``on_exit`` gets its wall time in seconds, even if it failed (then exits)."""
     start = time.perf_counter()
     with open(log, "a") as out:
         done = subprocess.run([sys.executable, "-m", "otgb.cli", *args], stdout=out, stderr=subprocess.STDOUT)
+    on_exit(time.perf_counter() - start)
     if done.returncode != 0:
         sys.exit(f"otgb {args[0]} failed (exit {done.returncode}); its output: {log}")
-    return time.perf_counter() - start
+
+
+def add_fit_time(folder: Path, extra: list[str]) -> Callable[[float], None]:
+    """Adds a fit's (or an interrupted fit's) seconds to the run's ``wall_time.json``."""
+
+    def add(seconds: float) -> None:
+        path = folder / "wall_time.json"
+        timing = json.loads(path.read_text()) if path.exists() else {"fit_s": 0.0}
+        path.write_text(json.dumps({**timing, "fit_s": timing["fit_s"] + seconds, "machine": machine(extra)}))
+
+    return add
 
 
 def run_method(out: Path, task: str, method: str, seed: int, extra: list[str]) -> None:
@@ -98,13 +111,10 @@ def run_method(out: Path, task: str, method: str, seed: int, extra: list[str]) -
         return
     folder.mkdir(parents=True, exist_ok=True)
     common = [*configs(task, method), f"--seed_everything={seed}", "--trainer.enable_progress_bar=false", *extra]
-    last = folder / "fit" / "version_0" / "checkpoints" / "last.ckpt"
-    resume = [f"--ckpt_path={last}"] if last.exists() else []
+    last = newest(folder / "fit", "version_*/checkpoints/last.ckpt")  # a resumed fit writes the next version
+    resume = [f"--ckpt_path={last}"] if last is not None else []
     print(f"{task} {method} seed {seed}: {'resuming' if resume else 'fitting'}", flush=True)
-    seconds = otgb(["fit", *common, logger_override(str(folder), "fit"), *resume], folder / "otgb.log")
-    timing = json.loads((folder / "wall_time.json").read_text()) if (folder / "wall_time.json").exists() else {"fit_s": 0.0}
-    timing["fit_s"] += seconds
-    (folder / "wall_time.json").write_text(json.dumps({**timing, "machine": machine()}))
+    otgb(["fit", *common, logger_override(str(folder), "fit"), *resume], folder / "otgb.log", add_fit_time(folder, extra))
     best = sorted((folder / "fit").glob("version_*/checkpoints/best-*.ckpt"), key=lambda p: p.stat().st_mtime)
     otgb(["test", *common, logger_override(str(folder), "test"), f"--ckpt_path={best[-1]}"], folder / "otgb.log")
 
@@ -130,8 +140,16 @@ def run_fixed(out: Path, task: str, extra: list[str]) -> None:
         otgb(["test", *args, logger_override(str(folder), "test")], folder / "otgb.log")
 
 
-def machine() -> str:
-    return f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}"
+def machine(extra: list[str]) -> str:
+    """The machine a run used: the GPU's name when ``extra`` asks for one, else the CPU and its threads."""
+    cpu = f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads"
+    gpu = any(arg.replace(" ", "") in ("--trainer.accelerator=gpu", "--trainer.accelerator=cuda") for arg in extra)
+    return f"{torch.cuda.get_device_name() if gpu else cpu}, torch {torch.__version__}"
+
+
+def newest(folder: Path, pattern: str) -> Path | None:
+    found = sorted(folder.glob(pattern), key=lambda p: p.stat().st_mtime)
+    return found[-1] if found else None
 
 
 def metrics(folder: Path) -> dict | None:
@@ -198,12 +216,20 @@ def main() -> None:
     parser.add_argument("--seeds", nargs="*", type=int, default=[0, 1, 2])
     parser.add_argument("--quick", action="store_true", help="4 training steps on small sets: checks the path, measures nothing")
     parser.add_argument("--gather", type=Path, help="only write the table of the finished runs into this Markdown file")
+    parser.add_argument(
+        "--fixed",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="also score the f_p-only and complete-physics rows (--no-fixed: several methods in parallel)",
+    )
+    parser.add_argument("overrides", nargs="*", help="otgb overrides for every run, after --, e.g. -- --trainer.accelerator=gpu")
     args = parser.parse_args()
     out = args.out.resolve()
     if args.gather is None or args.quick:
-        extra = [*QUICK, f"--data.cache_dir={out / 'cache'}"] if args.quick else [f"--data.cache_dir={out / 'cache'}"]
+        extra = [*(QUICK if args.quick else []), f"--data.cache_dir={out / 'cache'}", *args.overrides]
         for task in args.tasks:
-            run_fixed(out, task, extra)
+            if args.fixed:
+                run_fixed(out, task, extra)
             for seed in args.seeds:
                 for method in args.methods:
                     run_method(out, task, method, seed, extra)

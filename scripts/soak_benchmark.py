@@ -11,8 +11,10 @@ group (every process of a DDP run) every ``--sample-s`` seconds into ``memory.cs
 - whether the resume lost simulations (the final step count against budget / simulations per
   step) or log rows (every logged step of the run, 0 to the end, in some ``metrics.csv``).
 
-``throughput`` trains ``configs/pendulum.yaml`` for ``--steps`` steps in one process, then in
-two DDP processes on the same machine, and reports simulations per second of each.
+``throughput`` trains ``--config`` (``configs/pendulum.yaml``) for ``--steps`` steps in each of
+``--runs``, one after another on the same machine: 1 process, 2 DDP processes (the same
+simulations), 1 GPU; ``--cpus N`` pins every run to N CPUs, so a GPU machine with many cores can
+stand in for a 2-core one. It reports simulations per second of each.
 
 Both skip what is done and resume what is not: run the same command again after an interruption.
 Linux only (memory is read from /proc).
@@ -20,6 +22,7 @@ Linux only (memory is read from /proc).
     python scripts/soak_benchmark.py soak --out bench/soak --kill-after 600
     python scripts/soak_benchmark.py soak --out bench/soak-gpu --accelerator gpu --devices 2
     python scripts/soak_benchmark.py throughput --out bench/throughput --steps 200
+    python scripts/soak_benchmark.py throughput --out bench/gpu --config reactdiff.yaml --runs cpu:1 gpu:1 --cpus 2 --steps 40
 """
 
 from __future__ import annotations
@@ -131,24 +134,39 @@ def summarise(out: Path, args: argparse.Namespace, state: dict) -> dict:
     }
 
 
+def cpu_name() -> str:
+    """The CPU's model name, from /proc/cpuinfo."""
+    lines = [line for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("model name")]
+    return lines[0].split(":", 1)[1].strip() if lines else "unknown CPU"
+
+
+RUNS = {"cpu:1": "1 process", "cpu:2": "2 processes (DDP)", "gpu:1": "1 GPU"}
+
+
 def throughput(args: argparse.Namespace) -> None:
+    """Simulations per second of ``--config`` in each of ``--runs``, on the same simulations, one after another."""
     out = Path(args.out)
     results = json.loads((out / "throughput.json").read_text()) if (out / "throughput.json").exists() else {}
-    for name, processes in (("1 process", 1), ("2 processes (DDP)", 2)):
+    pin = (lambda: os.sched_setaffinity(0, range(args.cpus))) if args.cpus else None
+    env = {**os.environ, **({"OMP_NUM_THREADS": str(args.cpus)} if args.cpus else {})}
+    for run in args.runs:
+        accelerator, processes = run.split(":")[0], int(run.split(":")[1])
+        name = f"{Path(args.config).stem}, {RUNS.get(run, run)}"
         if name in results:
             continue
-        folder = out / name.split()[0]
+        folder = out / name.replace(", ", "-").replace(" ", "_").replace("(", "").replace(")", "")
         folder.mkdir(parents=True, exist_ok=True)
         steps = args.steps // processes  # the same number of simulations
         extra = [f"--trainer.max_steps={steps}", f"--trainer.val_check_interval={steps}", "--trainer.enable_progress_bar=false",
-                 "--trainer.accelerator=cpu", f"--trainer.devices={processes}", "--components.enabled=false",
-                 *(["--trainer.strategy=ddp"] if processes > 1 else [])]  # fmt: skip
+                 f"--trainer.accelerator={accelerator}", f"--trainer.devices={processes}", "--components.enabled=false",
+                 *(["--trainer.strategy=ddp"] if processes > 1 else []), *args.overrides]  # fmt: skip
         start = time.time()
-        subprocess.run(fit_command("pendulum.yaml", folder, extra), check=True, capture_output=True)
+        subprocess.run(fit_command(args.config, folder, extra), check=True, capture_output=True, preexec_fn=pin, env=env)
         rows = [r for r in csv.DictReader(open(newest(folder, "metrics.csv"))) if r.get("val/wall_time_s")]
         sims, seconds = float(rows[-1]["val/simulations"]), float(rows[-1]["val/wall_time_s"])
         results[name] = {"simulations": sims, "training_s": seconds, "simulations_per_s": sims / seconds,
-                         "command_wall_s": time.time() - start}  # fmt: skip
+                         "command_wall_s": time.time() - start, "cpus": args.cpus or os.cpu_count(),
+                         "device": torch.cuda.get_device_name() if accelerator == "gpu" else cpu_name()}  # fmt: skip
         (out / "throughput.json").write_text(json.dumps(results, indent=1))
     print(json.dumps(results, indent=1))
 
@@ -167,7 +185,11 @@ def main() -> None:
     s.add_argument("overrides", nargs="*", help="more otgb fit overrides, after --")
     t = commands.add_parser("throughput")
     t.add_argument("--out", required=True)
-    t.add_argument("--steps", type=int, default=200, help="steps of the 1-process run (the 2-process run takes half)")
+    t.add_argument("--steps", type=int, default=200, help="steps of a 1-process run (a 2-process run takes half)")
+    t.add_argument("--config", default="pendulum.yaml", help="a config in configs/")
+    t.add_argument("--runs", nargs="+", default=["cpu:1", "cpu:2"], help="accelerator:processes, e.g. cpu:1 cpu:2 gpu:1")
+    t.add_argument("--cpus", type=int, default=None, help="pin every run to the first N CPUs (and N threads)")
+    t.add_argument("overrides", nargs="*", help="more otgb fit overrides, after --")
     args = parser.parse_args()
     soak(args) if args.command == "soak" else throughput(args)
 
