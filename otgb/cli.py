@@ -75,6 +75,21 @@ class BestAndLastCheckpoint(ModelCheckpoint):
             left = f"; {last} is complete: resume with --ckpt_path {last}" if last.exists() and str(last) != filepath else ""
             raise OutputNotWritten(f"could not write the checkpoint {filepath} ({error.strerror}), removed it{left}") from None
 
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        """A resume writes into a new ``version_N``: keep the earlier best score as the one to beat.
+
+        Lightning forgets it when the folder changes, so the resumed run's first validation would be
+        saved as "best" however bad. Files of the earlier folder are never removed (Lightning removes
+        only those inside its own ``dirpath``), and ``last_model_path`` stays the new folder's.
+        """
+        if state_dict.get("dirpath", self.dirpath) == self.dirpath:
+            return super().load_state_dict(state_dict)
+        self.best_model_path = state_dict["best_model_path"]
+        self.best_model_score = state_dict["best_model_score"]
+        self.best_k_models = dict(state_dict.get("best_k_models", {}))
+        self.kth_best_model_path = state_dict.get("kth_best_model_path", self.kth_best_model_path)
+        self.kth_value = state_dict.get("kth_value", self.kth_value)
+
     def on_validation_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
         super().on_validation_end(trainer, pl_module)
         skip = self._should_skip_saving_checkpoint(trainer)  # also true when a best checkpoint was just saved

@@ -14,7 +14,7 @@ import torch
 import yaml
 from lightning import Callback
 
-from otgb.cli import OTGBCLI, logger_override, main
+from otgb.cli import OTGBCLI, BestAndLastCheckpoint, logger_override, main
 from otgb.data import SimulationDataModule
 from otgb.errors import InputError
 from otgb.training import MapTraining
@@ -99,10 +99,26 @@ def test_resume_continues_the_stream_and_matches_an_uninterrupted_run(tmp_path, 
     resumed = torch.load(tmp_path / "b" / "run" / "version_1" / "checkpoints" / "last.ckpt", weights_only=False)
     assert resumed["global_step"] == 6 and resumed["SimulationDataModule"]["items_consumed"] == 6
     assert resumed["otgb"]["map_updates"] == 30
+    best, resumed_best = (next(v for k, v in c["callbacks"].items() if "BestAndLastCheckpoint" in k) for c in (full, resumed))
+    assert resumed_best["best_model_score"] == best["best_model_score"], "the resumed run keeps the earlier best to beat"
+    assert Path(resumed_best["best_model_path"]).name == Path(best["best_model_path"]).name
     for name, value in full["state_dict"].items():
         assert torch.allclose(value, resumed["state_dict"][name], atol=1e-5), name
     messages = [str(w.message) for w in recwarn]
     assert not [m for m in messages if "not resumable" in m or "will be deleted" in m], "the causes are fixed"
+
+
+def test_a_resume_into_a_new_folder_keeps_the_best_score_to_beat(tmp_path):
+    earlier = BestAndLastCheckpoint(dirpath=tmp_path / "version_0" / "checkpoints", monitor="val/abs_err", save_last=True)
+    best = str(tmp_path / "version_0" / "checkpoints" / "best-step=3.ckpt")
+    earlier.best_k_models = {best: torch.tensor(0.1)}
+    earlier.best_model_path, earlier.best_model_score = best, torch.tensor(0.1)
+    earlier.kth_best_model_path, earlier.kth_value = earlier.best_model_path, torch.tensor(0.1)
+    resumed = BestAndLastCheckpoint(dirpath=tmp_path / "version_1" / "checkpoints", monitor="val/abs_err", save_last=True)
+    resumed.load_state_dict(earlier.state_dict())
+    assert float(resumed.best_model_score) == pytest.approx(0.1) and resumed.best_model_path == earlier.best_model_path
+    assert resumed.best_k_models == earlier.best_k_models and float(resumed.kth_value) == pytest.approx(0.1)
+    assert resumed.last_model_path == "", "last.ckpt is the new folder's"
 
 
 def test_same_seed_same_numbers(tmp_path):
