@@ -15,13 +15,15 @@ from otgb.cli import logger_override
 
 ROOT = Path(__file__).parents[1]
 DDP = ["--trainer.strategy=ddp", "--trainer.devices=2", "--trainer.accelerator=cpu"]
+LIGHTNING = [sys.executable]  # Lightning starts the second process itself
+TORCHRUN = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node=2"]  # `torchrun`
 TIMEOUT_S = 300
 
 
-def _otgb_ddp(cwd: Path, *args: str) -> subprocess.CompletedProcess:
+def _otgb_ddp(cwd: Path, *args: str, launcher: list[str] = LIGHTNING) -> subprocess.CompletedProcess:
     """``python -m otgb.cli ...`` on 2 processes; a run still going after TIMEOUT_S (a hang) is killed and fails the test."""
     path = os.pathsep.join([str(ROOT), str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")])
-    command = [sys.executable, "-m", "otgb.cli", *args, *DDP]
+    command = [*launcher, "-m", "otgb.cli", *args, *DDP]
     run = subprocess.Popen(
         command, cwd=cwd, env={**os.environ, "PYTHONPATH": path}, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         start_new_session=True,  # Lightning starts the second process as a child: kill the whole group
@@ -91,3 +93,20 @@ def test_a_resumed_two_process_run_matches_an_uninterrupted_one(tmp_path):
     assert resumed["global_step"] == full["global_step"] == 10
     for name, value in full["state_dict"].items():
         assert torch.allclose(value, resumed["state_dict"][name], atol=1e-6), name
+
+
+@pytest.mark.slow
+def test_torchrun_starts_the_same_two_process_run(tmp_path):
+    steps = ["--data.simulation_budget=640", "--data.batch_size=16", "--model.t_max=2", "--trainer.val_check_interval=5"]
+    for folder, launcher in (("lightning", LIGHTNING), ("torchrun", TORCHRUN)):
+        (tmp_path / folder).mkdir()
+        _otgb_ddp(tmp_path / folder, "fit", *_args(tmp_path / folder, "pendulum.yaml", *steps), launcher=launcher)
+    spawned, started = (torch.load(tmp_path / f / "run" / "version_0" / "checkpoints" / "last.ckpt", weights_only=False)
+                        for f in ("lightning", "torchrun"))  # fmt: skip
+    assert started["global_step"] == spawned["global_step"] == 10
+    for name, value in spawned["state_dict"].items():
+        assert torch.allclose(value, started["state_dict"][name], atol=1e-6), name
+    folder = tmp_path / "torchrun"
+    last = folder / "run" / "version_0" / "checkpoints" / "last.ckpt"
+    _otgb_ddp(folder, "test", *_args(folder, "pendulum.yaml"), f"--ckpt_path={last}", launcher=TORCHRUN)
+    assert json.loads((folder / "run" / "version_1" / "metrics.json").read_text())["run"]["global_step"] == 10
