@@ -10,9 +10,12 @@ and draws, and all processes take the same step, so their weights stay equal.
 
 from __future__ import annotations
 
+import signal
 from collections.abc import Iterable
+from types import FrameType
 
 import torch
+from lightning import Trainer
 from lightning.pytorch.strategies import Strategy
 from torch import nn
 from torch._utils import _flatten_dense_tensors, _unflatten_dense_tensors
@@ -38,3 +41,41 @@ def average_gradients(parameters: Iterable[nn.Parameter], strategy: Strategy) ->
     flat = strategy.reduce(_flatten_dense_tensors(grads), reduce_op="mean")
     for parameter, grad in zip(parameters, _unflatten_dense_tensors(flat, grads)):
         parameter.grad = grad
+
+
+class SigtermAgreement:
+    """Under several processes, SIGTERM stops every process after the same training step.
+
+    Lightning's SIGTERM handler broadcasts a flag from inside the signal handler: that collective
+    meets whatever collective the other processes are in (here the gradient averaging) and the
+    run hangs until the scheduler kills it, with no checkpoint of the step it stopped at. And a
+    process that alone got the signal would stop alone. Here the handler only notes the signal
+    (and passes it on to the processes Lightning started); after each training step the
+    processes agree on it (an all-reduce of one flag) and all of them stop there, so that
+    :class:`otgb.cli.BestAndLastCheckpoint` saves ``last.ckpt`` from all of them together.
+    """
+
+    def __init__(self) -> None:
+        self.received = False
+        self.trainer: Trainer | None = None
+
+    def install(self, trainer: Trainer) -> None:
+        """Replace Lightning's SIGTERM handler (registered before training starts) when there are several processes."""
+        if trainer.world_size > 1:
+            self.trainer, self.received = trainer, False
+            signal.signal(signal.SIGTERM, self.note)
+
+    def note(self, signum: int, frame: FrameType | None) -> None:
+        launcher = self.trainer.strategy.launcher if self.trainer is not None else None
+        if not self.received and launcher is not None:
+            launcher.kill(signum)  # the processes Lightning started itself (none under torchrun or SLURM)
+        self.received = True
+
+    def agree(self, trainer: Trainer) -> None:
+        """Every process calls this after the same step: if any got SIGTERM, all stop after this step."""
+        if trainer.world_size <= 1:
+            return
+        flag = torch.tensor([float(self.received)], device=trainer.strategy.root_device)
+        torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
+        if flag.item() > 0:
+            trainer._signal_connector.received_sigterm = True  # Lightning stops at the end of this step

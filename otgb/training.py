@@ -36,7 +36,7 @@ from otgb.data.seeding import derive_seed
 from otgb.errors import InputError
 from otgb.guard import TrainingDiverged, UpdateGuard, diagnosis
 from otgb.ot import Objective, WeakTransport, critic_loss
-from otgb.parallel import average_gradients, without_gradient_sync
+from otgb.parallel import SigtermAgreement, average_gradients, without_gradient_sync
 from otgb.physics.base import PhysicsModel, SimulationDiverged
 
 MapFactory = Callable[[PhysicsModel, int], nn.Module]
@@ -130,6 +130,7 @@ class MapTraining(LightningModule):
         if max_consecutive_skips < 1:
             raise InputError(f"model.max_consecutive_skips={max_consecutive_skips}: expected >= 1")
         self.guard = UpdateGuard(max_consecutive_skips)
+        self.sigterm = SigtermAgreement()
         self.optimizer_factories = (map_optimizer, critic_optimizer)
         self.scheduler_factories = (map_scheduler, critic_scheduler)
         self.map_updates = 0
@@ -354,8 +355,14 @@ class MapTraining(LightningModule):
         self._fit_clock = time.perf_counter()
         self.restored_step = None  # training moves on from the loaded checkpoint
 
+    def on_train_start(self) -> None:
+        self.sigterm.install(self.trainer)
+
     def on_train_batch_start(self, batch: Any, batch_idx: int) -> None:
         without_gradient_sync(self.trainer.strategy)
+
+    def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
+        self.sigterm.agree(self.trainer)
 
     def on_validation_epoch_start(self) -> None:
         self._key_draws("val")

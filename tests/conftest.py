@@ -59,11 +59,12 @@ class PoisonSources(Callback):
 
 
 class SendSigterm(Callback):
-    """Sends SIGTERM to this process after training step ``step``, as a scheduler ending a job would."""
+    """Sends SIGTERM to this process after training step ``step``, as a scheduler ending a job would
+    (under several processes: only the process of global rank ``rank``, if given)."""
 
-    def __init__(self, step: int) -> None:
-        self.step = step
+    def __init__(self, step: int, rank: int | None = None) -> None:
+        self.step, self.rank = step, rank
 
     def on_train_batch_end(self, trainer, *args) -> None:
-        if trainer.global_step == self.step:
+        if trainer.global_step == self.step and self.rank in (None, trainer.global_rank):
             os.kill(os.getpid(), signal.SIGTERM)

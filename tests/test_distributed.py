@@ -20,7 +20,7 @@ TORCHRUN = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--np
 TIMEOUT_S = 300
 
 
-def _otgb_ddp(cwd: Path, *args: str, launcher: list[str] = LIGHTNING) -> subprocess.CompletedProcess:
+def _otgb_ddp(cwd: Path, *args: str, launcher: list[str] = LIGHTNING, returncode: int = 0) -> subprocess.CompletedProcess:
     """``python -m otgb.cli ...`` on 2 processes; a run still going after TIMEOUT_S (a hang) is killed and fails the test."""
     path = os.pathsep.join([str(ROOT), str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")])
     command = [*launcher, "-m", "otgb.cli", *args, *DDP]
@@ -34,7 +34,7 @@ def _otgb_ddp(cwd: Path, *args: str, launcher: list[str] = LIGHTNING) -> subproc
         os.killpg(run.pid, signal.SIGKILL)
         out, err = run.communicate()
         pytest.fail(f"{' '.join(args[:3])}: no end after {TIMEOUT_S} s under DDP (a hang); stderr ends:\n{err[-2000:]}")
-    assert run.returncode == 0, err[-3000:]
+    assert run.returncode == returncode, err[-3000:]
     assert "sync_dist" not in err and "Traceback" not in err, err[-3000:]
     return subprocess.CompletedProcess(command, run.returncode, out, err)
 
@@ -110,3 +110,15 @@ def test_torchrun_starts_the_same_two_process_run(tmp_path):
     last = folder / "run" / "version_0" / "checkpoints" / "last.ckpt"
     _otgb_ddp(folder, "test", *_args(folder, "pendulum.yaml"), f"--ckpt_path={last}", launcher=TORCHRUN)
     assert json.loads((folder / "run" / "version_1" / "metrics.json").read_text())["run"]["global_step"] == 10
+
+
+@pytest.mark.slow
+def test_sigterm_to_one_process_stops_both_after_the_same_step_and_resumes(tmp_path):
+    steps = ["--data.simulation_budget=640", "--data.batch_size=16", "--model.t_max=2", "--trainer.val_check_interval=5"]
+    term = '--trainer.callbacks+={"class_path": "conftest.SendSigterm", "init_args": {"step": 3, "rank": 1}}'
+    done = _otgb_ddp(tmp_path, "fit", *_args(tmp_path, "pendulum.yaml", *steps, term), returncode=143)
+    last = tmp_path / "run" / "version_0" / "checkpoints" / "last.ckpt"
+    assert f"stopped by SIGTERM after step 3; resume with --ckpt_path {last}" in done.stderr
+    assert torch.load(last, weights_only=False)["global_step"] == 3, "saved by both processes after the step rank 1 was signalled"
+    _otgb_ddp(tmp_path, "fit", *_args(tmp_path, "pendulum.yaml", *steps), f"--ckpt_path={last}")
+    assert torch.load(tmp_path / "run" / "version_1" / "checkpoints" / "last.ckpt", weights_only=False)["global_step"] == 10
