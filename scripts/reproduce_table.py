@@ -171,7 +171,8 @@ def task_table(out: Path, task: str) -> list[str]:
     one_to_one = TASKS[task][2]
     names = ("nrmse", "abs_err") if one_to_one else ("mmd", "c2st")
     head = "N-RMSE | ABS ERR" if one_to_one else "MMD | C2ST"
-    lines = [f"**{task}** (`configs/{TASKS[task][0]}.yaml`)", ""]
+    machines = sorted({json.loads(p.read_text())["machine"] for p in (out / task).glob("*/seed*/wall_time.json")})
+    lines = [f"**{task}** (`configs/{TASKS[task][0]}.yaml`; fitted on {' and '.join(machines) or '-'})", ""]
     lines += [f"| row | seeds | {head} | paper | wall time per fit |", "|---|---|---|---|---|---|"]
     paper = PAPER.get(task, {})
     for method in METHODS:
