@@ -144,7 +144,7 @@ def machine(extra: list[str]) -> str:
     """The machine a run used: the GPU's name when ``extra`` asks for one, else the CPU and its threads."""
     cpu = f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads"
     gpu = any(arg.replace(" ", "") in ("--trainer.accelerator=gpu", "--trainer.accelerator=cuda") for arg in extra)
-    return f"{torch.cuda.get_device_name() if gpu else cpu}, torch {torch.__version__}"
+    return f"{torch.cuda.get_device_name() if gpu and torch.cuda.is_available() else cpu}, torch {torch.__version__}"
 
 
 def newest(folder: Path, pattern: str) -> Path | None:

@@ -143,6 +143,14 @@ def cpu_name() -> str:
 RUNS = {"cpu:1": "1 process", "cpu:2": "2 processes (DDP)", "gpu:1": "1 GPU"}
 
 
+def run_spec(text: str) -> str:
+    """``accelerator:processes`` (cpu:2, gpu:1) for ``--runs``."""
+    accelerator, _, processes = text.partition(":")
+    if accelerator not in ("cpu", "gpu") or not processes.isdigit() or int(processes) < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected accelerator:processes, e.g. cpu:1, cpu:2 or gpu:1")
+    return text
+
+
 def throughput(args: argparse.Namespace) -> None:
     """Simulations per second of ``--config`` in each of ``--runs``, on the same simulations, one after another."""
     out = Path(args.out)
@@ -187,7 +195,7 @@ def main() -> None:
     t.add_argument("--out", required=True)
     t.add_argument("--steps", type=int, default=200, help="steps of a 1-process run (a 2-process run takes half)")
     t.add_argument("--config", default="pendulum.yaml", help="a config in configs/")
-    t.add_argument("--runs", nargs="+", default=["cpu:1", "cpu:2"], help="accelerator:processes, e.g. cpu:1 cpu:2 gpu:1")
+    t.add_argument("--runs", nargs="+", type=run_spec, default=["cpu:1", "cpu:2"], help="cpu:1 cpu:2 gpu:1 ...")
     t.add_argument("--cpus", type=int, default=None, help="pin every run to the first N CPUs (and N threads)")
     t.add_argument("overrides", nargs="*", help="more otgb fit overrides, after --")
     args = parser.parse_args()
