@@ -11,6 +11,9 @@ drawn as often per input, and per observed frame t:
   Grey-Box Meets Optimal Transport" asks the map to reproduce the conditional distribution
   of y given the inputs, so its spread over z should match the process's spread);
 - **bias**: the mean over inputs of |mean of the map's draws - mean of the measured draws|;
+- **bias / spread**: the same per input and grid cell, in units of the measured draws' own
+  spread there (a judge finds a bias of a few spreads at once, however small in the field's
+  units; for fields it is also drawn over (t, grid cell));
 - **C2ST**: the classifier two-sample test (:func:`otgb.metrics.c2st`, MLP judge, folds grouped
   by input) on rows (theta, x0, y_t) of that frame alone.
 
@@ -52,6 +55,12 @@ def whole(measured: torch.Tensor, drawn: torch.Tensor, data: dict[str, torch.Ten
     return float(c2st(p, q, folds=5, seed=seed, classifier="mlp", trajectory_shape=tuple(measured.shape[2:]))["c2st"])
 
 
+def standardised_bias(measured: torch.Tensor, drawn: torch.Tensor) -> torch.Tensor:
+    """|mean map - mean measured| over the draws of each input, in measured spreads, averaged over inputs: (T, *obs)."""
+    spread = measured.std(1).clamp_min(1e-12)
+    return ((drawn.mean(1) - measured.mean(1)).abs() / spread).mean(0)
+
+
 def per_frame(measured: torch.Tensor, drawn: torch.Tensor, data: dict[str, torch.Tensor], seed: int) -> list[dict]:
     """Spread, bias and C2ST of each frame; measured and drawn are (N, M, T, *obs)."""
     rows = []
@@ -68,14 +77,17 @@ def per_frame(measured: torch.Tensor, drawn: torch.Tensor, data: dict[str, torch
                 "spread_measured": float(a.std(1).mean()),
                 "spread_map": float(b.std(1).mean()),
                 "bias": float((a.mean(1) - b.mean(1)).abs().mean()),
+                "bias_in_spreads": float(standardised_bias(a, b).mean()),
                 "c2st": float(judge["c2st"]),
             }
         )
     return rows
 
 
-def figure(rows: list[dict], times: torch.Tensor, title: str, out: Path) -> None:
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))
+def figure(rows: list[dict], times: torch.Tensor, ratio: torch.Tensor, title: str, out: Path) -> None:
+    cells = ratio.reshape(len(ratio), -1)  # (T, observed values of a frame)
+    field = cells.shape[1] > 3  # fields get a third panel over (t, grid cell)
+    fig, axes = plt.subplots(1, 3 if field else 2, figsize=(15 if field else 10, 3.5))
     t = times.tolist()
     axes[0].plot(t, [r["spread_measured"] for r in rows], label="measured (DGP draws)")
     axes[0].plot(t, [r["spread_map"] for r in rows], label="map (z draws)")
@@ -85,6 +97,10 @@ def figure(rows: list[dict], times: torch.Tensor, title: str, out: Path) -> None
     axes[1].plot(t, [r["c2st"] for r in rows], "o-")
     axes[1].axhline(0.5, color="grey", lw=0.8)
     axes[1].set(xlabel="t", ylabel="C2ST accuracy", ylim=(0.4, 1.0), title="C2ST on one frame (theta, x0, y_t)")
+    if field:
+        image = axes[2].imshow(cells.T, aspect="auto", origin="lower", extent=(t[0], t[-1], 0, cells.shape[1]))
+        axes[2].set(xlabel="t", ylabel="grid cell", title="|mean map - mean measured| / measured spread")
+        fig.colorbar(image, ax=axes[2])
     fig.suptitle(title)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -115,10 +131,15 @@ def main() -> None:
     times = datamodule.physics.observation_times()[-measured.shape[2] :]
     print(f"{args.config}, {args.ckpt_path.name}: {len(measured)} test inputs x {measured.shape[1]} draws")
     print(f"C2ST on whole trajectories, the same MLP judge: {whole(measured, drawn, data, args.seed):.3f}")
-    print("| t | spread measured | spread map | bias | C2ST (this frame) |\n|---|---|---|---|---|")
+    print("| t | spread measured | spread map | bias | bias / spread | C2ST (this frame) |\n|---|---|---|---|---|---|")
     for r, t in zip(rows, times.tolist()):
-        print(f"| {t:.3g} | {r['spread_measured']:.4f} | {r['spread_map']:.4f} | {r['bias']:.4f} | {r['c2st']:.3f} |")
-    figure(rows, times, f"{Path(args.config).stem}: {args.ckpt_path.name}", args.out)
+        spread = f"{r['spread_measured']:.4f} | {r['spread_map']:.4f}"
+        print(f"| {t:.3g} | {spread} | {r['bias']:.4f} | {r['bias_in_spreads']:.2f} | {r['c2st']:.3f} |")
+    ratio = standardised_bias(measured, drawn)
+    if ratio[0].numel() > 3:
+        per_cell = ratio.reshape(len(ratio), -1).mean(0)
+        print("bias / spread per grid cell (mean over frames):", " ".join(f"{v:.2f}" for v in per_cell.tolist()))
+    figure(rows, times, ratio, f"{Path(args.config).stem}: {args.ckpt_path.name}", args.out)
     print(f"figure: {args.out}")
 
 
