@@ -127,10 +127,9 @@ def main() -> None:
     if measured.shape[1] < 2:
         raise SystemExit(f"{args.config}: the test set has one draw per input; the spread needs data.draws_per_input > 1")
     drawn = map_draws(model, data, measured.shape[1])
+    print(f"{args.config}, {args.ckpt_path.name}: {len(measured)} test inputs x {measured.shape[1]} draws", flush=True)
     rows = per_frame(measured, drawn, data, args.seed)
     times = datamodule.physics.observation_times()[-measured.shape[2] :]
-    print(f"{args.config}, {args.ckpt_path.name}: {len(measured)} test inputs x {measured.shape[1]} draws")
-    print(f"C2ST on whole trajectories, the same MLP judge: {whole(measured, drawn, data, args.seed):.3f}")
     print("| t | spread measured | spread map | bias | bias / spread | C2ST (this frame) |\n|---|---|---|---|---|---|")
     for r, t in zip(rows, times.tolist()):
         spread = f"{r['spread_measured']:.4f} | {r['spread_map']:.4f}"
@@ -140,7 +139,8 @@ def main() -> None:
         per_cell = ratio.reshape(len(ratio), -1).mean(0)
         print("bias / spread per grid cell (mean over frames):", " ".join(f"{v:.2f}" for v in per_cell.tolist()))
     figure(rows, times, ratio, f"{Path(args.config).stem}: {args.ckpt_path.name}", args.out)
-    print(f"figure: {args.out}")
+    print(f"figure: {args.out}", flush=True)
+    print(f"C2ST on whole trajectories, the same MLP judge: {whole(measured, drawn, data, args.seed):.3f}")
 
 
 if __name__ == "__main__":
