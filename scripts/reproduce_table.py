@@ -115,8 +115,8 @@ def run_method(out: Path, task: str, method: str, seed: int, extra: list[str]) -
     resume = [f"--ckpt_path={last}"] if last is not None else []
     print(f"{task} {method} seed {seed}: {'resuming' if resume else 'fitting'}", flush=True)
     otgb(["fit", *common, logger_override(str(folder), "fit"), *resume], folder / "otgb.log", add_fit_time(folder, extra))
-    best = sorted((folder / "fit").glob("version_*/checkpoints/best-*.ckpt"), key=lambda p: p.stat().st_mtime)
-    otgb(["test", *common, logger_override(str(folder), "test"), f"--ckpt_path={best[-1]}"], folder / "otgb.log")
+    best = newest(folder / "fit", "version_*/checkpoints/best-*.ckpt")  # the resumed fit's only if it beat the earlier best
+    otgb(["test", *common, logger_override(str(folder), "test"), f"--ckpt_path={best}"], folder / "otgb.log")
 
 
 def run_fixed(out: Path, task: str, extra: list[str]) -> None:
@@ -154,8 +154,8 @@ def newest(folder: Path, pattern: str) -> Path | None:
 
 def metrics(folder: Path) -> dict | None:
     """The test report of a run folder (None before its test has finished)."""
-    reports = sorted(folder.glob("test/version_*/metrics.json"), key=lambda p: p.stat().st_mtime)
-    return json.loads(reports[-1].read_text()) if reports else None
+    report = newest(folder, "test/version_*/metrics.json")
+    return json.loads(report.read_text()) if report is not None else None
 
 
 def cell(values: list[float]) -> str:
