@@ -2,12 +2,14 @@
 
 ``soak`` trains ``configs/pendulum_mm.yaml`` (one-to-many pendulum) on ``--budget`` simulations
 (the paper's 4e6 by default) with ``otgb fit``, samples the resident memory of the whole process
-group (every process of a DDP run) every ``--sample-s`` seconds into ``memory.csv``, and, with
+group (every process of a DDP run) every ``--sample-s`` seconds into ``memory.csv`` (with
+``--accelerator gpu`` also the GPU memory in use, from ``nvidia-smi``), and, with
 ``--kill-after S``, SIGKILLs the group at a random moment in [S/2, S] (seeded; later if no
 ``last.ckpt`` exists yet) and resumes from the newest ``last.ckpt`` until the budget is spent. ``soak.json`` then says:
 
 - simulations per second (training only, from ``val/simulations`` and ``val/wall_time_s``);
-- memory: resident MB at the start and end of each half of the run (growth = a leak);
+- memory: resident MB (and GPU MB) at the start, end and peak of each half of the run (growth = a leak),
+  drawn over time into ``memory.png``;
 - whether the resume lost simulations (the final step count against budget / simulations per
   step) or log rows (every logged step of the run, 0 to the end, in some ``metrics.csv``).
 
@@ -62,14 +64,21 @@ def group_rss_mb(pgid: int) -> float:
     return total / 2**20
 
 
-def run_sampled(command: list[str], out: Path, sample_s: float, kill_at: float | None) -> tuple[int, float]:
-    """Run ``command`` in its own process group, appending (time, MB) rows to memory.csv; SIGKILL it at ``kill_at`` s."""
+def gpu_used_mb() -> float:
+    """GPU memory in use (MB, summed over the machine's GPUs), from nvidia-smi."""
+    query = ["nvidia-smi", "--query-gpu=memory.used", "--format=csv,noheader,nounits"]
+    return sum(float(line) for line in subprocess.run(query, capture_output=True, text=True, check=True).stdout.split())
+
+
+def run_sampled(command: list[str], out: Path, sample_s: float, kill_at: float | None, gpu: bool) -> tuple[int, float]:
+    """Run ``command`` in its own process group, appending (time, host MB[, GPU MB]) rows to memory.csv; SIGKILL it at
+    ``kill_at`` s."""
     start = time.time()
     with open(out / "fit.log", "a") as log, open(out / "memory.csv", "a", newline="") as memory:
         writer = csv.writer(memory)
         run = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
         while run.poll() is None:
-            writer.writerow([round(time.time(), 1), round(group_rss_mb(run.pid), 1)])
+            writer.writerow([round(time.time(), 1), round(group_rss_mb(run.pid), 1), *([gpu_used_mb()] if gpu else [])])
             memory.flush()
             if kill_at is not None and time.time() - start > kill_at and newest(out, "last.ckpt") is not None:
                 os.killpg(run.pid, signal.SIGKILL)
@@ -99,7 +108,7 @@ def soak(args: argparse.Namespace) -> None:
         if args.kill_after and state["killed"] is None:
             kill_at = random.Random(args.seed).uniform(args.kill_after / 2, args.kill_after)
         command = fit_command("pendulum_mm.yaml", out, extra) + ([f"--ckpt_path={last}"] if last else [])
-        returncode, wall = run_sampled(command, out, args.sample_s, kill_at)
+        returncode, wall = run_sampled(command, out, args.sample_s, kill_at, args.accelerator == "gpu")
         if returncode == -signal.SIGKILL:
             state["killed"] = {"after_s": wall, "last_ckpt_before": str(last)}
         elif returncode != 0:
@@ -107,6 +116,7 @@ def soak(args: argparse.Namespace) -> None:
         state["runs"].append({"returncode": returncode, "wall_s": wall, "resumed_from": str(last) if last else None})
         (out / "state.json").write_text(json.dumps(state, indent=1))
     (out / "soak.json").write_text(json.dumps(summarise(out, args, state), indent=1))
+    memory_figure(out)
     print((out / "soak.json").read_text())
 
 
@@ -118,8 +128,8 @@ def summarise(out: Path, args: argparse.Namespace, state: dict) -> dict:
     per_step = config["data"]["batch_size"] * config["model"]["t_max"] * args.devices
     steps = {int(float(r["step"])) for r in rows if r.get("train/simulations")}
     every = min((b - a for a, b in zip(sorted(steps), sorted(steps)[1:])), default=1)
-    memory = [float(r[1]) for r in csv.reader(open(out / "memory.csv"))]
-    half = len(memory) // 2
+    samples = list(csv.reader(open(out / "memory.csv")))
+    half = len(samples) // 2
     return {
         "machine": f"{os.cpu_count()} CPUs, {args.accelerator} x {args.devices}",
         "budget": args.budget,
@@ -128,10 +138,38 @@ def summarise(out: Path, args: argparse.Namespace, state: dict) -> dict:
         "expected_steps": args.budget // per_step,
         "simulations_counted": last["global_step"] * per_step,
         "log_rows_missing": sorted(set(range(min(steps), max(steps) + 1, every)) - steps) if steps else None,
-        "memory_mb": {"first_half": [memory[0], memory[half - 1]], "second_half": [memory[half], memory[-1]]} if half else None,
+        "memory_mb": halves([float(r[1]) for r in samples]) if half else None,
+        "gpu_memory_mb": halves([float(r[2]) for r in samples]) if half and len(samples[0]) > 2 else None,
         "killed": state["killed"],
         "runs": state["runs"],
     }
+
+
+def memory_figure(out: Path) -> None:
+    """``memory.png``: host (and GPU) memory over the soak's wall time, from ``memory.csv``; a restart shows as a drop."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    samples = [[float(v) for v in row] for row in csv.reader(open(out / "memory.csv"))]
+    minutes = [(row[0] - samples[0][0]) / 60 for row in samples]
+    fig, ax = plt.subplots(figsize=(7, 3.2))
+    ax.plot(minutes, [row[1] / 1024 for row in samples], label="host, resident (process group)")
+    if len(samples[0]) > 2:
+        ax.plot(minutes, [row[2] / 1024 for row in samples], label="GPU, in use (nvidia-smi)")
+    ax.set(xlabel="wall time (min)", ylabel="GiB", title=f"soak memory: {out.name}")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out / "memory.png", dpi=110)
+    plt.close(fig)
+
+
+def halves(memory: list[float]) -> dict[str, list[float]]:
+    """First and last sample of each half of a memory series, and each half's peak: growth between halves = a leak."""
+    half = len(memory) // 2
+    first, second = memory[:half], memory[half:]
+    return {"first_half": [first[0], first[-1], max(first)], "second_half": [second[0], second[-1], max(second)]}
 
 
 def cpu_name() -> str:
