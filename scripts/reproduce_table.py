@@ -3,6 +3,7 @@
     python scripts/reproduce_table.py --out bench/table                        # every task, seeds 0 1 2
     python scripts/reproduce_table.py --out bench/table --tasks Pendulum-1-m Adv-diff-1-m --seeds 0 1 2
     python scripts/reproduce_table.py --out bench/table --gather docs/results.md   # only write the table
+    python scripts/reproduce_table.py --out bench/b --tasks Adv-diff-m-m --gather docs/results.md   # only that task's
     python scripts/reproduce_table.py --out /tmp/quick --quick --gather /tmp/quick/results.md   # minutes
     python scripts/reproduce_table.py --out bench/table --tasks React-diff-1-m -- --trainer.accelerator=gpu
 
@@ -193,20 +194,38 @@ def task_table(out: Path, task: str) -> list[str]:
 
 
 def gather(out: Path, tasks: list[str], target: Path) -> None:
-    """Write the table between the markers of ``target`` (appended with them if they are missing)."""
-    lines = [TABLE_START, ""]
-    for task in tasks:
-        lines += [*task_table(out, task), ""]
-    machines = sorted({json.loads(p.read_text())["machine"] for p in out.glob("*/*/seed*/wall_time.json")})
-    lines += [f"Machine(s): {', '.join(machines) or '-'}.", TABLE_END]
+    """Write the tables of ``tasks`` between the markers of ``target`` (appended with them if they are missing).
+
+    Only the named tasks' tables are rewritten from the runs under ``out``; another task's table
+    already in ``target`` is kept as it is (its runs may live in another folder or on another machine).
+    """
     text = target.read_text() if target.exists() else ""
+    kept = {}
     if TABLE_START in text and TABLE_END in text:
         before, rest = text.split(TABLE_START, 1)
-        text = before + "\n".join(lines) + rest.split(TABLE_END, 1)[1]
+        section, after = rest.split(TABLE_END, 1)
+        kept = task_blocks(section)
     else:
-        text = text + ("\n" if text else "") + "\n".join(lines) + "\n"
-    target.write_text(text)
+        before, after = text + ("\n" if text else ""), "\n"
+    blocks = {**kept, **{task: "\n".join(task_table(out, task)) for task in tasks}}
+    lines = [TABLE_START, ""] + [line for task in TASKS if task in blocks for line in (blocks[task], "")] + [TABLE_END]
+    target.write_text(before + "\n".join(lines) + after)
     print(f"wrote {target}")
+
+
+def task_blocks(section: str) -> dict[str, str]:
+    """The tables of a written section by task: a ``**task**`` heading and the table rows that follow it."""
+    blocks: dict[str, list[str]] = {}
+    current = None
+    for line in section.splitlines():
+        heading = line.split("**")[1] if line.startswith("**") else None
+        if heading in TASKS:
+            current = blocks.setdefault(heading, [line, ""])
+        elif current is not None and line.startswith("|"):
+            current.append(line)
+        elif line.strip():
+            current = None
+    return {task: "\n".join(lines) for task, lines in blocks.items()}
 
 
 def main() -> None:
@@ -216,7 +235,9 @@ def main() -> None:
     parser.add_argument("--methods", nargs="*", default=list(METHODS), choices=list(METHODS))
     parser.add_argument("--seeds", nargs="*", type=int, default=[0, 1, 2])
     parser.add_argument("--quick", action="store_true", help="4 training steps on small sets: checks the path, measures nothing")
-    parser.add_argument("--gather", type=Path, help="only write the table of the finished runs into this Markdown file")
+    parser.add_argument(
+        "--gather", type=Path, help="write the tables of --tasks from the finished runs into this Markdown file (others kept)"
+    )
     parser.add_argument(
         "--fixed",
         action=argparse.BooleanOptionalAction,

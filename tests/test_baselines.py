@@ -1,5 +1,6 @@
 """The paper's baselines: the WGAN-GP objective and black-box maps, trained through the CLI on each system."""
 
+import importlib.util
 import json
 import subprocess
 import sys
@@ -127,3 +128,19 @@ def test_f_p_only_scores_the_reference_gap_and_complete_physics_the_floor(tmp_pa
     if abs_err is not None:
         assert scores["identity"]["abs_err"]["mean"] == pytest.approx(abs_err, rel=0.25)
     assert scores["complete"]["nrmse"]["mean"] < 0.02 * nrmse, "only the solver step separates it from the measurements"
+
+
+def test_gather_rewrites_only_the_named_tasks_and_keeps_the_rest(tmp_path):
+    """--gather --tasks T: T's table is rewritten from the runs; another task's table already written stays as it was."""
+    spec = importlib.util.spec_from_file_location("reproduce_table", ROOT / "scripts" / "reproduce_table.py")
+    table = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(table)
+    kept = "**Adv-diff-1-m** (measured elsewhere)\n\n| row | seeds |\n|---|---|\n| OT-GB | 3 |"
+    target = tmp_path / "results.md"
+    target.write_text(f"before\n{table.TABLE_START}\n\n{kept}\n\nMachine(s): old.\n{table.TABLE_END}\nafter\n")
+    table.gather(tmp_path / "runs", ["Pendulum-1-m"], target)
+    text = target.read_text()
+    assert kept in text, "a task not named keeps its table"
+    assert text.index("**Pendulum-1-m**") < text.index("**Adv-diff-1-m**"), "tables in the paper's task order"
+    assert "| OT-GB | 0 | - | - |" in text, "the named task's table is rebuilt from the (here empty) runs folder"
+    assert text.startswith("before\n") and text.endswith("after\n") and "Machine(s)" not in text
