@@ -19,7 +19,15 @@ drawn as often per input, and per observed frame t:
 
 A whole-trajectory C2ST near 1 with per-frame C2STs near 0.5 says the judge reads the joint
 shape over time; one frame near 1 says where the evidence is. Prints a Markdown table and draws
-the three curves into ``--out``. Any further ``--key value`` overrides the config, as in ``otgb``.
+the three curves into ``--out``; then the C2ST on whole trajectories with each of ``--judges``
+("auto" is the evaluation's own judge). Any further ``--key value`` overrides the config, as in
+``otgb``. Without ``--ckpt_path`` the config's map is used untrained: a map with nothing to learn
+measures how strong the judge is, e.g. the DGP's own simulator with a hidden effect slightly off:
+
+    python scripts/one_to_many_diagnostics.py --config configs/advdiff_mm.yaml --no-per_frame \
+        --model.transport_map=otgb.models.CompletePhysicsMap \
+        '--model.transport_map.init_args.hidden_effect=[{class_path: otgb.physics.Advection, init_args: {beta:
+        {class_path: otgb.physics.Uniform, init_args: {low: 0.0105, high: 0.105}}}}]'
 """
 
 from __future__ import annotations
@@ -49,16 +57,19 @@ def map_draws(model: MapTraining, data: dict[str, torch.Tensor], n_draws: int, c
     return torch.cat(parts)
 
 
-def whole(measured: torch.Tensor, drawn: torch.Tensor, data: dict[str, torch.Tensor], seed: int) -> float:
-    """The same judge on whole trajectories (theta, x0, y)."""
+def whole(measured: torch.Tensor, drawn: torch.Tensor, data: dict[str, torch.Tensor], seed: int, judge: str) -> float:
+    """C2ST on whole trajectories (theta, x0, y) with ``judge`` ("auto" is the evaluation's: an MLP, or a conv net for fields)."""
     p, q = (joint_samples(data["theta"], data["x0"], y).float() for y in (measured, drawn))
-    return float(c2st(p, q, folds=5, seed=seed, classifier="mlp", trajectory_shape=tuple(measured.shape[2:]))["c2st"])
+    return float(c2st(p, q, folds=5, seed=seed, classifier=judge, trajectory_shape=tuple(measured.shape[2:]))["c2st"])
 
 
 def standardised_bias(measured: torch.Tensor, drawn: torch.Tensor) -> torch.Tensor:
-    """|mean map - mean measured| over the draws of each input, in measured spreads, averaged over inputs: (T, *obs)."""
-    spread = measured.std(1).clamp_min(1e-12)
-    return ((drawn.mean(1) - measured.mean(1)).abs() / spread).mean(0)
+    """|mean map - mean measured| over the draws of each input, in measured spreads, averaged over inputs: (T, *obs).
+
+    Values the measured draws share exactly (no spread: the initial state, a Dirichlet end) are NaN."""
+    spread = measured.std(1)
+    ratio = (drawn.mean(1) - measured.mean(1)).abs() / spread
+    return torch.where(spread > 1e-9, ratio, torch.nan).nanmean(0)
 
 
 def per_frame(measured: torch.Tensor, drawn: torch.Tensor, data: dict[str, torch.Tensor], seed: int) -> list[dict]:
@@ -77,7 +88,7 @@ def per_frame(measured: torch.Tensor, drawn: torch.Tensor, data: dict[str, torch
                 "spread_measured": float(a.std(1).mean()),
                 "spread_map": float(b.std(1).mean()),
                 "bias": float((a.mean(1) - b.mean(1)).abs().mean()),
-                "bias_in_spreads": float(standardised_bias(a, b).mean()),
+                "bias_in_spreads": float(standardised_bias(a, b).nanmean()),
                 "c2st": float(judge["c2st"]),
             }
         )
@@ -110,16 +121,21 @@ def figure(rows: list[dict], times: torch.Tensor, ratio: torch.Tensor, title: st
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", required=True, help="the run's config (a one-to-many task: data.draws_per_input > 1)")
-    parser.add_argument("--ckpt_path", type=Path, required=True)
-    parser.add_argument("--out", type=Path, required=True, help="the figure (PNG)")
+    parser.add_argument("--ckpt_path", type=Path, help="the trained map (none for a map with nothing to learn)")
+    parser.add_argument("--out", type=Path, help="the figure (PNG), with --per_frame")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--per_frame", action=argparse.BooleanOptionalAction, default=True, help="per-frame table and figure")
+    parser.add_argument("--judges", nargs="+", default=["auto"], help="whole-trajectory C2ST classifiers (auto, mlp, conv)")
     args, overrides = parser.parse_known_args()
-    if not args.ckpt_path.is_file():
+    if args.per_frame and args.out is None:
+        raise SystemExit("--out: the per-frame figure needs a PNG path (or --no-per_frame)")
+    if args.ckpt_path is not None and not args.ckpt_path.is_file():
         raise SystemExit(f"--ckpt_path {args.ckpt_path}: no such checkpoint file")
     arguments = ["--config", args.config, "--trainer.logger=false", *overrides]
     cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=arguments)
     model, datamodule = cli.model, cli.datamodule
-    model.load_state_dict(torch.load(args.ckpt_path, map_location="cpu", weights_only=False)["state_dict"])
+    if args.ckpt_path is not None:
+        model.load_state_dict(torch.load(args.ckpt_path, map_location="cpu", weights_only=False)["state_dict"])
     model.eval()
     datamodule.setup("test")
     data = datamodule.test_set
@@ -127,20 +143,38 @@ def main() -> None:
     if measured.shape[1] < 2:
         raise SystemExit(f"{args.config}: the test set has one draw per input; the spread needs data.draws_per_input > 1")
     drawn = map_draws(model, data, measured.shape[1])
-    print(f"{args.config}, {args.ckpt_path.name}: {len(measured)} test inputs x {measured.shape[1]} draws", flush=True)
+    name = args.ckpt_path.name if args.ckpt_path else type(model.transport_map).__name__
+    print(f"{args.config}, {name}: {len(measured)} test inputs x {measured.shape[1]} draws", flush=True)
+    ratio = standardised_bias(measured, drawn)
+    print(f"bias / spread, mean over inputs, frames and cells with a measured spread: {float(ratio.nanmean()):.2f}")
+    print(f"spread map / measured, mean over frames: {float(drawn.std(1).mean() / measured.std(1).mean()):.3f}", flush=True)
+    if args.per_frame:
+        table_and_figure(measured, drawn, data, ratio, datamodule.physics.observation_times(), args, name)
+    for judge in args.judges:
+        print(f"C2ST on whole trajectories, {judge} judge: {whole(measured, drawn, data, args.seed, judge):.3f}", flush=True)
+
+
+def table_and_figure(
+    measured: torch.Tensor,
+    drawn: torch.Tensor,
+    data: dict[str, torch.Tensor],
+    ratio: torch.Tensor,
+    times: torch.Tensor,
+    args: argparse.Namespace,
+    name: str,
+) -> None:
+    """Per frame: spread, bias and C2ST printed as Markdown; the curves (and the bias map of a field) into ``--out``."""
     rows = per_frame(measured, drawn, data, args.seed)
-    times = datamodule.physics.observation_times()[-measured.shape[2] :]
+    times = times[-measured.shape[2] :]
     print("| t | spread measured | spread map | bias | bias / spread | C2ST (this frame) |\n|---|---|---|---|---|---|")
     for r, t in zip(rows, times.tolist()):
         spread = f"{r['spread_measured']:.4f} | {r['spread_map']:.4f}"
         print(f"| {t:.3g} | {spread} | {r['bias']:.4f} | {r['bias_in_spreads']:.2f} | {r['c2st']:.3f} |")
-    ratio = standardised_bias(measured, drawn)
     if ratio[0].numel() > 3:
-        per_cell = ratio.reshape(len(ratio), -1).mean(0)
+        per_cell = ratio.reshape(len(ratio), -1).nanmean(0)
         print("bias / spread per grid cell (mean over frames):", " ".join(f"{v:.2f}" for v in per_cell.tolist()))
-    figure(rows, times, ratio, f"{Path(args.config).stem}: {args.ckpt_path.name}", args.out)
+    figure(rows, times, ratio, f"{Path(args.config).stem}: {name}", args.out)
     print(f"figure: {args.out}", flush=True)
-    print(f"C2ST on whole trajectories, the same MLP judge: {whole(measured, drawn, data, args.seed):.3f}")
 
 
 if __name__ == "__main__":

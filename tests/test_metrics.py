@@ -8,7 +8,8 @@ from sklearn.neural_network import MLPClassifier
 
 from otgb.data import generate_joint
 from otgb.metrics import C2ST, MMD, NRMSE, AbsErr, MMDAgg, abs_err, c2st, joint_samples, mmd2, mmdagg, nrmse
-from otgb.metrics.classifiers import PRECISIONS
+from otgb.metrics.c2st import make_classifier
+from otgb.metrics.classifiers import PRECISIONS, PaperConvClassifier
 from otgb.metrics.classifiers import MLPClassifier as TorchMLP
 from otgb.metrics.joint import JointEvaluator, reference_scores
 from otgb.metrics.mmd import PAPER_MULTIPLIERS, mmd_median, mmd_multiscale, standardise
@@ -229,6 +230,19 @@ def test_conv_classifier_separates_fields(generator):
     metric = C2ST(classifier="conv", trajectory_shape=shape, folds=3)
     metric.update(p, joint_samples(theta, theta, other)[:, 1:])
     assert abs(float(metric.compute()["c2st"]) - 0.5) <= 3 * 0.5 / math.sqrt(2 * n)
+
+
+def test_paper_judge_finds_a_shifted_field_and_not_an_equal_one(generator):
+    """The paper's judge network (``"paper"``, three 3-filter convolutions along the whole row): a shift is found,
+    equal fields are not (smaller batches and fewer epochs than its defaults, so that it trains in seconds)."""
+    n, shape = 200, (8, 1, 6)
+    theta = torch.rand(n, 1, generator=generator)
+    fields = [torch.randn(n, 1, *shape, generator=generator) + shift for shift in (0, 0, 1)]
+    p, same, shifted = (joint_samples(theta, theta, y)[:, 1:] for y in fields)
+    judge = PaperConvClassifier(batch_size=32, max_epochs=100)
+    assert c2st(p, shifted, classifier=judge, folds=2)["c2st"] > 0.9
+    assert abs(float(c2st(p, same, classifier=judge, folds=2)["c2st"]) - 0.5) <= 1.5 / math.sqrt(2 * n)
+    assert isinstance(make_classifier("paper", 49, None, seed=0), PaperConvClassifier), "selectable by name"
 
 
 def test_c2st_permutation_pvalue(generator):

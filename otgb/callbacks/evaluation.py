@@ -50,7 +50,8 @@ class Evaluation(Callback):
     Args:
         tests_every: Run MMDAgg and C2ST at every n-th validation (0: only at test).
         c2st_folds: Cross-validation folds of the C2ST.
-        c2st_classifier: C2ST classifier: "auto" (an MLP up to 200 features, else a conv net), "mlp" or "conv".
+        c2st_classifier: C2ST classifier: "auto" (an MLP up to 200 features, else a conv net), "mlp", "conv"
+            or "paper" (the paper's weak judge network).
         c2st_precision: C2ST arithmetic: "auto" (bfloat16 where the hardware multiplies it natively), "32-true" or "bf16-mixed".
         mmdagg_permutations: Permutations for each of MMDAgg's two stages.
         reference_repeats: Random splits averaged for the Reference.

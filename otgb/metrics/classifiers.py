@@ -308,3 +308,52 @@ class ConvClassifier(_TorchClassifier):
 
     def _held_out_score(self, logits: Tensor, y: Tensor) -> float:
         return -float(nn.functional.binary_cross_entropy_with_logits(logits, y))
+
+
+class _PaperConvNet(nn.Sequential):
+    """The judge network of the paper's code: the whole row as one channel, 3 convolutions of 3 filters, pooled, one logit."""
+
+    def __init__(self, n_features: int, filters: int = 3) -> None:
+        layers: list[nn.Module] = []
+        for channels_in in (1, filters, filters):
+            layers += [nn.Conv1d(channels_in, filters, 3, padding=1), nn.LeakyReLU()]
+        super().__init__(*layers, nn.AvgPool1d(3), nn.Flatten(), nn.Linear(filters * (n_features // 3), 1))
+
+    def forward(self, rows: Tensor) -> Tensor:
+        return super().forward(rows.unsqueeze(1)).squeeze(1)
+
+
+class PaperConvClassifier(_TorchClassifier):
+    """The paper's C2ST judge network (../shared/REFERENCE.md: the official code's ``Conv1DNet``), a weak judge.
+
+    The z-scored row (conditioning inputs and the flattened trajectory, one vector) is read as one
+    channel by three Conv1d layers of 3 filters (kernel 3, LeakyReLU), average-pooled by 3 and
+    mapped to one logit: it sees local patterns along the vector, not the trajectory's shape. It
+    is here to place otgb's figures on the scale of the paper's Table 1, next to the strong
+    judges ("mlp", "conv"). It trains as the paper's code does (mini-batches of 512, Adam 1e-3,
+    patience 50 epochs) but stops on the held-out log loss (at most 2000 epochs), not on the
+    training loss (at most 10,000), and is scored on otgb's folds, not on random 25 % splits.
+
+    Args: as :class:`ConvClassifier`'s training arguments.
+    """
+
+    def __init__(
+        self,
+        max_epochs: int = 2000,
+        batch_size: int = 512,
+        lr: float = 1e-3,
+        n_iter_no_change: int = 50,
+        validation_fraction: float = 0.1,
+        random_state: int = 0,
+        device: str = "cpu",
+        precision: str = "auto",
+    ) -> None:
+        self.max_epochs, self.batch_size, self.lr, self.n_iter_no_change = max_epochs, batch_size, lr, n_iter_no_change
+        self.validation_fraction, self.random_state, self.device = validation_fraction, random_state, device
+        self.precision = precision
+
+    def _network(self, n_features: int) -> nn.Module:
+        return _PaperConvNet(n_features)
+
+    def _held_out_score(self, logits: Tensor, y: Tensor) -> float:
+        return -float(nn.functional.binary_cross_entropy_with_logits(logits, y))
