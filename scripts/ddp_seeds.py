@@ -9,6 +9,8 @@ config's batch), each followed by ``otgb test`` on its ``last.ckpt`` (the joint 
 - ``2 DDP, same batch per process``: half the steps, each of 2 x the batch (fewer, larger updates);
 - ``2 DDP, same effective batch``: ``--steps`` steps of 2 x half the batch (the same updates' count and size).
 
+``--variants single ddp-per-process ddp-effective`` picks some of them (default: all three).
+
 Each run is a real 2-process gloo run through Lightning's launcher (``--trainer.strategy ddp
 --trainer.devices 2 --trainer.accelerator cpu``). Prints a Markdown table of test ABS ERR per seed
 with mean and std per row; finished runs (a test ``metrics.json``) are skipped when run again.
@@ -28,6 +30,13 @@ import yaml
 from otgb.cli import logger_override
 
 DDP = ["--trainer.strategy=ddp", "--trainer.devices=2", "--trainer.accelerator=cpu"]
+
+
+VARIANTS = {
+    "single": "1 process",
+    "ddp-per-process": "2 DDP, same batch per process",
+    "ddp-effective": "2 DDP, same effective batch",
+}
 
 
 def variants(batch: int, steps: int) -> dict[str, list[str]]:
@@ -70,20 +79,21 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--steps", type=int, default=120, help="steps of the 1-process run (even)")
+    parser.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS), help="which runs")
     args = parser.parse_args()
     if args.steps < 2 or args.steps % 2:
         raise SystemExit(f"--steps {args.steps}: expected an even number >= 2 (the 2-process run takes half)")
     if not Path(args.config).is_file():
         raise SystemExit(f"--config {args.config}: no such file")
     batch = yaml.safe_load(Path(args.config).read_text())["data"]["batch_size"]
-    runs = variants(batch, args.steps)
+    runs = {name: o for name, o in variants(batch, args.steps).items() if name in {VARIANTS[v] for v in args.variants}}
     rows = {name: [test_abs_err(args.out, args.config, seed, name, o) for seed in args.seeds] for name, o in runs.items()}
     print(f"{args.config}, {args.steps * batch} simulations per run; test ABS ERR\n")
     print("| run | " + " | ".join(f"seed {s}" for s in args.seeds) + " | mean +- std |")
     print("|---|" + "---|" * (len(args.seeds) + 1))
     for name, values in rows.items():
-        spread = f"{statistics.mean(values):.4f} +- {statistics.stdev(values):.4f}" if len(values) > 1 else "-"
-        print(f"| {name} | " + " | ".join(f"{v:.4f}" for v in values) + f" | {spread} |")
+        spread = f"{statistics.mean(values):.5f} +- {statistics.stdev(values):.5f}" if len(values) > 1 else "-"
+        print(f"| {name} | " + " | ".join(f"{v:.5f}" for v in values) + f" | {spread} |")
 
 
 if __name__ == "__main__":
