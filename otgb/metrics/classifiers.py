@@ -314,6 +314,8 @@ class _PaperConvNet(nn.Sequential):
     """The judge network of the paper's code: the whole row as one channel, 3 convolutions of 3 filters, pooled, one logit."""
 
     def __init__(self, n_features: int, filters: int = 3) -> None:
+        if n_features < 3:
+            raise ValueError(f"PaperConvClassifier: rows of {n_features} features, expected at least 3 (it pools by 3)")
         layers: list[nn.Module] = []
         for channels_in in (1, filters, filters):
             layers += [nn.Conv1d(channels_in, filters, 3, padding=1), nn.LeakyReLU()]
