@@ -48,17 +48,21 @@ def variants(batch: int, steps: int) -> dict[str, list[str]]:
     }
 
 
-def test_abs_err(out: Path, config: str, seed: int, name: str, overrides: list[str]) -> float:
+def fit_and_test(out: Path, config: str, seed: int, name: str, overrides: list[str]) -> float:
     """Fit and test one variant (unless its test report exists); its test ABS ERR."""
     folder = out / f"seed{seed}" / name.replace(" ", "_").replace(",", "")
-    report = folder / "test" / "version_0" / "metrics.json"
-    if not report.exists():
+    if newest(folder, "test/version_*/metrics.json") is None:
         common = ["--config", config, f"--seed_everything={seed}", "--trainer.enable_progress_bar=false", *overrides]
         fit = [*common, "--components.enabled=false", f"--trainer.val_check_interval={max_steps(overrides)}"]
         run(["fit", *fit, logger_override(str(folder), "fit")], folder)
-        last = folder / "fit" / "version_0" / "checkpoints" / "last.ckpt"
+        last = newest(folder, "fit/version_*/checkpoints/last.ckpt")  # a fit run again after a failure writes the next version
         run(["test", *common, logger_override(str(folder), "test"), f"--ckpt_path={last}"], folder)
-    return json.loads(report.read_text())["model"]["abs_err"]["mean"]
+    return json.loads(newest(folder, "test/version_*/metrics.json").read_text())["model"]["abs_err"]["mean"]
+
+
+def newest(folder: Path, pattern: str) -> Path | None:
+    found = sorted(folder.glob(pattern), key=lambda p: p.stat().st_mtime)
+    return found[-1] if found else None
 
 
 def max_steps(overrides: list[str]) -> int:
@@ -87,7 +91,7 @@ def main() -> None:
         raise SystemExit(f"--config {args.config}: no such file")
     batch = yaml.safe_load(Path(args.config).read_text())["data"]["batch_size"]
     runs = {name: o for name, o in variants(batch, args.steps).items() if name in {VARIANTS[v] for v in args.variants}}
-    rows = {name: [test_abs_err(args.out, args.config, seed, name, o) for seed in args.seeds] for name, o in runs.items()}
+    rows = {name: [fit_and_test(args.out, args.config, seed, name, o) for seed in args.seeds] for name, o in runs.items()}
     print(f"{args.config}, {args.steps * batch} simulations per run; test ABS ERR\n")
     print("| run | " + " | ".join(f"seed {s}" for s in args.seeds) + " | mean +- std |")
     print("|---|" + "---|" * (len(args.seeds) + 1))

@@ -34,6 +34,7 @@ import csv
 import json
 import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -94,6 +95,8 @@ def newest(out: Path, name: str) -> Path | None:
 
 
 def soak(args: argparse.Namespace) -> None:
+    if args.accelerator == "gpu" and shutil.which("nvidia-smi") is None:
+        raise SystemExit("soak --accelerator gpu: nvidia-smi not found; it reads the GPU memory over time")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     extra = [
