@@ -295,6 +295,25 @@ def test_config_fits_and_tests(tmp_path, monkeypatch, config):
     assert data["y"].shape[0] == 12 and data["y"].shape[2:] == data["x"].shape[1:]
 
 
+@pytest.mark.parametrize("task, overlay", [("pendulum_2m", "pendulum"), ("advdiff_mm", "advdiff")])
+def test_separable_correction_overlay_fits_and_tests(tmp_path, monkeypatch, task, overlay):
+    """configs/separable/*.yaml swap a task's free correction for a separable one, through the CLI."""
+    monkeypatch.chdir(tmp_path)
+    config = ROOT / "configs" / f"{task}.yaml"
+    configs = ["--config", str(config), "--config", str(ROOT / "configs" / "separable" / f"{overlay}.yaml")]
+    tiny = _tiny(config, tmp_path / "cache")
+    main(["fit", *configs, *tiny])
+    run = tmp_path / "runs" / f"{task}-{overlay}" / "version_0"
+    saved = yaml.safe_load((run / "config.yaml").read_text())["model"]["transport_map"]["init_args"]["correction"]
+    assert saved["class_path"] == "otgb.models.SeparableCorrection" and saved["init_args"]["rank"] == 1
+    weights = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)["state_dict"]
+    assert any(".correction.coefficients." in key for key in weights) and any(".correction.basis." in key for key in weights)
+    assert torch.isfinite(torch.tensor(_last(_rows(run), "val/mmd")))
+    main(["test", *configs, *tiny, f"--ckpt_path={run / 'checkpoints' / 'last.ckpt'}"])
+    report = json.loads((tmp_path / "runs" / f"{task}-{overlay}" / "version_1" / "metrics.json").read_text())
+    assert 0 <= report["model"]["c2st"]["mean"] <= 1 and report["model"]["mmd"]["mean"] >= 0
+
+
 @pytest.mark.parametrize(
     "config, override, monitor",
     [

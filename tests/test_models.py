@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from otgb.callbacks import FieldFigure
-from otgb.models import ConditionalConvNet, ConditionalMLP, ConvCritic, GreyBoxODE, MLPCritic
+from otgb.models import ConditionalConvNet, ConditionalMLP, ConvCritic, GreyBoxODE, MLPCritic, SeparableCorrection
 from otgb.ot import critic_loss
 from otgb.physics import Constant, FitzHughNagumoReaction, ReactionDiffusion, SimulationDiverged
 
@@ -43,6 +43,29 @@ def test_correction_starts_small_and_uses_z(pendulum, generator):
     state, cond = torch.randn(64, 2), torch.randn(64, 4)
     assert gb.correction(state, cond).abs().max() < 0.05
     assert not torch.allclose(gb.correction(state, cond), gb.correction(state, torch.randn(64, 4)))
+
+
+def test_separable_correction_moves_the_state_only_along_its_basis():
+    basis = partial(ConditionalConvNet, channels=(8,), padding_mode="zeros", output_scale=1.0)
+    correction = SeparableCorrection((1, 20), (1, 20), 5, basis, rank=2)
+    u = torch.randn(1, 1, 20).expand(64, -1, -1)
+    draws = correction(u, torch.randn(64, 5)).flatten(1)  # one state, 64 conditions
+    assert torch.linalg.matrix_rank(draws).item() == 2  # every draw is a mix of the same 2 fields
+    free = ConditionalConvNet((1, 20), (1, 20), 5, channels=(8,), output_scale=1.0)
+    assert torch.linalg.matrix_rank(free(u, torch.randn(64, 5)).flatten(1)).item() > 2
+
+
+def test_separable_correction_in_a_greybox_keeps_f_p_shapes(pendulum, generator):
+    gb = GreyBoxODE(pendulum, 3, partial(SeparableCorrection, basis=partial(ConditionalMLP, hidden=(16,)), rank=1))
+    x0, theta = pendulum.sample_initial_state(4, generator), pendulum.sample_theta(4, generator)
+    assert gb(None, x0, theta, torch.randn(4, 3)).shape == (4, 50, 1)
+
+
+def test_separable_correction_needs_a_condition_and_a_rank():
+    with pytest.raises(ValueError, match="SeparableCorrection: needs rank >= 1 and a condition"):
+        SeparableCorrection((2,), (1,), 0, partial(ConditionalMLP))
+    with pytest.raises(ValueError, match="got rank=0"):
+        SeparableCorrection((2,), (1,), 3, partial(ConditionalMLP), rank=0)
 
 
 def test_critic_maps_trajectories_to_scalars():

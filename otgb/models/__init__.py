@@ -5,6 +5,7 @@ from otgb.models.critics import ConvCritic, MLPCritic
 from otgb.models.greybox import GreyBoxODE
 from otgb.models.layers import ConditionalConvNet, ConditionalMLP
 from otgb.models.physics_maps import CompletePhysicsMap, IdentityMap
+from otgb.models.separable import SeparableCorrection
 
 __all__ = [
     "CompletePhysicsMap",
@@ -16,5 +17,6 @@ __all__ = [
     "LSTMMap",
     "MLPCritic",
     "ResNet1dMap",
+    "SeparableCorrection",
     "UNet3dMap",
 ]
