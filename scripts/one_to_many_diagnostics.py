@@ -120,7 +120,9 @@ def figure(rows: list[dict], times: torch.Tensor, ratio: torch.Tensor, title: st
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--config", required=True, help="the run's config (a one-to-many task: data.draws_per_input > 1)")
+    parser.add_argument(
+        "--config", required=True, action="append", help="the run's config files, in order (a one-to-many task: data.draws_per_input > 1)"
+    )
     parser.add_argument("--ckpt_path", type=Path, help="the trained map (none for a map with nothing to learn)")
     parser.add_argument("--out", type=Path, help="the figure (PNG), with --per_frame")
     parser.add_argument("--seed", type=int, default=0)
@@ -131,7 +133,7 @@ def main() -> None:
         raise SystemExit("--out: the per-frame figure needs a PNG path (or --no-per_frame)")
     if args.ckpt_path is not None and not args.ckpt_path.is_file():
         raise SystemExit(f"--ckpt_path {args.ckpt_path}: no such checkpoint file")
-    arguments = ["--config", args.config, "--trainer.logger=false", *overrides]
+    arguments = [*(arg for path in args.config for arg in ("--config", path)), "--trainer.logger=false", *overrides]
     cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=arguments)
     model, datamodule = cli.model, cli.datamodule
     if args.ckpt_path is not None:
@@ -141,10 +143,10 @@ def main() -> None:
     data = datamodule.test_set
     measured = data["y"]
     if measured.shape[1] < 2:
-        raise SystemExit(f"{args.config}: the test set has one draw per input; the spread needs data.draws_per_input > 1")
+        raise SystemExit(f"{' + '.join(args.config)}: the test set has one draw per input; the spread needs data.draws_per_input > 1")
     drawn = map_draws(model, data, measured.shape[1])
     name = args.ckpt_path.name if args.ckpt_path else type(model.transport_map).__name__
-    print(f"{args.config}, {name}: {len(measured)} test inputs x {measured.shape[1]} draws", flush=True)
+    print(f"{' + '.join(args.config)}, {name}: {len(measured)} test inputs x {measured.shape[1]} draws", flush=True)
     ratio = standardised_bias(measured, drawn)
     print(f"bias / spread, mean over inputs, frames and cells with a measured spread: {float(ratio.nanmean()):.2f}")
     print(f"spread map / measured, mean over frames: {float(drawn.std(1).mean() / measured.std(1).mean()):.3f}", flush=True)
@@ -173,7 +175,7 @@ def table_and_figure(
     if ratio[0].numel() > 3:
         per_cell = ratio.reshape(len(ratio), -1).nanmean(0)
         print("bias / spread per grid cell (mean over frames):", " ".join(f"{v:.2f}" for v in per_cell.tolist()))
-    figure(rows, times, ratio, f"{Path(args.config).stem}: {name}", args.out)
+    figure(rows, times, ratio, f"{'-'.join(Path(path).stem for path in args.config)}: {name}", args.out)
     print(f"figure: {args.out}", flush=True)
 
 
