@@ -18,7 +18,9 @@ drawn as often per input, and per observed frame t:
   by input) on rows (theta, x0, y_t) of that frame alone.
 
 A whole-trajectory C2ST near 1 with per-frame C2STs near 0.5 says the judge reads the joint
-shape over time; one frame near 1 says where the evidence is. Prints a Markdown table and draws
+shape over time; one frame near 1 says where the evidence is. The variance share along each
+input's leading direction says whether the draws of one input vary along one curve, as draws of
+one random coefficient do, or in several directions. Prints a Markdown table and draws
 the three curves into ``--out``; then the C2ST on whole trajectories with each of ``--judges``
 ("auto" is the evaluation's own judge). Any further ``--key value`` overrides the config, as in
 ``otgb``. Without ``--ckpt_path`` the config's map is used untrained: a map with nothing to learn
@@ -72,6 +74,17 @@ def standardised_bias(measured: torch.Tensor, drawn: torch.Tensor) -> torch.Tens
     return torch.where(spread > 1e-9, ratio, torch.nan).nanmean(0)
 
 
+def leading_direction_share(draws: torch.Tensor) -> float:
+    """Share of the draws' variance, per input, along their leading direction: mean over inputs, (N, M, ...) draws.
+
+    Draws that vary with one random coefficient (beta of an advection, a friction value) lie near
+    one curve through the space of trajectories, so the share is near 1; draws that a latent moves
+    in several independent directions have a lower share, even with the same spread per value."""
+    centred = draws.flatten(2) - draws.flatten(2).mean(1, keepdim=True)
+    power = torch.linalg.svdvals(centred.double()) ** 2
+    return float((power[:, 0] / power.sum(1).clamp_min(1e-300)).mean())
+
+
 def per_frame(measured: torch.Tensor, drawn: torch.Tensor, data: dict[str, torch.Tensor], seed: int) -> list[dict]:
     """Spread, bias and C2ST of each frame; measured and drawn are (N, M, T, *obs)."""
     rows = []
@@ -121,13 +134,15 @@ def figure(rows: list[dict], times: torch.Tensor, ratio: torch.Tensor, title: st
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument(
-        "--config", required=True, action="append", help="the run's config files, in order (a one-to-many task: data.draws_per_input > 1)"
+        "--config", required=True, action="append", help="config files, in order (one-to-many: data.draws_per_input > 1)"
     )
     parser.add_argument("--ckpt_path", type=Path, help="the trained map (none for a map with nothing to learn)")
     parser.add_argument("--out", type=Path, help="the figure (PNG), with --per_frame")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--per_frame", action=argparse.BooleanOptionalAction, default=True, help="per-frame table and figure")
-    parser.add_argument("--judges", nargs="+", default=["auto"], help="whole-trajectory C2ST classifiers (auto, mlp, conv)")
+    parser.add_argument(
+        "--judges", nargs="*", default=["auto"], help="whole-trajectory C2ST judges (auto, mlp, conv, paper; none: --judges)"
+    )
     args, overrides = parser.parse_known_args()
     if args.per_frame and args.out is None:
         raise SystemExit("--out: the per-frame figure needs a PNG path (or --no-per_frame)")
@@ -143,13 +158,16 @@ def main() -> None:
     data = datamodule.test_set
     measured = data["y"]
     if measured.shape[1] < 2:
-        raise SystemExit(f"{' + '.join(args.config)}: the test set has one draw per input; the spread needs data.draws_per_input > 1")
+        configs = " + ".join(args.config)
+        raise SystemExit(f"{configs}: the test set has one draw per input; the spread needs data.draws_per_input > 1")
     drawn = map_draws(model, data, measured.shape[1])
     name = args.ckpt_path.name if args.ckpt_path else type(model.transport_map).__name__
     print(f"{' + '.join(args.config)}, {name}: {len(measured)} test inputs x {measured.shape[1]} draws", flush=True)
     ratio = standardised_bias(measured, drawn)
     print(f"bias / spread, mean over inputs, frames and cells with a measured spread: {float(ratio.nanmean()):.2f}")
-    print(f"spread map / measured, mean over frames: {float(drawn.std(1).mean() / measured.std(1).mean()):.3f}", flush=True)
+    print(f"spread map / measured, mean over frames: {float(drawn.std(1).mean() / measured.std(1).mean()):.3f}")
+    shares = f"measured {leading_direction_share(measured):.3f}, map {leading_direction_share(drawn):.3f}"
+    print(f"variance share along each input's leading direction (whole trajectories): {shares}", flush=True)
     if args.per_frame:
         table_and_figure(measured, drawn, data, ratio, datamodule.physics.observation_times(), args, name)
     for judge in args.judges:

@@ -46,7 +46,8 @@ class SeparableCorrection(nn.Module):
         super().__init__()
         if rank < 1 or cond_dim < 1:
             raise ValueError(
-                f"SeparableCorrection: needs rank >= 1 and a condition (theta or z) to scale by; got rank={rank}, cond_dim={cond_dim}"
+                "SeparableCorrection: needs rank >= 1 and a condition (theta or z) to scale by; "
+                f"got rank={rank}, cond_dim={cond_dim}"
             )
         self.rank, self.out_shape = rank, tuple(out_shape)
         self.basis = basis(tuple(in_shape), (rank * self.out_shape[0], *self.out_shape[1:]), 0)
