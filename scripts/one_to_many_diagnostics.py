@@ -20,7 +20,8 @@ drawn as often per input, and per observed frame t:
 A whole-trajectory C2ST near 1 with per-frame C2STs near 0.5 says the judge reads the joint
 shape over time; one frame near 1 says where the evidence is. The variance share along each
 input's leading direction says whether the draws of one input vary along one curve, as draws of
-one random coefficient do, or in several directions. Prints a Markdown table and draws
+one random coefficient do, or in several directions; the |cos| between the map's and the
+measured leading directions, whether that curve is the measured one. Prints a Markdown table and draws
 the three curves into ``--out``; then the C2ST on whole trajectories with each of ``--judges``
 ("auto" is the evaluation's own judge). Any further ``--key value`` overrides the config, as in
 ``otgb``. Without ``--ckpt_path`` the config's map is used untrained: a map with nothing to learn
@@ -83,6 +84,19 @@ def leading_direction_share(draws: torch.Tensor) -> float:
     centred = draws.flatten(2) - draws.flatten(2).mean(1, keepdim=True)
     power = torch.linalg.svdvals(centred.double()) ** 2
     return float((power[:, 0] / power.sum(1).clamp_min(1e-300)).mean())
+
+
+def leading_direction_alignment(measured: torch.Tensor, drawn: torch.Tensor) -> float:
+    """|cos| between the measured draws' and the map's leading directions, per input: mean over inputs.
+
+    1 when the map's draws of an input vary along the same direction as the measured ones (the
+    right curve); a share near 1 with a low alignment is one curve, but the wrong one."""
+
+    def leading(draws: torch.Tensor) -> torch.Tensor:
+        centred = draws.flatten(2) - draws.flatten(2).mean(1, keepdim=True)
+        return torch.linalg.svd(centred.double(), full_matrices=False).Vh[:, 0]
+
+    return float((leading(measured) * leading(drawn)).sum(1).abs().mean())
 
 
 def per_frame(measured: torch.Tensor, drawn: torch.Tensor, data: dict[str, torch.Tensor], seed: int) -> list[dict]:
@@ -167,7 +181,8 @@ def main() -> None:
     print(f"bias / spread, mean over inputs, frames and cells with a measured spread: {float(ratio.nanmean()):.2f}")
     print(f"spread map / measured, mean over frames: {float(drawn.std(1).mean() / measured.std(1).mean()):.3f}")
     shares = f"measured {leading_direction_share(measured):.3f}, map {leading_direction_share(drawn):.3f}"
-    print(f"variance share along each input's leading direction (whole trajectories): {shares}", flush=True)
+    print(f"variance share along each input's leading direction (whole trajectories): {shares}")
+    print(f"|cos| between the map's and the measured leading directions: {leading_direction_alignment(measured, drawn):.3f}")
     if args.per_frame:
         table_and_figure(measured, drawn, data, ratio, datamodule.physics.observation_times(), args, name)
     for judge in args.judges:

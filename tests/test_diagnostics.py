@@ -29,6 +29,15 @@ def test_leading_direction_share_is_one_for_one_coefficient_and_lower_for_two(ge
     assert share(torch.stack([one, two])) == pytest.approx((share(one[None]) + share(two[None])) / 2)
 
 
+def test_leading_direction_alignment_tells_the_right_curve_from_another(generator):
+    alignment = _diagnostics().leading_direction_alignment
+    base, first, second = torch.randn(3, 1, 50, 2, generator=generator).unbind(0)
+    along = lambda direction: base + torch.rand(10, 1, 1, generator=generator) * direction  # noqa: E731
+    assert alignment(along(first)[None], along(-3 * first)[None]) == pytest.approx(1.0)
+    other = second - (second * first).sum() / (first * first).sum() * first  # orthogonal to the first
+    assert alignment(along(first)[None], along(other)[None]) == pytest.approx(0.0, abs=1e-6)
+
+
 def test_the_complete_physics_draws_vary_along_one_curve(tmp_path):
     """Through the command line: the DGP's own simulator as the map matches the measured spread, on one curve."""
     xi = "{class_path: otgb.physics.Uniform, init_args: {low: 0.6, high: 1.5}}"
@@ -44,3 +53,4 @@ def test_the_complete_physics_draws_vary_along_one_curve(tmp_path):
     measured, drawn = (float(part.split()[-1]) for part in shares.split(","))
     assert measured > 0.95 and drawn > 0.95, "one random friction per trajectory: draws near one curve"
     assert float(lines["spread map / measured, mean over frames"]) == pytest.approx(1.0, abs=0.35)
+    assert float(lines["|cos| between the map's and the measured leading directions"]) > 0.9
