@@ -81,8 +81,7 @@ def leading_direction_share(draws: torch.Tensor) -> float:
     Draws that vary with one random coefficient (beta of an advection, a friction value) lie near
     one curve through the space of trajectories, so the share is near 1; draws that a latent moves
     in several independent directions have a lower share, even with the same spread per value."""
-    centred = draws.flatten(2) - draws.flatten(2).mean(1, keepdim=True)
-    power = torch.linalg.svdvals(centred.double()) ** 2
+    power = torch.linalg.svdvals(centred(draws)) ** 2
     return float((power[:, 0] / power.sum(1).clamp_min(1e-300)).mean())
 
 
@@ -93,10 +92,15 @@ def leading_direction_alignment(measured: torch.Tensor, drawn: torch.Tensor) -> 
     right curve); a share near 1 with a low alignment is one curve, but the wrong one."""
 
     def leading(draws: torch.Tensor) -> torch.Tensor:
-        centred = draws.flatten(2) - draws.flatten(2).mean(1, keepdim=True)
-        return torch.linalg.svd(centred.double(), full_matrices=False).Vh[:, 0]
+        return torch.linalg.svd(centred(draws), full_matrices=False).Vh[:, 0]
 
     return float((leading(measured) * leading(drawn)).sum(1).abs().mean())
+
+
+def centred(draws: torch.Tensor) -> torch.Tensor:
+    """(N, M, features) in float64: each input's M draws, flattened, minus their mean."""
+    flat = draws.flatten(2).double()
+    return flat - flat.mean(1, keepdim=True)
 
 
 def per_frame(measured: torch.Tensor, drawn: torch.Tensor, data: dict[str, torch.Tensor], seed: int) -> list[dict]:

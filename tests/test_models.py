@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from otgb.callbacks import FieldFigure
+from otgb.errors import InputError
 from otgb.models import ConditionalConvNet, ConditionalMLP, ConvCritic, GreyBoxODE, MLPCritic, SeparableCorrection
 from otgb.ot import critic_loss
 from otgb.physics import Constant, FitzHughNagumoReaction, ReactionDiffusion, SimulationDiverged
@@ -62,9 +63,9 @@ def test_separable_correction_in_a_greybox_keeps_f_p_shapes(pendulum, generator)
 
 
 def test_separable_correction_needs_a_condition_and_a_rank():
-    with pytest.raises(ValueError, match="SeparableCorrection: needs rank >= 1 and a condition"):
+    with pytest.raises(InputError, match="SeparableCorrection needs rank >= 1 and a condition"):
         SeparableCorrection((2,), (1,), 0, partial(ConditionalMLP))
-    with pytest.raises(ValueError, match="got rank=0"):
+    with pytest.raises(InputError, match="got rank=0"):
         SeparableCorrection((2,), (1,), 3, partial(ConditionalMLP), rank=0)
 
 

@@ -8,12 +8,14 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
+from otgb.errors import InputError
+
 
 def activation(name: str) -> nn.Module:
     """An activation module by its torch.nn class name ("ELU", "ReLU", "LeakyReLU", ...)."""
     cls = getattr(nn, name, None)
     if not (isinstance(cls, type) and issubclass(cls, nn.Module)):
-        raise ValueError(f"unknown activation {name!r}: expected a torch.nn class name such as 'ELU' or 'ReLU'")
+        raise InputError(f"unknown activation {name!r}: expected a torch.nn class name such as 'ELU' or 'ReLU'")
     return cls()
 
 

@@ -11,14 +11,14 @@ one-to-many C2ST tests (docs/results.md, "The one-to-many C2ST gap").
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor, nn
 
+from otgb.errors import InputError
+from otgb.models.greybox import CorrectionFactory
 from otgb.models.layers import ConditionalMLP
-
-BasisFactory = Callable[[tuple, tuple, int], nn.Module]
 
 
 class SeparableCorrection(nn.Module):
@@ -39,14 +39,14 @@ class SeparableCorrection(nn.Module):
         in_shape: Sequence[int],
         out_shape: Sequence[int],
         cond_dim: int,
-        basis: BasisFactory,
+        basis: CorrectionFactory,
         rank: int = 1,
         hidden: Sequence[int] = (32, 32),
     ) -> None:
         super().__init__()
         if rank < 1 or cond_dim < 1:
-            raise ValueError(
-                "SeparableCorrection: needs rank >= 1 and a condition (theta or z) to scale by; "
+            raise InputError(
+                "model.transport_map.correction: SeparableCorrection needs rank >= 1 and a condition (theta or z) to scale by; "
                 f"got rank={rank}, cond_dim={cond_dim}"
             )
         self.rank, self.out_shape = rank, tuple(out_shape)
