@@ -12,7 +12,8 @@ config section: :class:`otgb.callbacks.Evaluation` (``evaluation:``, e.g.
 ``--evaluation.reference_repeats 10``), a :class:`BestAndLastCheckpoint` (``checkpoint:``, e.g.
 ``--checkpoint.monitor val/mmd``) and :class:`otgb.callbacks.ComponentAnalysis` (``components:``,
 e.g. ``--components.enabled false``), which writes ``components.json`` at the end of ``otgb fit``.
-``otgb test`` writes ``metrics.json`` and ``metrics.md`` into its run directory. Bad user input
+``otgb test`` writes ``metrics.json`` and ``metrics.md`` into its run directory. ``--solver`` picks how
+every solve runs (:mod:`otgb.physics.solvers`: compiled after a warm-up by default). Bad user input
 (:class:`otgb.errors.InputError`) ends the command with one line ``otgb: error: <message>`` and
 exit status 2; a diverged training or f_p solve ends it with one such line and status 1.
 """
@@ -39,6 +40,7 @@ from otgb.data import SimulationDataModule
 from otgb.errors import InputError, OutputNotWritten
 from otgb.guard import TrainingDiverged
 from otgb.physics.base import SimulationDiverged
+from otgb.physics.solvers import COMPILE_AFTER, SOLVERS, checked_solver, set_solver
 from otgb.training import MapTraining
 
 DEFAULTS = Path(__file__).parent / "configs" / "defaults.yaml"
@@ -140,9 +142,17 @@ class OTGBCLI(LightningCLI):
         parser.add_lightning_class_args(Evaluation, "evaluation")
         parser.add_lightning_class_args(BestAndLastCheckpoint, "checkpoint")
         parser.add_lightning_class_args(ComponentAnalysis, "components")
+        parser.add_argument(
+            "--solver",
+            type=str,
+            default="auto",
+            help=f"how every fixed-step solve runs: {', '.join(SOLVERS)} (otgb.physics.solvers; auto compiles a field's "
+            f"Runge-Kutta step after {COMPILE_AFTER} solves of it, torchdiffeq is the reference path)",
+        )
 
     def before_instantiate_classes(self) -> None:
         config = self.config[self.subcommand] if self.subcommand else self.config
+        set_solver(checked_solver(config.solver, "--solver"))
         name_loggers_after_config(config.trainer.logger, config.get("config"))
         self.new_log_dirs = share_logger_version(config.trainer.logger)
 

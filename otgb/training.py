@@ -38,6 +38,7 @@ from otgb.guard import TrainingDiverged, UpdateGuard, diagnosis
 from otgb.ot import Objective, WeakTransport, critic_loss
 from otgb.parallel import SigtermAgreement, average_gradients, without_gradient_sync
 from otgb.physics.base import PhysicsModel, SimulationDiverged
+from otgb.physics.solvers import plan_solves
 
 MapFactory = Callable[[PhysicsModel, int], nn.Module]
 CriticFactory = Callable[[tuple], nn.Module]
@@ -357,6 +358,10 @@ class MapTraining(LightningModule):
 
     def on_train_start(self) -> None:
         self.sigterm.install(self.trainer)
+        plan_solves(self.trainer.estimated_stepping_batches - self.trainer.global_step)  # a long run compiles its solves at once
+
+    def on_train_end(self) -> None:
+        plan_solves(0)
 
     def on_train_batch_start(self, batch: Any, batch_idx: int) -> None:
         without_gradient_sync(self.trainer.strategy)

@@ -38,7 +38,7 @@ def natural_scales(physics, library: list[Candidate], size: float, seed: int) ->
     g = torch.Generator().manual_seed(seed)
     x0, theta = physics.sample_initial_state(64, g), physics.sample_theta(64, g)
     with torch.no_grad():
-        states = physics.solve(lambda t, s: physics.vector_field(s, theta), x0)
+        states = physics.solve(physics.vector_field, x0, theta)
     scales = {}
     for component in dict.fromkeys(c.component for c in library):
         mine = [c for c in library if c.component == component]

@@ -1,12 +1,13 @@
 """Where the time of one training step goes: simulation, map solve, critic, backward.
 
-    python scripts/profile_step.py --config configs/pendulum.yaml [--steps 20] [--batch-size 64]
+    python scripts/profile_step.py --config configs/pendulum.yaml [--steps 20] [--batch-size 64] [--solver compiled]
 
 Builds the model and data module from the config (as `otgb fit` would), then times the
 parts of Algorithm 1 on real batches: the f_p simulation of a step's source batches, the
 grey-box forward solves, the map backward passes, and the critic update (forward, penalty,
 backward). Prints mean milliseconds per training step, each part's share (the share of
 "simulate f_p" is the fraction of a step spent simulating) and f_p's simulations per second.
+The first two steps (where a compiled solve compiles) are timed apart, as the warm-up.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import torch
 from otgb.cli import OTGBCLI
 from otgb.data import SimulationDataModule
 from otgb.ot import critic_loss
+from otgb.physics.solvers import SOLVERS, set_solver
 from otgb.training import MapTraining
 
 
@@ -35,7 +37,9 @@ def main() -> None:
     parser.add_argument("--config", required=True)
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--batch-size", type=int, default=None, help="source batch size (default: the config's)")
+    parser.add_argument("--solver", choices=SOLVERS, default="compiled", help="the solve path (otgb fit's --solver)")
     args = parser.parse_args()
+    set_solver(args.solver)
     model, dm = build(args.config, [] if args.batch_size is None else [f"--data.batch_size={args.batch_size}"])
     dm.setup("fit")
     map_opt = torch.optim.Adam(model.transport_map.parameters(), lr=1e-4)
@@ -49,8 +53,10 @@ def main() -> None:
         yield
         times[name] += time.perf_counter() - start
 
+    warmup = 0.0
     for step in range(args.steps + 2):
-        if step == 2:  # the first steps warm up allocators and caches
+        if step == 2:  # the first steps warm up allocators and caches, and compile the solves
+            warmup = sum(times.values())
             times.clear()
         with timed("sample (x0, theta)"):
             batch = next(stream)
@@ -78,7 +84,7 @@ def main() -> None:
     total = sum(times.values())
     print(
         f"{args.config}: {1000 * total / args.steps:.1f} ms per training step (T_max = {model.t_max}, batch {dm.batch_size}, "
-        f"threads {torch.get_num_threads()})"
+        f"threads {torch.get_num_threads()}, solver {args.solver}); the 2 warm-up steps took {warmup:.1f} s"
     )
     for name, seconds in sorted(times.items(), key=lambda kv: -kv[1]):
         print(f"  {name:32s} {1000 * seconds / args.steps:8.1f} ms  {100 * seconds / total:5.1f} %")

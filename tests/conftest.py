@@ -68,3 +68,13 @@ class SendSigterm(Callback):
     def on_train_batch_end(self, trainer, *args) -> None:
         if trainer.global_step == self.step and self.rank in (None, trainer.global_rank):
             os.kill(os.getpid(), signal.SIGTERM)
+
+
+@pytest.fixture(autouse=True)
+def default_solver():
+    """Each test starts on the default solve path with no solves counted (``auto`` compiles after a count)."""
+    from otgb.physics import solvers
+
+    solvers.reset()
+    yield
+    solvers.reset()

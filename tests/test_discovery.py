@@ -116,7 +116,7 @@ def _pendulum_states(n, angle=(-1.57, 1.57), seed=0):
     g = torch.Generator().manual_seed(seed)
     x0, theta = model.sample_initial_state(n, g), model.sample_theta(n, g)
     damped = model.with_hidden_effect([ViscousFriction(Constant(0.5))])
-    states = damped.solve(lambda t, s: damped.vector_field(s, theta, torch.full((n, 1), 0.5)), x0)
+    states = damped.solve(damped.vector_field, x0, theta, torch.full((n, 1), 0.5))
     return model, states, theta
 
 

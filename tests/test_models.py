@@ -131,3 +131,31 @@ def test_field_figure_names_a_missing_channel(generator):
         FieldFigure(n_inputs=1, channel=2).draw(data, x[:, None], physics)
     figure = FieldFigure(n_inputs=1, channel=1).draw(data, x[:, None], physics)
     assert len(figure.axes) == 3 * 4, "measured, generated and f_p at four frames"
+
+
+def _concatenated_forward(net, u, cond):
+    """The conditional networks as their docstrings define them: each layer sees [h, code(cond)]."""
+    code = net.encoder(cond)
+    h = u.flatten(1) if isinstance(net, ConditionalMLP) else u
+    layers = [*net.hidden, net.out] if isinstance(net, ConditionalMLP) else list(net.layers)
+    for i, layer in enumerate(layers):
+        spread = code.reshape(*code.shape, *([1] * (h.dim() - 2))).expand(-1, -1, *h.shape[2:])
+        h = layer(torch.cat([h, spread], dim=1))
+        h = net.act(h) if i < len(layers) - 1 else h
+    return h.reshape(len(u), *net.out_shape) if isinstance(net, ConditionalMLP) else h
+
+
+@pytest.mark.parametrize(
+    "net, shape",
+    [
+        (ConditionalMLP((2,), (1,), 3, output_scale=1.0), (5, 2)),
+        (ConditionalConvNet((1, 9), (1, 9), 3, padding_mode="zeros", output_scale=1.0), (5, 1, 9)),
+        (ConditionalConvNet((2, 6, 6), (2, 6, 6), 3, padding_mode="circular", output_scale=1.0), (5, 2, 6, 6)),
+    ],
+    ids=["mlp", "conv1d-zeros", "conv2d-circular"],
+)
+def test_the_condition_computed_once_per_solve_gives_the_concatenated_networks(net, shape, generator):
+    u, cond = torch.randn(shape, generator=generator), torch.randn(shape[0], 3, generator=generator)
+    parts = net.condition(cond)
+    assert torch.allclose(net.conditioned(u, *parts), _concatenated_forward(net, u, cond), atol=1e-6)
+    assert torch.allclose(net(u, cond), _concatenated_forward(net, u, cond), atol=1e-6)

@@ -38,7 +38,7 @@ def test_pure_diffusion_decays_like_the_heat_equations_sine_mode():
     length = (model.n_grid + 1) * model.dx
     alpha = 0.05
     x0 = torch.sin(math.pi * model.grid / length).reshape(1, 1, -1).double()
-    x = model.solve(lambda t, s: model.field(s, torch.tensor([[alpha]], dtype=torch.float64)), x0)
+    x = model.solve(model.field, x0, torch.tensor([[alpha]], dtype=torch.float64))
     amplitude = (x[0, :, 0] * x0[0, 0]).sum(-1) / (x0[0, 0] ** 2).sum()
     expected = torch.exp(-alpha * (math.pi / length) ** 2 * model.times().double())
     assert torch.allclose(amplitude, expected, rtol=2e-3)

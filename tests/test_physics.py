@@ -20,7 +20,7 @@ def test_shapes_and_grid(pendulum, generator):
 
 def test_frictionless_pendulum_conserves_energy(pendulum, generator):
     x0, theta = _inputs(pendulum, 64, generator)
-    states = pendulum.solve(lambda t, s: pendulum.vector_field(s, theta), x0.double())
+    states = pendulum.solve(pendulum.vector_field, x0.double(), theta)
     energy = pendulum.energy(states, theta.double())
     drift = (energy - energy[:, :1]).abs().max(dim=1).values / energy[:, 0].clamp_min(1e-3)
     assert drift.max() < 2e-3
@@ -29,7 +29,7 @@ def test_frictionless_pendulum_conserves_energy(pendulum, generator):
 def test_friction_decays_energy(damped, generator):
     x0, theta = _inputs(damped, 64, generator)
     effect = damped.sample_effect_params(64, generator)
-    states = damped.solve(lambda t, s: damped.vector_field(s, theta, effect), x0.double())
+    states = damped.solve(damped.vector_field, x0.double(), theta, effect)
     energy = damped.energy(states, theta.double())
     assert (energy[:, 1:] <= energy[:, :-1] + 1e-9).all()
     assert (energy[:, -1] < 0.01 * energy[:, 0]).all(), "xi = 1.2 over 4.9 s removes > 99% of the energy"
@@ -39,9 +39,9 @@ def test_rk4_matches_fine_reference_with_fourth_order_error(generator):
     coarse, half, fine = Pendulum(step_size=0.1), Pendulum(step_size=0.05), Pendulum(step_size=0.001)
     x0, theta = _inputs(coarse, 32, generator)
     x0, theta = x0.double(), theta.double()
-    ref = fine.solve(lambda t, s: fine.vector_field(s, theta), x0)
-    err_coarse = (coarse.solve(lambda t, s: coarse.vector_field(s, theta), x0) - ref).abs().max()
-    err_half = (half.solve(lambda t, s: half.vector_field(s, theta), x0) - ref).abs().max()
+    ref = fine.solve(fine.vector_field, x0, theta)
+    err_coarse = (coarse.solve(coarse.vector_field, x0, theta) - ref).abs().max()
+    err_half = (half.solve(half.vector_field, x0, theta) - ref).abs().max()
     assert err_coarse < 5e-3
     assert 10 < err_coarse / err_half < 24, "halving the step must cut the error ~16x (order 4)"
 

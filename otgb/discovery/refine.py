@@ -142,7 +142,7 @@ class CoefficientPrior(torch.nn.Module):
 def simulate_finite(model: Augmented, x0: Tensor, theta: Tensor) -> Tensor:
     """Observed trajectories (n, T, *obs) of the augmented model; those that diverged (a coefficient
     that makes the model blow up, e.g. a growing cubic) are left out."""
-    trajectories = model.observe(model.solve(lambda t, s: model.vector_field(s, theta), x0))
+    trajectories = model.observe(model.solve(model.vector_field, x0, theta))
     return trajectories[torch.isfinite(trajectories.flatten(1)).all(1)]
 
 

@@ -67,7 +67,7 @@ def fitted_correction(physics: PhysicsModel, dense: FittedTerms, n: int, seed: i
     g = torch.Generator().manual_seed(seed + 5)
     x0, theta = physics.sample_initial_state(n, g), physics.sample_theta(n, g)
     coefficients = torch.tensor([p.quantile(torch.tensor(0.5)).item() for p in dense.priors]).expand(n, -1)
-    states = model.solve(lambda t, s: model.vector_field(s, torch.cat([theta, coefficients], 1)), x0)
+    states = model.solve(model.vector_field, x0, torch.cat([theta, coefficients], 1))
     steps = states.shape[1]
     flat, theta_rows = states.flatten(0, 1), theta.repeat_interleave(steps, 0)
     with_terms = model.vector_field(flat, torch.cat([theta_rows, coefficients[:1].expand(len(flat), -1)], 1))

@@ -48,10 +48,21 @@ class GreyBoxODE(nn.Module):
     def vector_field(self, state: Tensor, theta: Tensor, cond: Tensor) -> Tensor:
         return self.physics.add_correction(self.physics.vector_field(state, theta), self.correction(state, cond))
 
+    def conditioned_field(self, state: Tensor, theta: Tensor, *parts: Tensor) -> Tensor:
+        """:meth:`vector_field` with the condition's share of f_phi computed beforehand (``correction.condition``)."""
+        return self.physics.add_correction(self.physics.vector_field(state, theta), self.correction.conditioned(state, *parts))
+
     def solve(self, initial_state: Tensor, theta: Tensor, z: Tensor) -> Tensor:
-        """States (B, T, *state) of the corrected model."""
+        """States (B, T, *state) of the corrected model.
+
+        A correction that splits off what the condition contributes (``condition(cond)`` and
+        ``conditioned(u, *parts)``, as otgb's conditional networks do) has it computed once per
+        solve instead of at every stage: z and theta are constant along a trajectory.
+        """
         cond = torch.cat([theta, z], dim=1)
-        return self.physics.solve(lambda t, s: self.vector_field(s, theta, cond), initial_state)
+        if hasattr(self.correction, "condition"):
+            return self.physics.solve(self.conditioned_field, initial_state, theta, *self.correction.condition(cond))
+        return self.physics.solve(self.vector_field, initial_state, theta, cond)
 
     @torch.no_grad()
     def components(self, initial_state: Tensor, theta: Tensor, z: Tensor) -> dict[str, Tensor]:

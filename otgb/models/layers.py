@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor, nn
@@ -75,12 +75,36 @@ class ConditionalMLP(nn.Module):
         scale_initial_output(self.out, output_scale)
 
     def forward(self, u: Tensor, cond: Tensor) -> Tensor:
-        h = u.flatten(1)
+        return self.conditioned(u, *self.condition(cond))
+
+    def condition(self, cond: Tensor) -> tuple[Tensor, ...]:
+        """What the condition adds to each layer, (B, width) per layer: its code times the layer's code columns, plus the bias.
+
+        A layer's input is [h, code], so its output W [h, code] + b = W_h h + (W_code code + b): the
+        bracket is the same at every stage of a solve, where c is constant, and is computed once.
+        """
         code = self.encoder(cond) if self.encoder is not None else None
-        for layer in self.hidden:
-            h = self.act(layer(h if code is None else torch.cat([h, code], dim=1)))
-        h = h if code is None else torch.cat([h, code], dim=1)
-        return self.out(h).reshape(-1, *self.out_shape)
+        return tuple(_code_part(layer, code, nn.functional.linear) for layer in (*self.hidden, self.out))
+
+    def conditioned(self, u: Tensor, *parts: Tensor) -> Tensor:
+        """f(u, c) from the condition's parts (:meth:`condition`)."""
+        h = u.flatten(1)
+        for layer, part in zip(self.hidden, parts):
+            h = self.act(nn.functional.linear(h, _state_weight(layer, h)) + part)
+        return (nn.functional.linear(h, _state_weight(self.out, h)) + parts[-1]).reshape(-1, *self.out_shape)
+
+
+def _state_weight(layer: nn.Module, h: Tensor) -> Tensor:
+    """The weight's columns (input channels) that act on the state's features h, (out, features, ...)."""
+    return layer.weight[:, : h.shape[1]]
+
+
+def _code_part(layer: nn.Module, code: Tensor | None, apply: Callable[..., Tensor]) -> Tensor:
+    """``apply(code, W_code, b)``: the layer's output on the condition's code alone (the bias alone without a code)."""
+    if code is None:
+        return layer.bias.reshape(1, -1, *([1] * (layer.weight.dim() - 2)))
+    features = layer.weight.shape[1] - code.shape[1]
+    return apply(code, layer.weight[:, features:], layer.bias)
 
 
 CONVOLUTIONS = {1: nn.Conv1d, 2: nn.Conv2d, 3: nn.Conv3d}
@@ -133,6 +157,7 @@ class ConditionalConvNet(nn.Module):
         if tuple(in_shape[1:]) != tuple(out_shape[1:]):
             raise ValueError(f"ConditionalConvNet: input {tuple(in_shape)} and output {tuple(out_shape)} need the same grid")
         conv = convolution(len(in_shape) - 1)
+        self.grid = tuple(in_shape[1:])
         code = cond_features if cond_dim > 0 else 0
         self.encoder = condition_encoder(cond_dim, code, activation_name)
         widths = [in_shape[0], *channels, out_shape[0]]
@@ -144,12 +169,25 @@ class ConditionalConvNet(nn.Module):
         scale_initial_output(self.layers[-1], output_scale)
 
     def forward(self, u: Tensor, cond: Tensor) -> Tensor:
-        code = None
-        if self.encoder is not None:
-            code = self.encoder(cond).reshape(*cond.shape[:1], -1, *([1] * (u.dim() - 2))).expand(-1, -1, *u.shape[2:])
+        return self.conditioned(u, *self.condition(cond))
+
+    def condition(self, cond: Tensor) -> tuple[Tensor, ...]:
+        """What the condition adds to each layer, (B, out channels, *grid) per layer.
+
+        A convolution is linear in its input channels: conv([h, code]) = conv_h(h) + conv_code(code),
+        each with the same padding. The code's part is the same at every stage of a solve and is
+        computed once (the code channels are also most of the first layer's input).
+        """
+        if self.encoder is None:
+            return tuple(_code_part(layer, None, layer._conv_forward) for layer in self.layers)
+        code = self.encoder(cond).reshape(*cond.shape[:1], -1, *([1] * len(self.grid))).expand(-1, -1, *self.grid)
+        return tuple(_code_part(layer, code, layer._conv_forward) for layer in self.layers)
+
+    def conditioned(self, u: Tensor, *parts: Tensor) -> Tensor:
+        """f(u, c) from the condition's parts (:meth:`condition`)."""
         h = u
-        for i, layer in enumerate(self.layers):
-            h = layer(h if code is None else torch.cat([h, code], dim=1))
+        for i, (layer, part) in enumerate(zip(self.layers, parts)):
+            h = layer._conv_forward(h, _state_weight(layer, h), None) + part
             if i < len(self.layers) - 1:
                 h = self.act(h)
         return h

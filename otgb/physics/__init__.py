@@ -6,6 +6,7 @@ from otgb.physics.base import FieldModel, PhysicsModel, SimulationDiverged, Term
 from otgb.physics.pendulum import Pendulum
 from otgb.physics.priors import Choice, Constant, Normal, Prior, Uniform
 from otgb.physics.reaction_diffusion import ReactionDiffusion
+from otgb.physics.solvers import SOLVERS, set_solver
 from otgb.physics.terms import Advection, ConstantDrain, FitzHughNagumoReaction, LibraryTerm, ViscousFriction
 
 __all__ = [
@@ -18,6 +19,8 @@ __all__ = [
     "LibraryTerm",
     "Normal",
     "ReactionDiffusion",
+    "SOLVERS",
+    "set_solver",
     "Choice",
     "Constant",
     "Pendulum",

@@ -25,14 +25,14 @@ from typing import ClassVar
 
 import torch
 from torch import Tensor, nn
-from torchdiffeq import odeint
 
 from otgb.errors import InputError
 from otgb.physics.arguments import RecordsInitArgs, invalid
 from otgb.physics.priors import Prior, check_prior, sample_joint
+from otgb.physics.solvers import integrate
 from otgb.physics.stencils import central_difference, laplacian, second_difference
 
-VectorField = Callable[[Tensor, Tensor], Tensor]
+VectorField = Callable[..., Tensor]  # field(state, *args) -> d(state)/dt
 
 FIXED_STEP_METHODS = ("euler", "midpoint", "heun2", "heun3", "rk4", "explicit_adams", "implicit_adams", "fixed_adams")
 BOUNDARIES = ("dirichlet", "periodic")
@@ -271,20 +271,25 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
             offset += term.n_params
         return dstate
 
-    def solve(self, rhs: VectorField, initial_state: Tensor) -> Tensor:
-        """Integrate d(state)/dt = rhs(t, state) on this model's grid: (B, T, *state_shape)."""
-        t = self.times(initial_state.device)
-        states = odeint(rhs, initial_state, t, method=self.method, options={"step_size": self.step_size})
-        states = states.movedim(0, 1)
+    def solve(self, field: VectorField, initial_state: Tensor, *args: Tensor) -> Tensor:
+        """Integrate d(state)/dt = field(state, *args) on this model's grid: (B, T, *state_shape).
+
+        The path (compiled, eager or torchdiffeq's) is :mod:`otgb.physics.solvers`'s setting.
+        """
+        n_times = self.n_obs if self.include_initial else self.n_obs + 1
+        states = integrate(field, initial_state, args, self.method, self.step_size, self.dt, n_times)
         return states if self.include_initial else states[:, 1:]
 
     def simulate(self, initial_state: Tensor, theta: Tensor, effect_params: Tensor | None = None) -> Tensor:
         """Observed trajectories (B, T, *obs_shape) of the full model (f_p plus its terms)."""
         self.check_inputs(initial_state, theta, effect_params)
-        states = self.solve(lambda t, s: self.vector_field(s, theta, effect_params), initial_state)
+        states = self.solve(self.vector_field, initial_state, *self._field_args(theta, effect_params))
         trajectories = self.observe(states)
         raise_if_diverged(trajectories, type(self).__name__, theta)
         return trajectories
+
+    def _field_args(self, theta: Tensor, effect_params: Tensor | None) -> tuple[Tensor, ...]:
+        return (theta,) if effect_params is None else (theta, effect_params)
 
     def check_inputs(self, initial_state: Tensor, theta: Tensor, effect_params: Tensor | None) -> None:
         name = type(self).__name__

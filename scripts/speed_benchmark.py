@@ -1,0 +1,202 @@
+"""The fast solve path against torchdiffeq's, in one run: ratios per system, warm-up counted.
+
+    python scripts/speed_benchmark.py steps --out results/speed [--configs pendulum advdiff reactdiff] [--steps 40]
+    python scripts/speed_benchmark.py fit --out results/speed --config reactdiff -- --data.simulation_budget=1600
+    python scripts/speed_benchmark.py table --out results/speed --doc docs/results.md
+
+``steps`` trains each config with a real Lightning Trainer for ``--steps`` training steps, once
+per solver (``--solvers``, torchdiffeq first), in this one process, alternating the solvers
+``--rounds`` times so that a slow spell of the machine hits both. Each step is timed whole
+(simulation, map and critic updates, logging). It prints and writes ``steps.json``:
+
+- per solver, the median step after the first ``--warmup`` steps, and the warm-up's seconds
+  (where the compiled path compiles its steps; from torch's on-disk cache after the first run);
+- the speed-up (reference median / fast median) and the number of steps after which the fast
+  path has paid for its warm-up.
+
+``fit`` runs ``otgb fit --config <config> --solver S`` for each solver as a whole command (import,
+data, compile, training, validation, test-free), alternating ``--rounds`` times, and writes
+``fit.json`` with each run's wall time and final validation metrics.
+
+Each writes its results as it goes; a rerun skips what is done. ``table`` writes the figures of
+both files into ``--doc`` between the markers ``<!-- speed: scripts/speed_benchmark.py -->`` and
+``<!-- end speed -->`` (appended when missing), so the docs' figures come from the result files.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+from lightning import Callback
+
+ROOT = Path(__file__).parents[1]
+
+
+class StepTimes(Callback):
+    """The wall time of each training step, from the start of its batch to its end."""
+
+    def __init__(self) -> None:
+        self.times: list[float] = []
+        self._start = 0.0
+
+    def on_train_batch_start(self, *args) -> None:
+        self._start = time.perf_counter()
+
+    def on_train_batch_end(self, *args) -> None:
+        self.times.append(time.perf_counter() - self._start)
+
+
+def time_steps(config: str, solver: str, steps: int, workdir: Path) -> list[float]:
+    from otgb.cli import OTGBCLI
+    from otgb.data import SimulationDataModule
+    from otgb.training import MapTraining
+
+    timer = StepTimes()
+    args = [
+        "--config", str(ROOT / "configs" / f"{config}.yaml"), "--trainer.logger=false", "--trainer.enable_checkpointing=false",
+        "--trainer.enable_progress_bar=false", f"--trainer.max_steps={steps}", f"--trainer.val_check_interval={steps}",
+        "--components.enabled=false", f"--data.cache_dir={workdir / 'cache'}", f"--solver={solver}",
+    ]  # fmt: skip
+    cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=args)
+    cli.trainer.callbacks.append(timer)
+    cli.trainer.fit(cli.model, cli.datamodule)
+    return timer.times
+
+
+def summary(times: list[float], warmup: int) -> dict[str, float]:
+    return {"median_ms": 1000 * statistics.median(times[warmup:]), "warmup_s": sum(times[:warmup]), "steps": len(times)}
+
+
+def run_steps(args: argparse.Namespace) -> None:
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "steps.json"
+    results = json.loads(path.read_text()) if path.exists() else {}
+    for config in args.configs:
+        for round_ in range(args.rounds):
+            for solver in args.solvers:
+                key = f"{config}/{solver}/{round_}"
+                if key in results:
+                    continue
+                results[key] = summary(time_steps(config, solver, args.steps, out), args.warmup)
+                path.write_text(json.dumps(results, indent=1))
+        print(report(results, config, args.solvers), flush=True)
+    print(f"speed_benchmark: wrote {path}")
+
+
+def report(results: dict, config: str, solvers: list[str]) -> str:
+    """One line per solver: median ms per step, speed-up over the first solver, warm-up, and when the warm-up is repaid."""
+    reference = _median(results, f"{config}/{solvers[0]}/", "median_ms")
+    reference_warmup = _median(results, f"{config}/{solvers[0]}/", "warmup_s")
+    lines = [f"{config} (torch threads {torch.get_num_threads()}):"]
+    for solver in solvers:
+        prefix = f"{config}/{solver}/"
+        step, warmup = _median(results, prefix, "median_ms"), _median(results, prefix, "warmup_s")
+        saved_s = (reference - step) / 1000
+        repaid = ""
+        if solver != solvers[0] and saved_s > 0:
+            repaid = f", warm-up repaid after {max(0.0, warmup - reference_warmup) / saved_s:.0f} steps"
+        each = ", ".join(format(v["median_ms"], ".1f") for k, v in results.items() if k.startswith(prefix))
+        speedup = reference / step
+        lines.append(f"  {solver:12s} {step:8.1f} ms/step  x{speedup:5.2f}  warm-up {warmup:6.1f} s (runs: {each}){repaid}")
+    return "\n".join(lines)
+
+
+def run_fit(args: argparse.Namespace) -> None:
+    from otgb.cli import logger_override
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "fit.json"
+    results = json.loads(path.read_text()) if path.exists() else {}
+    for round_ in range(args.rounds):
+        for solver in args.solvers:
+            key = f"{args.config}/{solver}/{round_}"
+            if key in results:
+                continue
+            command = [
+                sys.executable, "-m", "otgb.cli", "fit", "--config", str(ROOT / "configs" / f"{args.config}.yaml"),
+                f"--solver={solver}", logger_override(str(out / "runs" / key), "run"), "--trainer.enable_progress_bar=false",
+                f"--data.cache_dir={out / 'cache'}", *args.overrides,
+            ]  # fmt: skip
+            start = time.perf_counter()
+            subprocess.run(command, check=True)
+            results[key] = {"wall_s": time.perf_counter() - start, "command": " ".join(command[1:])}
+            path.write_text(json.dumps(results, indent=1))
+    for solver in args.solvers:
+        walls = [v["wall_s"] for k, v in results.items() if k.startswith(f"{args.config}/{solver}/")]
+        runs = ", ".join(f"{w:.0f} s" for w in walls)
+        print(f"{args.config} {solver:12s} whole fit {statistics.median(walls) / 60:6.2f} min (runs: {runs})")
+    print(f"speed_benchmark: wrote {path}")
+
+
+SECTION_START, SECTION_END = "<!-- speed: scripts/speed_benchmark.py -->", "<!-- end speed -->"
+
+
+def write_table(args: argparse.Namespace) -> None:
+    out, doc = Path(args.out), Path(args.doc)
+    lines = [SECTION_START, ""]
+    steps = json.loads((out / "steps.json").read_text()) if (out / "steps.json").exists() else {}
+    configs = list(dict.fromkeys(key.split("/")[0] for key in steps))
+    if configs:
+        lines += ["| config | solver | ms per training step | speed-up | warm-up (s) | runs |", "|---|---|---|---|---|---|"]
+    for config in configs:
+        solvers = list(dict.fromkeys(key.split("/")[1] for key in steps if key.startswith(f"{config}/")))
+        reference = _median(steps, f"{config}/{solvers[0]}/", "median_ms")
+        for solver in solvers:
+            prefix = f"{config}/{solver}/"
+            step, warmup = _median(steps, prefix, "median_ms"), _median(steps, prefix, "warmup_s")
+            runs = sum(key.startswith(prefix) for key in steps)
+            lines.append(f"| {config} | {solver} | {step:.1f} | {reference / step:.2f}x | {warmup:.1f} | {runs} |")
+    fits = json.loads((out / "fit.json").read_text()) if (out / "fit.json").exists() else {}
+    if fits:
+        lines += ["", "| whole `otgb fit` | solver | minutes | runs |", "|---|---|---|---|"]
+        for prefix in dict.fromkeys(key.rsplit("/", 1)[0] + "/" for key in fits):
+            config, solver = prefix.split("/")[:2]
+            walls = [v["wall_s"] / 60 for k, v in fits.items() if k.startswith(prefix)]
+            lines.append(f"| {config} | {solver} | {statistics.median(walls):.2f} | {len(walls)} |")
+    lines += ["", SECTION_END]
+    text = doc.read_text() if doc.exists() else ""
+    if SECTION_START in text and SECTION_END in text:
+        before, rest = text.split(SECTION_START, 1)
+        after = rest.split(SECTION_END, 1)[1]
+    else:
+        before, after = text + "\n", "\n"
+    doc.write_text(before + "\n".join(lines) + after)
+    print(f"speed_benchmark: wrote {doc}")
+
+
+def _median(results: dict, prefix: str, field: str) -> float:
+    return statistics.median(v[field] for k, v in results.items() if k.startswith(prefix))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    commands = parser.add_subparsers(dest="command", required=True)
+    steps = commands.add_parser("steps", help="training steps of each config, per solver")
+    steps.add_argument("--configs", nargs="+", default=["pendulum", "advdiff", "reactdiff"])
+    steps.add_argument("--steps", type=int, default=40)
+    steps.add_argument("--warmup", type=int, default=5, help="first steps counted as warm-up (compilation)")
+    fit = commands.add_parser("fit", help="whole `otgb fit` commands, per solver")
+    fit.add_argument("--config", default="reactdiff")
+    fit.add_argument("overrides", nargs="*", help="otgb overrides, after --")
+    for sub in (steps, fit):
+        sub.add_argument("--solvers", nargs="+", default=["torchdiffeq", "compiled"], help="the reference first")
+        sub.add_argument("--rounds", type=int, default=2, help="alternations of the solvers")
+    table = commands.add_parser("table", help="write the figures of --out into --doc")
+    table.add_argument("--doc", required=True)
+    for sub in (steps, fit, table):
+        sub.add_argument("--out", required=True)
+    args = parser.parse_args()
+    {"steps": run_steps, "fit": run_fit, "table": write_table}[args.command](args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,188 @@
+"""The fast solve path against torchdiffeq's, the reference: same trajectories and gradients, compiled once."""
+
+import logging
+from pathlib import Path
+
+import pytest
+import torch
+
+from otgb.models import ConditionalConvNet, ConditionalMLP, GreyBoxODE
+from otgb.physics import (
+    Advection,
+    AdvectionDiffusion,
+    Augmented,
+    Constant,
+    FitzHughNagumoReaction,
+    LibraryTerm,
+    Pendulum,
+    ReactionDiffusion,
+    ViscousFriction,
+    solvers,
+)
+
+ROOT = Path(__file__).parents[1]
+
+
+def _systems():
+    pendulum = Pendulum()
+    return {
+        "pendulum": pendulum,
+        "pendulum + friction": pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))]),
+        "pendulum, euler at dt/4": Pendulum(method="euler", step_size=0.025),
+        "pendulum, midpoint": Pendulum(method="midpoint"),
+        "pendulum, heun2": Pendulum(method="heun2"),
+        "pendulum, heun3": Pendulum(method="heun3"),
+        "augmented pendulum": Augmented(Pendulum(), [LibraryTerm("velocity", "velocity", Constant(-1.2))]),
+        "advection-diffusion + advection": AdvectionDiffusion().with_hidden_effect([Advection(Constant(0.1))]),
+        "reaction-diffusion + u-reaction": ReactionDiffusion(n_grid=8, u_reaction=False).with_hidden_effect(
+            [FitzHughNagumoReaction(Constant(5e-3))], step_size=0.05
+        ),
+    }
+
+
+def _simulate(model, solver: str, n: int = 6) -> torch.Tensor:
+    solvers.set_solver(solver)
+    g = torch.Generator().manual_seed(0)
+    x0, theta = model.sample_initial_state(n, g), model.sample_theta(n, g)
+    return model.simulate(x0, theta, model.sample_effect_params(n, g))
+
+
+@pytest.mark.parametrize("name", list(_systems()))
+def test_eager_trajectories_equal_torchdiffeq(name):
+    model = _systems()[name]
+    reference, fast = _simulate(model, "torchdiffeq"), _simulate(model, "eager")
+    scale = reference.abs().max()
+    assert fast.shape == reference.shape
+    assert (fast - reference).abs().max() <= 1e-5 * scale, "the same method on the same grid, to float32 rounding"
+
+
+def _pendulum_greybox(z_dim: int = 2) -> GreyBoxODE:
+    torch.manual_seed(0)
+    return GreyBoxODE(Pendulum(), z_dim, lambda s, c, d: ConditionalMLP(s, c, d, hidden=(64, 64)))
+
+
+def _advdiff_greybox() -> GreyBoxODE:
+    torch.manual_seed(0)
+    return GreyBoxODE(AdvectionDiffusion(n_obs=8), 1, lambda s, c, d: ConditionalConvNet(s, c, d, output_scale=1.0))
+
+
+def _forward_backward(greybox: GreyBoxODE, solver: str, n: int) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    solvers.set_solver(solver)
+    g = torch.Generator().manual_seed(1)
+    physics = greybox.physics
+    x0, theta, z = physics.sample_initial_state(n, g), physics.sample_theta(n, g), torch.randn(n, greybox.z_dim, generator=g)
+    greybox.zero_grad()
+    y = greybox(None, x0, theta, z)
+    (y * torch.linspace(-1, 1, y[0].numel()).reshape(y.shape[1:])).sum().backward()
+    return y.detach(), [p.grad.clone() for p in greybox.parameters()]
+
+
+def _assert_same(fast, reference, tolerance: float) -> None:
+    (y, grads), (y_ref, grads_ref) = fast, reference
+    assert (y - y_ref).abs().max() <= tolerance * y_ref.abs().max()
+    for grad, grad_ref in zip(grads, grads_ref):
+        assert (grad - grad_ref).abs().max() <= tolerance * grad_ref.abs().max().clamp_min(1e-12)
+
+
+@pytest.mark.parametrize("make", [_pendulum_greybox, _advdiff_greybox], ids=["pendulum", "advection-diffusion"])
+def test_eager_greybox_gradients_equal_torchdiffeq(make):
+    greybox = make()
+    _assert_same(_forward_backward(greybox, "eager", 8), _forward_backward(greybox, "torchdiffeq", 8), 1e-4)
+
+
+def test_compiled_greybox_equals_torchdiffeq_and_compiles_once_for_every_batch_size():
+    greybox = _pendulum_greybox()
+    before = solvers.compile_counts()
+    _assert_same(_forward_backward(greybox, "compiled", 32), _forward_backward(greybox, "torchdiffeq", 32), 1e-4)
+    _forward_backward(greybox, "compiled", 32)
+    after_training = solvers.compile_counts()
+    assert after_training["graphs"] - before["graphs"] == 1, "one graph for the differentiated step"
+    _forward_backward(greybox, "compiled", 13)  # a partial last batch
+    with torch.no_grad():
+        for n in (64, 20):  # validation and test sizes
+            greybox(None, *_inputs(greybox, n))
+    after = solvers.compile_counts()
+    assert after["graphs"] - after_training["graphs"] == 1, "one more graph for solves without gradients, whatever the size"
+    assert after["recompiles"] == before["recompiles"]
+
+
+def _inputs(greybox: GreyBoxODE, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(2)
+    physics = greybox.physics
+    return physics.sample_initial_state(n, g), physics.sample_theta(n, g), torch.randn(n, greybox.z_dim, generator=g)
+
+
+def test_auto_solves_eagerly_until_a_field_has_been_solved_often(monkeypatch):
+    monkeypatch.setattr(solvers, "COMPILE_AFTER", 3)
+    compiled_steps = []
+
+    def recording_step(method):
+        return lambda *args: compiled_steps.append(1) or solvers.STEPS[method](*args)
+
+    monkeypatch.setattr(solvers, "_compiled_step", recording_step)
+    counts = []
+    with torch.no_grad():
+        for _ in range(4):
+            _simulate(Pendulum(), "auto")
+            counts.append(len(compiled_steps))
+    assert counts == [0, 0, 0, 49], "the 4th solve of the field is its first compiled one"
+
+
+def _branching_field(state: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    """A vector field with data-dependent Python control flow, which torch.compile cannot trace whole."""
+    if bool(state.abs().max() > 100.0):
+        return -state
+    return torch.stack([state[:, 1], -(theta[:, 0] ** 2) * torch.sin(state[:, 0])], dim=1)
+
+
+def test_a_field_that_cannot_be_compiled_runs_eagerly_with_one_line(caplog):
+    model = Pendulum()
+    g = torch.Generator().manual_seed(0)
+    x0, theta = model.sample_initial_state(4, g), model.sample_theta(4, g)
+    solvers.set_solver("torchdiffeq")
+    reference = model.solve(_branching_field, x0, theta)
+    solvers.set_solver("compiled")
+    with caplog.at_level(logging.WARNING, logger="otgb.solvers"):
+        fast = model.solve(_branching_field, x0, theta)
+        again = model.solve(_branching_field, x0, theta)
+    assert torch.allclose(fast, reference, atol=1e-6) and torch.equal(fast, again)
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 1 and lines[0].startswith("otgb: the solve of _branching_field runs eagerly: it could not be compiled (")
+
+
+def test_an_input_error_in_the_field_is_raised_not_hidden_by_the_fallback(caplog):
+    model = Pendulum()
+    solvers.set_solver("compiled")
+    with pytest.raises(RuntimeError), caplog.at_level(logging.WARNING, logger="otgb.solvers"):
+        model.solve(model.vector_field, torch.zeros(3, 2), torch.zeros(5, 1))  # theta of another batch
+    assert not caplog.records
+
+
+def _fit(tmp_path: Path, solver: str) -> list[dict]:
+    from test_cli import _args, _rows
+
+    from otgb.cli import main
+
+    main(["fit", *_args(tmp_path / solver, "--trainer.max_steps=50", "--trainer.val_check_interval=25", f"--solver={solver}")])
+    return _rows(tmp_path / solver / "run" / "version_0")
+
+
+def test_a_50_step_pendulum_fit_gives_the_same_curve_on_the_compiled_path(tmp_path):
+    reference, fast = _fit(tmp_path, "torchdiffeq"), _fit(tmp_path, "compiled")
+    for key in ("train/map_loss", "train/critic_loss", "val/abs_err"):
+        ref = [float(r[key]) for r in reference if r.get(key)]
+        new = [float(r[key]) for r in fast if r.get(key)]
+        assert len(ref) == len(new) > 1
+        assert torch.allclose(torch.tensor(new), torch.tensor(ref), rtol=2e-3, atol=1e-4), key
+
+
+def test_an_unknown_solver_is_one_line_status_2_and_writes_nothing(tmp_path, monkeypatch, capsys):
+    from otgb.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["fit", "--config", str(ROOT / "configs" / "pendulum.yaml"), "--solver", "fast"])
+    assert exit_info.value.code == 2
+    expected = "otgb: error: --solver='fast' is invalid; expected one of auto, compiled, eager, torchdiffeq"
+    assert capsys.readouterr().err.splitlines() == [expected]
+    assert list(tmp_path.iterdir()) == []
