@@ -1,6 +1,8 @@
 """The fast solve path against torchdiffeq's, the reference: same trajectories and gradients, compiled once."""
 
 import logging
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -186,3 +188,12 @@ def test_an_unknown_solver_is_one_line_status_2_and_writes_nothing(tmp_path, mon
     expected = "otgb: error: --solver='fast' is invalid; expected one of auto, compiled, eager, torchdiffeq"
     assert capsys.readouterr().err.splitlines() == [expected]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_speed_table_in_the_docs_is_what_the_result_files_give(tmp_path):
+    doc = tmp_path / "results.md"
+    doc.write_text((ROOT / "docs" / "results.md").read_text())
+    script = ROOT / "scripts" / "speed_benchmark.py"
+    results = ROOT / "results" / "speed"
+    subprocess.run([sys.executable, str(script), "table", "--out", str(results), "--doc", str(doc)], check=True)
+    assert doc.read_text() == (ROOT / "docs" / "results.md").read_text()
