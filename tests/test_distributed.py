@@ -122,3 +122,17 @@ def test_sigterm_to_one_process_stops_both_after_the_same_step_and_resumes(tmp_p
     assert torch.load(last, weights_only=False)["global_step"] == 3, "saved by both processes after the step rank 1 was signalled"
     _otgb_ddp(tmp_path, "fit", *_args(tmp_path, "pendulum.yaml", *steps), f"--ckpt_path={last}")
     assert torch.load(tmp_path / "run" / "version_1" / "checkpoints" / "last.ckpt", weights_only=False)["global_step"] == 10
+
+
+@pytest.mark.slow
+def test_two_process_fit_on_the_compiled_path_follows_the_reference_path(tmp_path):
+    """Each DDP process compiles its own steps (from the shared on-disk cache) and trains as on torchdiffeq's path."""
+    steps = ["--data.simulation_budget=1280", "--data.batch_size=16", "--trainer.val_check_interval=20"]
+    scores = {}
+    for solver in ("torchdiffeq", "compiled"):
+        (tmp_path / solver).mkdir()
+        _otgb_ddp(tmp_path / solver, "fit", *_args(tmp_path / solver, "pendulum.yaml", *steps, f"--solver={solver}"))
+        with open(tmp_path / solver / "run" / "version_0" / "metrics.csv") as f:
+            scores[solver] = [float(r["val/abs_err"]) for r in csv.DictReader(f) if r.get("val/abs_err")]
+    assert len(scores["compiled"]) == len(scores["torchdiffeq"]) == 2
+    assert torch.allclose(torch.tensor(scores["compiled"]), torch.tensor(scores["torchdiffeq"]), rtol=2e-3)
