@@ -147,7 +147,8 @@ class OTGBCLI(LightningCLI):
             type=str,
             default="auto",
             help=f"how every fixed-step solve runs: {', '.join(SOLVERS)} (otgb.physics.solvers; auto compiles a field's "
-            f"Runge-Kutta step after {COMPILE_AFTER} solves of it, torchdiffeq is the reference path)",
+            f"Runge-Kutta step once it has been, or a training run plans it to be, solved {COMPILE_AFTER} times; "
+            "torchdiffeq is the reference path)",
         )
 
     def before_instantiate_classes(self) -> None:

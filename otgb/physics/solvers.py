@@ -41,7 +41,6 @@ from torchdiffeq import odeint
 from otgb.errors import InputError
 
 SOLVERS = ("auto", "compiled", "eager", "torchdiffeq")
-RUNGE_KUTTA = ("euler", "midpoint", "heun2", "heun3", "rk4")
 COMPILE_AFTER = 500  # solves of one field (per grad mode) that `auto` runs eagerly before compiling its step
 
 Field = Callable[..., Tensor]
@@ -138,7 +137,7 @@ def integrate(
     ``field(state, *args)`` is d(state)/dt; ``step_size`` divides ``dt``.
     """
     solver = current_solver()
-    if solver == "torchdiffeq" or method not in RUNGE_KUTTA:
+    if solver == "torchdiffeq" or method not in STEPS:  # the Adams methods are torchdiffeq's only
         t = torch.arange(n_times, device=initial_state.device, dtype=torch.float32) * dt
         states = odeint(lambda _, s: field(s, *args), initial_state, t, method=method, options={"step_size": step_size})
         return states.movedim(0, 1)
@@ -189,10 +188,3 @@ def _field_name(field: Field) -> str:
     owner = getattr(field, "__self__", None)
     name = getattr(field, "__qualname__", repr(field))
     return f"{type(owner).__name__}.{field.__name__}" if owner is not None else name
-
-
-def compile_counts() -> dict[str, int]:
-    """How many graphs torch.compile has built and how often it recompiled, in this process (for tests and benchmarks)."""
-    from torch._dynamo.utils import counters
-
-    return {"graphs": int(counters["stats"]["unique_graphs"]), "recompiles": int(sum(counters["recompiles"].values()))}
