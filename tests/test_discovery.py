@@ -13,8 +13,10 @@ import yaml
 from torch import nn
 
 from otgb.data import generate_measured
+from otgb.discovery.intervals import sandwich_intervals
 from otgb.discovery.library import build_library, physical_name
 from otgb.discovery.locate import describe, locate
+from otgb.discovery.log import DivergenceLog
 from otgb.discovery.refine import (
     FAMILIES,
     FAMILY_REPEATS,
@@ -29,7 +31,7 @@ from otgb.discovery.refine import (
 from otgb.discovery.regression import design_matrix, regress
 from otgb.discovery.report import write_report
 from otgb.discovery.search import best_subsets, subset_values
-from otgb.discovery.workflow import DiscoverySettings, Measurements, locate_step, run
+from otgb.discovery.workflow import DiscoverySettings, Measurements, locate_step, run, simulate_candidate
 from otgb.errors import InputError
 from otgb.models import GreyBoxODE, MLPCritic
 from otgb.physics import (
@@ -198,6 +200,34 @@ def test_a_lead_within_the_measured_samples_noise_is_no_win():
     spread = torch.linspace(-4, 4, 100)  # the measured trajectories disagree on which model fits them better
     assert not beats(Scores([1.0, 1.01, 0.99, 1.0], spread), Scores([1.2, 1.21, 1.19, 1.2], -spread))
     assert not beats(Scores([float("inf")] * 4), better_in_every_draw[1])
+
+
+def test_a_candidate_that_diverges_is_dropped_and_listed_not_a_crash():
+    """An anti-damping cubic blows the pendulum up: its score is 'diverged', its trajectories are dropped, both logged."""
+    pendulum = Pendulum()
+    measured = _draws(pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))]), 100, 1)
+    cubic = next(c for c in build_library(pendulum, ["velocity"]) if c.feature == "velocity^3")
+    with DivergenceLog() as log:
+        scores = discrepancies(pendulum, [cubic], [Constant(50.0)], measured, 0, repeats=2)
+        kept = simulate_candidate(Augmented(pendulum, [LibraryTerm("velocity^3", "velocity", Constant(50.0))]), 100, 0, "gap")
+    assert not scores.finite and len(kept) < 100 and torch.isfinite(kept).all()
+    assert [r["what"] for r in log.records] == ["score", "gap"]
+    assert log.records[1]["diverged"] == 100 - len(kept) and log.records[1]["terms"] == ["velocity^3 on dvelocity/dt"]
+
+
+def test_intervals_contain_the_estimate_and_cover_the_truth_on_fresh_files():
+    """The sandwich interval of a friction fit, on 6 files drawn anew: around its estimate, and covering -1.2."""
+    pendulum = Pendulum()
+    dgp = pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))])
+    candidate = next(c for c in build_library(pendulum, ["velocity"]) if c.feature == "velocity")
+    covered = 0
+    for seed in range(6):
+        measured = _draws(dgp, 300, 10 + seed)
+        fitted = fit(pendulum, [candidate], [-0.6], "constant", measured, measured, 30, 256, seed, False, [1.2])
+        low, high = sandwich_intervals(pendulum, fitted, measured, 256, seed).centre[0]
+        assert low < fitted.priors[0].value < high and high - low < 0.5
+        covered += low <= -1.2 <= high
+    assert covered >= 5
 
 
 # --- the workflow on a grey-box whose correction is the hidden term -------------------

@@ -1,6 +1,11 @@
-"""``otgb discover``: the discovery workflow from the command line.
+"""``otgb discover``: find where f_p and your measurements disagree, name the missing terms, add them, check.
 
     otgb discover --config my_model.yaml --data.measured_path measurements.npz [--ckpt_path grey-box.ckpt]
+
+Time against precision: ``--data.simulation_budget`` (the grey-box's training: too small and
+the report says it is undertrained), ``--discover.fit_steps`` and ``--discover.fit_batch`` (each
+coefficient fit), ``--discover.n_permutations`` (the disagreement maps' p-values),
+``--discover.families`` (fewer prior families, fewer fits), ``--ckpt_path`` (skip training).
 
 It takes the options of ``otgb fit`` (the same config files work; with a config's hidden
 effect and no file, the measurements are generated from that DGP, which the workflow does not
@@ -8,7 +13,7 @@ see, and the report adds pointwise errors against it), a ``discover:`` section
 (:class:`otgb.discovery.workflow.DiscoverySettings`) and ``--ckpt_path``, a grey-box trained on
 the same measurements, to skip training. It writes ``report.md``, ``report.json``,
 ``figures/`` and ``augmented.yaml`` into the run directory (``runs/<config stem>/version_N``,
-where the fit's logs and checkpoints also go) and prints that directory.
+where the fit's logs and checkpoints also go) and prints that directory. Progress goes to stderr.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from otgb.cli import OTGBCLI
 from otgb.data import SimulationDataModule
 from otgb.discovery.known import pointwise_errors, write_measurements
 from otgb.discovery.locate import describe
+from otgb.discovery.log import DivergenceLog, progress, show_on_stderr
 from otgb.discovery.report import augmented_config, write_augmented, write_report
 from otgb.discovery.workflow import (
     Discovery,
@@ -32,7 +38,6 @@ from otgb.discovery.workflow import (
     Measurements,
     gap_step,
     locate_step,
-    progress,
     run,
     simulate_from_priors,
 )
@@ -43,9 +48,12 @@ from otgb.training import MapTraining
 class DiscoverCLI(OTGBCLI):
     """The ``otgb fit`` parser plus the ``discover:`` section and ``--ckpt_path``."""
 
+    def add_core_arguments_to_parser(self, parser) -> None:
+        parser.add_class_arguments(DiscoverySettings, "discover")  # first: ``--help`` shows it before Lightning's sections
+        super().add_core_arguments_to_parser(parser)
+
     def add_arguments_to_parser(self, parser) -> None:
         super().add_arguments_to_parser(parser)
-        parser.add_class_arguments(DiscoverySettings, "discover")
         parser.add_argument(
             "--ckpt_path",
             type=str | None,
@@ -58,9 +66,10 @@ def discover(args: list[str]) -> Path:
     """Run the workflow with ``otgb discover`` arguments; returns the run directory."""
     with warnings.catch_warnings():  # the arguments come from the command line, after the word "discover"
         warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
-        parser = {"prog": "otgb discover", "description": __doc__.split("\n\n")[0]}
+        parser = {"prog": "otgb discover", "description": _description()}
         cli = DiscoverCLI(MapTraining, SimulationDataModule, args=args, run=False, parser_kwargs=parser)
     settings: DiscoverySettings = cli.config_init["discover"]
+    show_on_stderr()
     datamodule, module, trainer = cli.datamodule, cli.model, cli.trainer
     data = Measurements.from_datamodule(datamodule)
     physics = datamodule.physics
@@ -74,7 +83,9 @@ def discover(args: list[str]) -> Path:
         result = run(module, data, settings, before)
         if datamodule.mode == "joint" and not datamodule.dgp.is_stochastic:
             augmented = result.fitted.model(physics) if result.found else None
-            result.pointwise = pointwise_errors(module, datamodule.dgp, augmented, datamodule.test_set, settings.seed)
+            with DivergenceLog() as log:
+                result.pointwise = pointwise_errors(module, datamodule.dgp, augmented, datamodule.test_set, settings.seed)
+            result.diverged += log.records
     else:
         result = Discovery(before, describe(before))
         result.draws = {"f_p": simulate_from_priors(physics, len(data.test), settings.seed, "gap-f_p")}
@@ -94,6 +105,12 @@ def discover(args: list[str]) -> Path:
     print(f"otgb discover: {report['verdict']}")
     print(f"otgb discover: report in {run_dir}")
     return run_dir
+
+
+def _description() -> str:
+    """What ``otgb discover`` does, an example, and which options trade time for precision (``--help``'s opening)."""
+    opening, example, trade, _ = __doc__.split("\n\n", 3)
+    return "\n\n".join([opening.strip('`" '), example.strip(), trade])
 
 
 def load_or_fit(cli: Any, ckpt_path: str | None) -> None:

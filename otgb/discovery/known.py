@@ -18,9 +18,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from otgb.discovery.log import diverged
 from otgb.metrics.errors import abs_err, nrmse
 from otgb.physics.augmented import Augmented
-from otgb.physics.base import PhysicsModel
+from otgb.physics.base import PhysicsModel, SimulationDiverged
 
 
 @contextmanager
@@ -53,7 +54,10 @@ def pointwise_errors(module: Any, dgp: PhysicsModel, augmented: Augmented | None
         for model in models:
             stack.enter_context(horizon(model, 2 * n_obs))
         for name, simulate in sources.items():
-            out[name] = _errors(simulate(), truth, n_obs)
+            try:
+                out[name] = _errors(simulate(), truth, n_obs)
+            except SimulationDiverged as error:  # a named term that blows up beyond the training horizon
+                diverged(f"pointwise errors ({name}, twice the horizon)", [str(error)], len(x0), len(x0), None)
     return out
 
 

@@ -20,6 +20,7 @@ held-out parts, which a spread that varies over time needs to be seen.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
@@ -27,6 +28,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from otgb.discovery.library import Candidate
+from otgb.discovery.log import diverged
 from otgb.metrics.energy import MAX_BLOCK_ENTRIES, batched_energy
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
@@ -79,6 +81,8 @@ class FittedTerms:
     priors: list[Prior]
     heldout: Scores
     loss: list[float]
+    start: list[float] = field(default_factory=list)  # where the fit started (refits for intervals start there too)
+    scales: list[float] | None = None  # the coefficients' natural sizes the fit moved them in
 
     @property
     def heldout_energy(self) -> float:
@@ -99,15 +103,16 @@ class CoefficientPrior(torch.nn.Module):
     gives ``v*|v|`` a tiny slope) must still be able to reach its value.
     """
 
-    def __init__(self, family: str, init: list[float], scales: list[float] | None = None) -> None:
+    def __init__(self, family: str, init: list[float], scales: list[float] | None = None, copies: int | None = None) -> None:
         super().__init__()
         init = torch.tensor(init, dtype=torch.float32)
         scale = init.abs() if scales is None else torch.maximum(torch.tensor(scales, dtype=torch.float32), init.abs())
         self.family = family
         self.register_buffer("init", init)
         self.register_buffer("scale", torch.where(scale > 0, scale, torch.ones_like(init)))
-        self.shift = torch.nn.Parameter(torch.zeros_like(init))
-        self.raw_width = torch.nn.Parameter(torch.full_like(init, -2.0))
+        shape = init.shape if copies is None else (copies, len(init))  # ``copies`` independent priors, fitted at once
+        self.shift = torch.nn.Parameter(torch.zeros(shape))
+        self.raw_width = torch.nn.Parameter(torch.full(shape, -2.0))
 
     @property
     def centre(self) -> Tensor:
@@ -120,15 +125,13 @@ class CoefficientPrior(torch.nn.Module):
         return self.scale * (F.softplus(self.raw_width) + MIN_WIDTH)
 
     def noise(self, n: int, generator: torch.Generator) -> Tensor:
-        """Standardised draws (n, K) that :meth:`draw` maps to coefficients: U(-1, 1) or N(0, 1)."""
-        shape = (n, len(self.init))
-        if self.family == "normal":
-            return torch.randn(shape, generator=generator)
-        return 2 * torch.rand(shape, generator=generator) - 1
+        """Standardised draws ([copies,] n, K) that :meth:`draw` maps to coefficients."""
+        return standard_noise(self.family, (*self.shift.shape[:-1], n, len(self.init)), generator)
 
     def draw(self, noise: Tensor) -> Tensor:
-        """Coefficients (n, K) for standardised draws ``noise``."""
-        return self.centre + (torch.zeros_like(noise) if self.family == "constant" else self.width * noise)
+        """Coefficients ([copies,] n, K) for standardised draws ``noise``."""
+        centre = self.centre.unsqueeze(-2)
+        return centre + (torch.zeros_like(noise) if self.family == "constant" else self.width.unsqueeze(-2) * noise)
 
     def priors(self) -> list[Prior]:
         centre, width = self.centre.tolist(), self.width.tolist()
@@ -139,11 +142,40 @@ class CoefficientPrior(torch.nn.Module):
         return [Normal(c, w) for c, w in zip(centre, width)]
 
 
-def simulate_finite(model: Augmented, x0: Tensor, theta: Tensor) -> Tensor:
-    """Observed trajectories (n, T, *obs) of the augmented model; those that diverged (a coefficient
-    that makes the model blow up, e.g. a growing cubic) are left out."""
+def standard_noise(family: str, shape: tuple[int, ...], generator: torch.Generator) -> Tensor:
+    """Draws that a prior family's centre + width * noise maps to coefficients: N(0, 1) (normal) or U(-1, 1)."""
+    if family == "normal":
+        return torch.randn(shape, generator=generator)
+    return 2 * torch.rand(shape, generator=generator) - 1
+
+
+@dataclass
+class FitSample:
+    """The fixed samples of one fit: measured targets (m, T, *obs), inputs of the simulated trajectories, coefficient noise."""
+
+    targets: Tensor
+    x0: Tensor
+    theta: Tensor
+    noise: Tensor
+
+    @classmethod
+    def draw(cls, base: PhysicsModel, measured: Tensor, family: str, terms: int, batch: int, seed: int) -> FitSample:
+        g = torch.Generator().manual_seed(seed)
+        targets = measured[torch.randperm(len(measured), generator=g)[:batch]].float()
+        x0, theta = base.sample_initial_state(batch, g), base.sample_theta(batch, g)
+        return cls(targets, x0, theta, standard_noise(family, (batch, terms), g))
+
+
+def simulate_finite(model: Augmented, x0: Tensor, theta: Tensor) -> tuple[Tensor, Tensor]:
+    """Observed trajectories (n', T, *obs) of the augmented model without those that diverged (a coefficient
+    that makes the model blow up, e.g. a growing cubic), and which of the n inputs diverged (n,)."""
     trajectories = model.observe(model.solve(model.vector_field, x0, theta))
-    return trajectories[torch.isfinite(trajectories.flatten(1)).all(1)]
+    finite = torch.isfinite(trajectories.flatten(1)).all(1)
+    return trajectories[finite], ~finite
+
+
+def term_names(candidates: list[Candidate]) -> list[str]:
+    return [f"{c.feature} on d{c.component}/dt" for c in candidates]
 
 
 def discrepancy(a: Tensor, b: Tensor) -> Tensor:
@@ -154,8 +186,15 @@ def discrepancy(a: Tensor, b: Tensor) -> Tensor:
     shrinks over time, as an effect that varies between trajectories makes it), which the
     distance between whole trajectories detects with far less power.
     """
-    whole = batched_energy(a.flatten(1)[None], b.flatten(1)[None])[0]
-    return whole + batched_energy(_cells(a), _cells(b)).sum()
+    return batched_discrepancy(a[None], b[None])[0]
+
+
+def batched_discrepancy(a: Tensor, b: Tensor) -> Tensor:
+    """:func:`discrepancy` of each pair a[g] (n, T, *obs), b[g] (m, T, *obs): (G,)."""
+    whole = batched_energy(a.flatten(2), b.flatten(2))
+    cells = lambda y: _cells(y.flatten(0, 1)).unflatten(1, y.shape[:2]).transpose(0, 1).flatten(0, 1)  # noqa: E731
+    per_cell = batched_energy(cells(a), cells(b)).reshape(len(a), -1)
+    return whole + per_cell.sum(1)
 
 
 def _cells(y: Tensor) -> Tensor:
@@ -197,17 +236,15 @@ def fit(
     """
     prior = CoefficientPrior(family, init, scales)
     model = Augmented(base, [LibraryTerm(c.feature, c.component, Constant(v)) for c, v in zip(candidates, init)])
-    g = torch.Generator().manual_seed(seed)
     n = batch
-    targets = measured[torch.randperm(len(measured), generator=g)[:batch]].float()
-    x0, theta = base.sample_initial_state(n, g), base.sample_theta(n, g)
-    noise = prior.noise(n, g)
+    sample = FitSample.draw(base, measured, family, len(candidates), batch, seed)
+    targets, x0, theta, noise = sample.targets, sample.x0, sample.theta, sample.noise
     optimiser = torch.optim.LBFGS(prior.parameters(), lr=1, max_iter=steps, max_eval=2 * steps, line_search_fn="strong_wolfe")
     losses: list[float] = []
 
     def closure() -> Tensor:
         optimiser.zero_grad()
-        simulated = simulate_finite(model, x0, torch.cat([theta, prior.draw(noise)], dim=1))
+        simulated, _ = simulate_finite(model, x0, torch.cat([theta, prior.draw(noise)], dim=1))
         loss = discrepancy(simulated, targets) if len(simulated) == n else torch.tensor(float("nan"))
         if not torch.isfinite(loss):  # trajectories diverged, or grew so large that their distances overflow
             return torch.tensor(DIVERGED_LOSS)
@@ -217,31 +254,12 @@ def fit(
 
     optimiser.step(closure)
     if not losses or not (torch.isfinite(prior.centre).all() and torch.isfinite(prior.width).all()):
-        return FittedTerms(family, list(candidates), [Constant(v) for v in init], Scores.diverged(HELDOUT_REPEATS), losses)
+        diverged(f"fit ({family})", term_names(candidates), n, n)
+        priors = [Constant(v) for v in init]
+        return FittedTerms(family, list(candidates), priors, Scores.diverged(HELDOUT_REPEATS), losses, list(init), scales)
     priors = prior.priors()
-    return FittedTerms(
-        family, list(candidates), priors, discrepancies(base, candidates, priors, heldout, seed) if score else Scores([]), losses
-    )
-
-
-def bootstrap_intervals(
-    base: PhysicsModel, fitted: FittedTerms, measured: Tensor, n_bootstrap: int, steps: int, batch: int, seed: int
-) -> list[tuple[float, float]]:
-    """95 % intervals of the fitted coefficients (the centres of their priors): the fit repeated, from the
-    fitted values for a fifth of the iterations, on resamples of the measured trajectories (with
-    fresh simulated samples)."""
-    g = torch.Generator().manual_seed(seed + 3)
-    start = [p.quantile(torch.tensor(0.5)).item() for p in fitted.priors]
-    centres = []
-    for b in range(n_bootstrap):
-        rows = torch.randint(len(measured), (len(measured),), generator=g)
-        refit = fit(
-            base, fitted.candidates, start, fitted.family, measured[rows], measured,
-            steps=max(steps // 5, 5), batch=batch, seed=seed + 10 + b, score=False,
-        )  # fmt: skip
-        centres.append([p.quantile(torch.tensor(0.5)).item() for p in refit.priors])
-    low, high = torch.tensor(centres).quantile(torch.tensor([0.025, 0.975]), dim=0)
-    return list(zip(low.tolist(), high.tolist()))
+    scored = discrepancies(base, candidates, priors, heldout, seed) if score else Scores([])
+    return FittedTerms(family, list(candidates), priors, scored, losses, list(init), scales)
 
 
 @torch.no_grad()
@@ -267,11 +285,24 @@ def discrepancies(
         coefficients = (
             torch.stack([p.quantile(torch.rand(n, generator=noise)) for p in priors], 1) if priors else torch.zeros(n, 0)
         )
-        simulated = simulate_finite(model, x0, torch.cat([theta, coefficients.float()], dim=1))
-        if len(simulated) < n:
+        simulated, bad = simulate_finite(model, x0, torch.cat([theta, coefficients.float()], dim=1))
+        if bad.any():
+            first = int(bad.nonzero()[0])
+            diverged("score", term_names(candidates), int(bad.sum()), n, theta[first].tolist())
             return Scores.diverged(repeats)
         values.append(float(discrepancy(simulated.double(), measured.double())))
         rows += row_terms(simulated.double(), measured.double()) / repeats
+    return Scores(values, rows)
+
+
+@torch.no_grad()
+def sample_scores(draw: Callable[[int], Tensor], measured: Tensor, repeats: int) -> Scores:
+    """:class:`Scores` to ``measured`` of ``repeats`` samples ``draw(r)`` of any model (a grey-box, f_p)."""
+    values, rows = [], torch.zeros(len(measured), dtype=torch.float64)
+    for r in range(repeats):
+        simulated = draw(r).double()
+        values.append(float(discrepancy(simulated, measured.double())))
+        rows += row_terms(simulated, measured.double()) / repeats
     return Scores(values, rows)
 
 

@@ -47,7 +47,8 @@ def verdict(result: Discovery, physics: PhysicsModel) -> str:
             + "), but no candidate term explains the learned correction"
         )
     names = [f"{term_name(c, centre(p), physics)} ({c.feature} on d{c.component}/dt)" for c, p in _terms(result)]
-    return f"missing effect found: {', '.join(names)}; " + (result.sentence_after or "")
+    caveat = "; the OT grey-box is undertrained, the terms come from the library search" if result.undertrained else ""
+    return f"missing effect found: {', '.join(names)}; " + (result.sentence_after or "") + caveat
 
 
 def centre(prior: Prior) -> float:
@@ -63,7 +64,8 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
     """``report.json``: found, verdict, terms, ambiguous, explained_r2, gap, and the details."""
     regression = {(t.candidate.feature, t.candidate.component): t for t in result.final_terms}
     terms = []
-    for (candidate, prior), interval in zip(_terms(result), result.intervals):
+    intervals = result.intervals
+    for i, (candidate, prior) in enumerate(_terms(result)):
         middle = centre(prior)
         found = regression.get((candidate.feature, candidate.component))
         terms.append(
@@ -72,7 +74,8 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
                 "feature": candidate.feature,
                 "component": candidate.component,
                 "coefficient": middle,
-                "interval": list(interval),
+                "interval": list(intervals.centre[i]) if intervals else None,
+                "spread_interval": list(intervals.width[i]) if intervals and intervals.width else None,
                 "inclusion_probability": found.inclusion_probability if found else None,
                 "r2_share": found.r2_share if found else None,
                 "regression_coefficient": found.coefficient if found else None,
@@ -110,6 +113,9 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
         "family": result.fitted.family if result.fitted else None,
         "family_training_discrepancy": result.family_scores,
         "dropped_by_heldout_check": result.dropped,
+        "interval_method": intervals.method if intervals else None,
+        "diverged": result.diverged,
+        "undertrained": result.undertrained,
         "correction_share": result.correction_share,
         "pointwise": result.pointwise,
         "run": facts,
@@ -280,6 +286,29 @@ def _naming_section(report: dict[str, Any]) -> list[str]:
                 f"| {t['name']} | {code(t['feature'])} | d{t['component']}/dt | {t['coefficient']:.4g} | {interval} "
                 f"| {inclusion} | {slope} | {share} | {dist} |"
             )
+    if report["terms"] and report["interval_method"]:
+        lines.append(f"\n95 % intervals: {report['interval_method']} (docs/discovery.md gives their measured coverage).")
+    elif report["terms"]:
+        lines.append("\nNo intervals: the fit's discrepancy is not at a minimum there (its Hessian is not positive definite).")
+    for t in report["terms"]:
+        if t["spread_interval"]:
+            low, high = t["spread_interval"]
+            spread = f"95 % interval [{low:.4g}, {high:.4g}]"
+            lines.append(f"\nSpread of `{t['feature']}` (half-width or standard deviation): {spread}.")
+    if report["undertrained"]:
+        u = report["undertrained"]
+        lines.append(
+            f"\n**The OT grey-box is undertrained:** its energy discrepancy to the validation measurements "
+            f"({u['greybox_heldout_energy']:.4g}) is no better than f_p's alone ({u['f_p_heldout_energy']:.4g}). "
+            "Its correction was not used to name terms; the naming relies on the library search. "
+            "Raise `data.simulation_budget` (or give a longer-trained `--ckpt_path`)."
+        )
+    if report["diverged"]:
+        lines += ["", "### Models dropped because their solve diverged", ""]
+        lines += ["| step | f_p plus | diverged trajectories | first inputs |", "|---|---|---|---|"]
+        for d in report["diverged"]:
+            terms = ", ".join(f"`{t}`" for t in d["terms"]) or "nothing"
+            lines.append(f"| {d['what']} | {terms} | {d['diverged']} of {d['of']} | {d['first_inputs'] or '-'} |")
     for a in report["ambiguous"]:
         lines.append(f"\n**Ambiguous:** `{a['feature']}` could equally be {', '.join(f'`{x}`' for x in a['alternatives'])}.")
     lines += [

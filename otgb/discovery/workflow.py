@@ -23,7 +23,6 @@ table the test part.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -33,17 +32,19 @@ from torch import Tensor
 
 from otgb.data.measured import simulate_in_chunks
 from otgb.data.seeding import generator_for
+from otgb.discovery.intervals import Intervals, sandwich_intervals
 from otgb.discovery.library import Candidate, build_library, physical_name
 from otgb.discovery.locate import DisagreementMap, describe, locate
+from otgb.discovery.log import DivergenceLog, diverged, progress
 from otgb.discovery.refine import (
     FAMILIES,
     FAMILY_REPEATS,
     FittedTerms,
     beats,
-    bootstrap_intervals,
     choose_family,
     discrepancies,
     fit,
+    sample_scores,
 )
 from otgb.discovery.regression import SelectedTerm, Selection, describe_terms, design_matrix, regress, subset_coefficients
 from otgb.discovery.search import SearchStep, search
@@ -51,10 +52,10 @@ from otgb.errors import InputError
 from otgb.metrics.c2st import c2st
 from otgb.metrics.energy import energy_distance
 from otgb.metrics.mmd import mmd_multiscale
+from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 
 CHUNK = 256
-_LOADED = time.monotonic()
 
 
 class DiscoverySettings:
@@ -65,7 +66,7 @@ class DiscoverySettings:
         alpha: False discovery rate of the disagreement map (Benjamini-Hochberg).
         regions_per_axis: Blocks per spatial axis in which a field's cells are compared.
         n_trajectories: Generated trajectories along which the correction f_phi is evaluated.
-        n_bootstrap: Bootstrap resamples (of trajectories) for inclusion probabilities and intervals.
+        n_bootstrap: Bootstrap resamples (of f_phi's trajectories) for inclusion probabilities and f_phi's slope intervals.
         theta_products: Whether the library also offers each feature times each physics parameter.
         strong_candidates: Candidates per component cross-checked alone (besides the selected ones), by univariate R^2.
         fit_steps: L-BFGS iterations of each distribution-matching fit of coefficients.
@@ -133,7 +134,7 @@ class Discovery:
     cross_check: list[dict] = field(default_factory=list)
     fitted: FittedTerms | None = None
     final_terms: list[SelectedTerm] = field(default_factory=list)  # the regression on f_phi of the kept terms
-    intervals: list[tuple[float, float]] = field(default_factory=list)  # of the fitted coefficients, bootstrap
+    intervals: Intervals | None = None  # of the fitted coefficients (and spreads), :mod:`otgb.discovery.intervals`
     family_scores: dict[str, float] = field(default_factory=dict)
     dropped: list[dict] = field(default_factory=list)
     after: DisagreementMap | None = None
@@ -144,15 +145,12 @@ class Discovery:
     draws: dict[str, Tensor] = field(default_factory=dict)  # the gap table's samples, as many as the test part
     search: list[SearchStep] = field(default_factory=list)  # the library search's path, when it ran
     route: str = "f_phi regression"  # which route named the kept terms
+    diverged: list[dict] = field(default_factory=list)  # models dropped because their solve diverged (otgb.discovery.log)
+    undertrained: dict[str, float] | None = None  # the grey-box's and f_p's held-out energy when it is no better
 
     @property
     def found(self) -> bool:
         return self.fitted is not None and len(self.fitted.candidates) > 0
-
-
-def progress(message: str) -> None:
-    """A progress line, with the minutes since the workflow was loaded (where the time goes)."""
-    print(f"otgb discover [{(time.monotonic() - _LOADED) / 60:.1f} min]: {message}", flush=True)
 
 
 # --- simulation helpers ---------------------------------------------------------------
@@ -162,6 +160,21 @@ def simulate_from_priors(physics: PhysicsModel, n: int, seed: int, name: str) ->
     g = generator_for(seed, "discover", name)
     x0, theta = physics.sample_initial_state(n, g), physics.sample_theta(n, g)
     return simulate_in_chunks(physics, x0, theta)
+
+
+@torch.no_grad()
+def simulate_candidate(model: Augmented, n: int, seed: int, name: str) -> Tensor:
+    """:func:`simulate_from_priors` for a candidate model: the trajectories that diverge are dropped and logged."""
+    g = generator_for(seed, "discover", name)
+    x0, theta = model.sample_initial_state(n, g), model.sample_theta(n, g)
+    parts = [model.observe(model.solve(model.vector_field, x0[i : i + CHUNK], theta[i : i + CHUNK])) for i in range(0, n, CHUNK)]
+    trajectories = torch.cat(parts)
+    finite = torch.isfinite(trajectories.flatten(1)).all(1)
+    if not bool(finite.all()):
+        first = int((~finite).nonzero()[0])
+        terms = [f"{t.feature} on d{t.component}/dt" for t in model.added]
+        diverged(name, terms, int((~finite).sum()), n, theta[first].tolist())
+    return trajectories[finite]
 
 
 @torch.no_grad()
@@ -195,7 +208,10 @@ def acting_components(physics: PhysicsModel) -> list[str]:
 
 # --- the steps ----------------------------------------------------------------------
 def locate_step(physics: PhysicsModel, measured: Tensor, settings: DiscoverySettings, model_name: str = "f_p") -> DisagreementMap:
-    simulated = simulate_from_priors(physics, len(measured), settings.seed, model_name)
+    """The disagreement map between ``measured`` and as many trajectories of ``physics`` (f_p, or a candidate
+    model whose diverged trajectories are dropped)."""
+    simulate = simulate_candidate if isinstance(physics, Augmented) else simulate_from_priors
+    simulated = simulate(physics, len(measured), settings.seed, model_name)
     return locate(
         measured, simulated, physics.observation_times(), physics.observed,
         settings.n_permutations, settings.alpha, settings.regions_per_axis, settings.seed,
@@ -385,7 +401,15 @@ def scores(p: Tensor, q: Tensor, settings: DiscoverySettings) -> dict[str, float
 
 
 def run(module: Any, data: Measurements, settings: DiscoverySettings, before: DisagreementMap) -> Discovery:
-    """Steps 3-5 on a trained grey-box ``module`` (a MapTraining), after a significant locate."""
+    """Steps 3-5 on a trained grey-box ``module`` (a MapTraining), after a significant locate; a candidate model
+    whose solve diverges is dropped where it diverged and listed in ``diverged``."""
+    with DivergenceLog() as log:
+        result = _run(module, data, settings, before)
+    result.diverged = log.records
+    return result
+
+
+def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: DisagreementMap) -> Discovery:
     physics = module.physics
     result = Discovery(before, describe(before))
     result.selections, designs, draws, result.correction_share = name_step(module, settings)
@@ -394,11 +418,11 @@ def run(module: Any, data: Measurements, settings: DiscoverySettings, before: Di
     strong = strong_candidates(result.selections, designs, settings.strong_candidates)
     result.cross_check = cross_check_step(physics, strong, data, settings, designs)
     progress(f"cross-checked {len(strong)} candidates alone")
-    if selected:
+    result.undertrained = undertrained(module, data.val, settings)
+    if selected and result.undertrained is None:
         result.fitted, result.family_scores, result.dropped = add_step(physics, result.selections, designs, data, settings)
         progress(f"fitted {result.fitted.family} coefficients {result.fitted.priors}")
-        result.after = locate_step(result.fitted.model(physics), data.train, settings, "augmented")
-    if result.after is None or result.after.any_significant:
+    if not result.found or locate_step(result.fitted.model(physics), data.val, settings, "augmented-check").any_significant:
         search_step(physics, result, designs, data, settings)
     sources = {
         "f_p": simulate_from_priors(physics, len(data.test), settings.seed, "gap-f_p"),
@@ -406,12 +430,11 @@ def run(module: Any, data: Measurements, settings: DiscoverySettings, before: Di
     }
     if result.found:
         result.final_terms = final_regression(result.selections, designs, result.fitted.candidates, settings)
-        progress(f"intervals: the fit repeated on {settings.n_bootstrap} resamples of the measured training part")
-        result.intervals = bootstrap_intervals(
-            physics, result.fitted, data.train, settings.n_bootstrap, settings.fit_steps, settings.fit_batch, settings.seed
-        )
-        sources["augmented"] = simulate_from_priors(result.fitted.model(physics), len(data.test), settings.seed, "gap-augmented")
-        result.sentence_after = describe(result.after, b_name="augmented-physics")
+        result.intervals = sandwich_intervals(physics, result.fitted, data.train, settings.fit_batch, settings.seed)
+        progress(f"intervals: {result.intervals.centre if result.intervals else 'none (the fit is not at a minimum)'}")
+        sources["augmented"] = simulate_candidate(result.fitted.model(physics), len(data.test), settings.seed, "gap-augmented")
+        result.after = locate_step(result.fitted.model(physics), data.test, settings, "augmented")
+        result.sentence_after = describe(result.after, b_name="augmented-physics") + " (on the test part, which no fit saw)"
     progress("verifying on the test part")
     result.gap, result.draws = gap_step(sources, data.test, settings), sources
     return result
@@ -434,7 +457,27 @@ def search_step(physics: PhysicsModel, result: Discovery, designs: dict, data: M
     result.fitted, result.family_scores = choose_prior(physics, kept, data, settings)
     result.dropped, result.route = [], "library search"
     progress(f"search: fitted {result.fitted.family} coefficients {result.fitted.priors}")
-    result.after = locate_step(result.fitted.model(physics), data.train, settings, "augmented")
+
+
+UNDERTRAINED_REPEATS = 5  # simulation draws per held-out score of the grey-box and of f_p
+
+
+def undertrained(module: Any, heldout: Tensor, settings: DiscoverySettings) -> dict[str, float] | None:
+    """The grey-box's and f_p's held-out discrepancy when the grey-box does not beat f_p by two standard errors
+    (:func:`otgb.discovery.refine.beats`): its correction is then no evidence, and the naming relies on the
+    library search. None when the grey-box is better."""
+    physics = module.physics
+    n, seed = len(heldout), settings.seed
+    greybox = sample_scores(lambda r: generated(module, n, seed + 100 + r), heldout, UNDERTRAINED_REPEATS)
+    alone = sample_scores(lambda r: simulate_from_priors(physics, n, seed + 100 + r, "f_p"), heldout, UNDERTRAINED_REPEATS)
+    if beats(greybox, alone):
+        return None
+    progress(
+        f"the OT grey-box fits the validation measurements no better than f_p alone (energy {greybox.mean:.4g} "
+        f"against {alone.mean:.4g}): it is undertrained; raise data.simulation_budget (or give a longer-trained "
+        "--ckpt_path). Its correction is not used to name terms: the naming relies on the library search"
+    )
+    return {"greybox_heldout_energy": greybox.mean, "f_p_heldout_energy": alone.mean}
 
 
 @torch.no_grad()

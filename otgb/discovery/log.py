@@ -1,0 +1,72 @@
+"""What the discovery workflow says while it runs: progress lines and diverged models, through :mod:`logging`.
+
+Everything goes to the ``otgb.discover`` logger: progress at INFO, a model whose solve produced
+NaN/Inf (a candidate, a resample's refit, a verification) at WARNING with the details in the
+record's ``divergence`` attribute. ``otgb discover`` shows both on stderr
+(:func:`show_on_stderr`), away from the progress bar's stream; a notebook user configures
+``logging`` as usual. :class:`DivergenceLog` collects the divergences of one run for its report.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from typing import Any
+
+logger = logging.getLogger("otgb.discover")
+_STARTED = time.monotonic()
+
+
+def progress(message: str) -> None:
+    """A progress line (INFO)."""
+    logger.info(message)
+
+
+def diverged(what: str, terms: list[str], bad: int, total: int, first_inputs: list[float] | None = None) -> None:
+    """Say that ``bad`` of ``total`` simulated trajectories of a model made of f_p + ``terms`` diverged in ``what``;
+    the model is dropped from that step (WARNING, collected by :class:`DivergenceLog`)."""
+    details = {"what": what, "terms": terms, "diverged": bad, "of": total, "first_inputs": first_inputs}
+    where = f" (first inputs theta={first_inputs})" if first_inputs is not None else ""
+    logger.warning(
+        f"{what}: f_p + {terms or 'nothing'} diverged in {bad} of {total} trajectories{where}; dropped",
+        extra={"divergence": details},
+    )
+
+
+class _Elapsed(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        return f"otgb discover [{(record.created - _STARTED) / 60:.1f} min]: {record.getMessage()}"
+
+
+def show_on_stderr() -> None:
+    """Print the ``otgb.discover`` records (INFO and up) on stderr with the minutes since start (once per process)."""
+    if any(getattr(h, "otgb_discover", False) for h in logger.handlers):
+        return
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_Elapsed())
+    handler.otgb_discover = True
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    logger.propagate = False
+
+
+class DivergenceLog(logging.Handler):
+    """Collects the divergence records of the ``otgb.discover`` logger while it is entered."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.records: list[dict[str, Any]] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if hasattr(record, "divergence"):
+            self.records.append(record.divergence)
+
+    def __enter__(self) -> DivergenceLog:
+        logger.addHandler(self)
+        if logger.getEffectiveLevel() > logging.WARNING:
+            logger.setLevel(logging.WARNING)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        logger.removeHandler(self)
