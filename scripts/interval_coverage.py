@@ -123,11 +123,10 @@ def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
     return max(0.0, middle - half), min(1.0, middle + half)
 
 
-def write_table() -> None:
-    text = DOC.read_text()
-    head, _, rest = text.partition(MARK)
+def write_table(doc: Path) -> None:
+    head, _, rest = doc.read_text().partition(MARK)
     _, _, tail = rest.partition(MARK)
-    DOC.write_text(f"{head}{MARK}\n{coverage_table()}\n{MARK}{tail}")
+    doc.write_text(f"{head}{MARK}\n{coverage_table()}\n{MARK}{tail}")
 
 
 def main() -> None:
@@ -135,12 +134,13 @@ def main() -> None:
     parser.add_argument("--case", choices=list(CASES))
     parser.add_argument("--files", type=int, default=20)
     parser.add_argument("--steps", type=int, default=50, help="as otgb discover's discover.fit_steps")
-    parser.add_argument("--table", action="store_true", help="write the coverage table into docs/discovery.md")
+    parser.add_argument("--table", action="store_true", help="write the coverage table into --doc")
+    parser.add_argument("--doc", type=Path, default=DOC, help="the page with the table's markers")
     args = parser.parse_args()
     if args.case:
         study(args.case, args.files, args.steps)
     if args.table:
-        write_table()
+        write_table(args.doc)
 
 
 if __name__ == "__main__":

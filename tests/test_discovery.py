@@ -445,3 +445,12 @@ def test_discover_on_a_known_dgp_adds_pointwise_errors(tmp_path):
     assert errors["augmented"]["abs_err_twice_horizon"] < errors["f_p"]["abs_err_twice_horizon"] / 5
     config = yaml.safe_load((run_dir / "augmented.yaml").read_text())
     assert config["data"]["hidden_effect"] == [] and Path(config["data"]["measured_path"]).is_file()
+
+
+def test_the_docs_coverage_table_is_what_the_result_files_give(tmp_path):
+    root = Path(__file__).parents[1]
+    doc = tmp_path / "discovery.md"
+    doc.write_text((root / "docs" / "discovery.md").read_text())
+    script = root / "scripts" / "interval_coverage.py"
+    subprocess.run([sys.executable, str(script), "--table", "--doc", str(doc)], check=True)
+    assert doc.read_text() == (root / "docs" / "discovery.md").read_text()

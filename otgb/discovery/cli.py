@@ -19,11 +19,13 @@ where the fit's logs and checkpoints also go) and prints that directory. Progres
 from __future__ import annotations
 
 import warnings
+from argparse import RawDescriptionHelpFormatter
 from pathlib import Path
 from typing import Any
 
 import torch
 import yaml
+from jsonargparse import DefaultHelpFormatter
 
 from otgb.callbacks.components import component_analysis
 from otgb.cli import OTGBCLI
@@ -43,6 +45,10 @@ from otgb.discovery.workflow import (
 )
 from otgb.errors import InputError
 from otgb.training import MapTraining
+
+
+class DescribedHelp(RawDescriptionHelpFormatter, DefaultHelpFormatter):
+    """jsonargparse's help with the description's line breaks kept (its example and its list of options)."""
 
 
 class DiscoverCLI(OTGBCLI):
@@ -66,7 +72,7 @@ def discover(args: list[str]) -> Path:
     """Run the workflow with ``otgb discover`` arguments; returns the run directory."""
     with warnings.catch_warnings():  # the arguments come from the command line, after the word "discover"
         warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
-        parser = {"prog": "otgb discover", "description": _description()}
+        parser = {"prog": "otgb discover", "description": _description(), "formatter_class": DescribedHelp}
         cli = DiscoverCLI(MapTraining, SimulationDataModule, args=args, run=False, parser_kwargs=parser)
     settings: DiscoverySettings = cli.config_init["discover"]
     show_on_stderr()
@@ -110,7 +116,7 @@ def discover(args: list[str]) -> Path:
 def _description() -> str:
     """What ``otgb discover`` does, an example, and which options trade time for precision (``--help``'s opening)."""
     opening, example, trade, _ = __doc__.split("\n\n", 3)
-    return "\n\n".join([opening.strip('`" '), example.strip(), trade])
+    return "\n\n".join([opening.replace("``", ""), example, trade.replace("``", "")])
 
 
 def load_or_fit(cli: Any, ckpt_path: str | None) -> None:
