@@ -31,7 +31,7 @@ import torch
 from torch import Tensor
 
 from otgb.discovery.log import diverged
-from otgb.discovery.refine import FitSample, FittedTerms, _cells, batched_discrepancy, term_names
+from otgb.discovery.refine import FitSample, FittedTerms, batched_discrepancy, row_terms, term_names
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 from otgb.physics.priors import Constant, Prior, Uniform
@@ -134,19 +134,11 @@ def _simulate(base: PhysicsModel, fitted: FittedTerms, variants: Tensor, sample:
 
 
 def _pair_terms(s: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
-    """For simulated s (n, T, *obs) and measured y (m, T, *obs): the mean distance of each measured
-    trajectory to the simulated ones (m,), and of each simulated one: 2 x its mean distance to the
-    measured minus 2 x its mean distance to the other simulated ones (n,), summed over the
-    discrepancy's parts (whole trajectories and cells)."""
-    whole_sy = torch.cdist(s.flatten(1), y.flatten(1))
-    whole_ss = torch.cdist(s.flatten(1), s.flatten(1))
-    cells_s, cells_y = _cells(s), _cells(y)
-    cross = whole_sy + torch.cdist(cells_s, cells_y).sum(0)
-    within = whole_ss + torch.cdist(cells_s, cells_s).sum(0)
+    """For simulated s (n, T, *obs) and measured y (m, T, *obs): each measured trajectory's terms (twice its mean
+    distance to the simulated ones) (m,), and each simulated one's (twice its mean distance to the measured minus
+    twice its mean distance to the other simulated ones) (n,), over the discrepancy's parts (:func:`row_terms`)."""
     n = len(s)
-    measured_terms = 2 * cross.mean(0)
-    simulated_terms = 2 * cross.mean(1) - 2 * within.sum(1) / (n - 1)
-    return measured_terms, simulated_terms
+    return row_terms(s, y), row_terms(y, s) - row_terms(s, s) * n / (n - 1)
 
 
 def _influences(plus: Tensor, minus: Tensor, targets: Tensor, steps: Tensor) -> tuple[Tensor, Tensor]:
