@@ -13,6 +13,7 @@ import yaml
 from torch import nn
 
 from otgb.data import generate_measured
+from otgb.discovery.evidence import weigh
 from otgb.discovery.intervals import sandwich_intervals
 from otgb.discovery.library import build_library, physical_name
 from otgb.discovery.locate import describe, locate
@@ -23,7 +24,6 @@ from otgb.discovery.refine import (
     CoefficientPrior,
     Scores,
     beats,
-    choose_family,
     discrepancies,
     fit,
     row_terms,
@@ -31,6 +31,7 @@ from otgb.discovery.refine import (
 from otgb.discovery.regression import design_matrix, regress
 from otgb.discovery.report import write_report
 from otgb.discovery.search import best_subsets, subset_values
+from otgb.discovery.variation import choose_family
 from otgb.discovery.workflow import DiscoverySettings, Measurements, locate_step, run, simulate_candidate
 from otgb.errors import InputError
 from otgb.models import GreyBoxODE, MLPCritic
@@ -228,6 +229,30 @@ def test_intervals_contain_the_estimate_and_cover_the_truth_on_fresh_files():
         assert low < fitted.priors[0].value < high and high - low < 0.5
         covered += low <= -1.2 <= high
     assert covered >= 5
+
+
+def test_two_terms_the_measurements_cannot_tell_apart_are_ambiguous_with_their_numbers():
+    """At angles below 0.05 rad, a spring (angle) and a pendulum torque (sin(angle)) make the same trajectories:
+    the swap differs by less than two standard errors on held-out data; Coulomb friction, against friction, does not."""
+    pendulum = Pendulum(angle=Uniform(-0.05, 0.05))
+    dgp = pendulum.with_hidden_effect([LibraryTerm("angle", "velocity", Constant(-2.0)), ViscousFriction(Constant(1.0))])
+    train, val = _draws(dgp, 300, 1), _draws(dgp, 100, 2)
+    terms = [c for c in build_library(pendulum, ["velocity"]) if c.feature in ("angle", "velocity", "sin(angle)")]
+    spring, friction, torque = sorted(terms, key=lambda c: ["angle", "velocity", "sin(angle)"].index(c.feature))
+
+    def refit(candidates, init):
+        return fit(pendulum, candidates, init, "constant", train, val, 30, 256, 0, True, [2.0, 1.0])
+
+    kept = refit([spring, friction], [-1.5, -0.8])
+    alone = {"feature": "sin(angle)", "component": "velocity", "coefficient": -1.5, "gap_closed": 0.5}
+    kept, comparisons = weigh(pendulum, kept, [alone], 1, refit, lambda c: -1.0)
+    assert [c.feature for c in kept.candidates] == ["angle", "velocity"]
+    by = {(c.replaced.feature, c.by.feature): c for c in comparisons}
+    assert set(by) == {("angle", "sin(angle)"), ("velocity", "sin(angle)"), ("velocity", "sign(velocity)")}
+    ambiguous = by["angle", "sin(angle)"]
+    assert ambiguous.ambiguous and abs(ambiguous.standard_errors) <= 2 and ambiguous.standard_error > 0
+    assert abs(ambiguous.coefficient + 2.0) < 0.2, "the swapped term takes the spring's coefficient"
+    assert not by["velocity", "sign(velocity)"].ambiguous and by["velocity", "sign(velocity)"].standard_errors > 2
 
 
 # --- the workflow on a grey-box whose correction is the hidden term -------------------

@@ -83,6 +83,22 @@ def physical_name(feature: str, component: str, coefficient: float, model: Physi
     return name if name is not None else f"{coefficient:+.3g} * {feature} on d{component}/dt"
 
 
+def implausible(feature: str, component: str, coefficient: float, model: PhysicsModel) -> str | None:
+    """Why ``coefficient * feature`` in d(component)/dt contradicts what its name implies for a passive system, or None.
+
+    A velocity's own friction terms (``v``, ``v*|v|``, ``v^3``, ``sign(v)``) with a positive coefficient feed energy
+    into the motion (negative damping, anti-drag); a field's own diffusion with a negative coefficient
+    sharpens every gradient (anti-diffusion, an ill-posed PDE). Either can be real (a driven system), so it
+    is a flag for the reader, not a rejection.
+    """
+    v = component
+    if v in model.velocity_names and feature in (v, f"{v}*|{v}|", f"{v}^3", f"sign({v})"):
+        return "feeds energy into the motion (a friction with the wrong sign)" if coefficient > 0 else None
+    if getattr(model, "spatial_dims", 0) and feature in (f"lap({component})", f"d_ss({component})"):
+        return "sharpens every gradient (a diffusion with the wrong sign; the PDE is ill-posed)" if coefficient < 0 else None
+    return None
+
+
 def _named(feature: str, own: str, coefficient: float, model: PhysicsModel) -> str | None:
     sign = "negative" if coefficient < 0 else "positive"
     is_velocity = own in model.velocity_names

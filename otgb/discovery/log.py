@@ -15,7 +15,7 @@ import time
 from typing import Any
 
 logger = logging.getLogger("otgb.discover")
-_STARTED = time.monotonic()
+_STARTED = time.time()  # the clock of LogRecord.created
 
 
 def progress(message: str) -> None:

@@ -10,8 +10,8 @@ between the values at each time step (:func:`discrepancy`). A prior family per f
 - ``constant``: c (the effect is the same in every trajectory);
 - ``uniform``: U(c - w, c + w); ``normal``: N(c, w^2) (the effect varies between trajectories).
 
-:func:`choose_family` decides between them (a richer family only if it lowers the discrepancy
-by more than two standard errors, over simulation draws with common random numbers,
+:mod:`otgb.discovery.variation` decides between them (a richer family only if it lowers the
+discrepancy by more than two standard errors, over simulation draws with common random numbers,
 :func:`discrepancies`), so whether the effect varies is decided by the data. The families are
 compared on the training measurements: the richer families add one width per term to hundreds of
 trajectories, too little to fit noise, and the training part is several times larger than the
@@ -20,6 +20,7 @@ held-out parts, which a spread that varies over time needs to be seen.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -306,31 +307,29 @@ def sample_scores(draw: Callable[[int], Tensor], measured: Tensor, repeats: int)
     return Scores(values, rows)
 
 
-def beats(a: Scores, b: Scores) -> bool:
-    """Whether model a's discrepancy is lower than b's by more than two standard errors of the difference.
+def difference(a: Scores, b: Scores) -> tuple[float, float]:
+    """b's discrepancy minus a's (positive: a fits better), and the standard error of that difference.
 
     Two sources of error, independent: the simulation draws (the paired differences' spread over
     the draws, common random numbers) and the measured sample, which is finite, and the same for
     both (the spread over measured trajectories of the differences of their ``rows``): a model may
     fit these measured trajectories better than another without describing the process better.
+    A model that diverged is infinitely worse.
     """
-    if not a.finite:
-        return False
-    if not b.finite:
-        return True
-    difference = torch.tensor(b.draws) - torch.tensor(a.draws)
-    variance = difference.var() / len(difference)
+    if not (a.finite and b.finite):
+        return (float("inf") if a.finite else float("-inf") if b.finite else float("nan")), float("nan")
+    differences = torch.tensor(b.draws) - torch.tensor(a.draws)
+    variance = differences.var() / len(differences)
     if len(a.rows) > 1 and len(a.rows) == len(b.rows):
         variance = variance + (b.rows - a.rows).var() / len(a.rows)
+    return float(differences.mean()), float(variance) ** 0.5
+
+
+def beats(a: Scores, b: Scores) -> bool:
+    """Whether model a's discrepancy is lower than b's by more than two standard errors of the difference
+    (:func:`difference`)."""
+    gap, error = difference(a, b)
+    if not math.isfinite(gap):
+        return gap == float("inf")
     resolution = 1e-9 * abs(b.mean)  # below float rounding: a tie, e.g. a term fitted to zero
-    return bool(difference.mean() > 2 * float(variance) ** 0.5 + resolution)
-
-
-def choose_family(fits: list[FittedTerms], scores: dict[str, list[float]]) -> FittedTerms:
-    """The simplest family (``FAMILIES`` order) that no richer family beats, by their ``scores``."""
-    ordered = sorted(fits, key=lambda f: FAMILIES.index(f.family))
-    chosen = ordered[0]
-    for richer in ordered[1:]:
-        if beats(scores[richer.family], scores[chosen.family]):
-            chosen = richer
-    return chosen
+    return gap > 2 * error + resolution

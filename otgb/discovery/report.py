@@ -17,6 +17,8 @@ import yaml  # noqa: E402
 from otgb.callbacks.components import components_figure, to_json  # noqa: E402
 from otgb.callbacks.figures import distribution_figure  # noqa: E402
 from otgb.discovery import locate  # noqa: E402
+from otgb.discovery.library import implausible  # noqa: E402
+from otgb.discovery.variation import FIRST_SPREAD, SPREAD_DOUBLINGS  # noqa: E402
 from otgb.discovery.workflow import Discovery, term_name  # noqa: E402
 from otgb.physics.augmented import Augmented  # noqa: E402
 from otgb.physics.base import PhysicsModel  # noqa: E402
@@ -38,17 +40,62 @@ def distribution(prior: Prior) -> dict[str, Any] | None:
 
 
 def verdict(result: Discovery, physics: PhysicsModel) -> str:
+    """One of three answers with its numbers (the gap closed, partly closed, nothing found), how strongly the
+    measurements prefer each named term over its closest alternative, and the flags of implausible terms."""
     if not result.before.any_significant:
         return "no missing effect found: " + result.sentence_before
     if not result.found:
         return (
             "no missing effect found in the library: the measurements differ from f_p ("
             + result.sentence_before
-            + "), but no candidate term explains the learned correction"
+            + "), but no candidate term closes the gap"
         )
-    names = [f"{term_name(c, centre(p), physics)} ({c.feature} on d{c.component}/dt)" for c, p in _terms(result)]
-    caveat = "; the OT grey-box is undertrained, the terms come from the library search" if result.undertrained else ""
-    return f"missing effect found: {', '.join(names)}; " + (result.sentence_after or "") + caveat
+    names = ", ".join(f"{term_name(c, centre(p), physics)} ({c.feature} on d{c.component}/dt)" for c, p in _terms(result))
+    if result.after is not None and not result.after.any_significant:
+        head = f"missing effect found, the gap is closed: {names}; {result.sentence_after}"
+    else:
+        head = (
+            f"missing effect partly found: {names} close {gap_closed(result.gap):.0%} of f_p's gap (energy distance on "
+            f"the test part); {result.sentence_after}; no library term fits exactly, these are the best approximation"
+        )
+    parts = [head, *preferences(result, physics), *flags(result, physics)]
+    if result.undertrained:
+        parts.append("the OT grey-box is undertrained, the terms come from the library search")
+    return "; ".join(parts)
+
+
+def gap_closed(gap: dict[str, dict[str, float]]) -> float:
+    """The share of f_p's energy distance to the test measurements that the augmented physics removes."""
+    before = gap["f_p"]["energy"]
+    return 1 - gap["augmented"]["energy"] / before if before > 0 else 0.0
+
+
+def preferences(result: Discovery, physics: PhysicsModel) -> list[str]:
+    """Per named term, its closest alternative on the validation measurements, in standard errors."""
+    sentences = []
+    for candidate in result.fitted.candidates:
+        mine = [c for c in result.evidence if c.replaced == candidate and math.isfinite(c.difference)]
+        if not mine:
+            continue
+        closest = min(mine, key=lambda c: abs(c.standard_errors))
+        other = f"{term_name(closest.by, closest.coefficient, physics)} ({closest.by.feature})"
+        if closest.ambiguous:
+            sentences.append(
+                f"the measurements cannot tell {candidate.feature} from {other} ({closest.standard_errors:+.1f} standard errors)"
+            )
+        else:
+            sentences.append(f"{candidate.feature} preferred over {other} by {closest.standard_errors:.1f} standard errors")
+    return sentences
+
+
+def flags(result: Discovery, physics: PhysicsModel) -> list[str]:
+    """The named terms whose sign contradicts their physical name."""
+    found = [(c, centre(p)) for c, p in _terms(result)]
+    return [
+        f"flagged: {term_name(c, value, physics)} ({value:+.3g} {c.feature}) {why}"
+        for c, value in found
+        if (why := implausible(c.feature, c.component, value, physics))
+    ]
 
 
 def centre(prior: Prior) -> float:
@@ -65,6 +112,7 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
     regression = {(t.candidate.feature, t.candidate.component): t for t in result.final_terms}
     terms = []
     intervals = result.intervals
+    excluded = result.family.excluded_spread if result.family else None
     for i, (candidate, prior) in enumerate(_terms(result)):
         middle = centre(prior)
         found = regression.get((candidate.feature, candidate.component))
@@ -82,14 +130,16 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
                 "regression_interval": list(found.interval) if found else None,
                 "per_trajectory": found.per_trajectory if found else None,
                 "distribution": distribution(prior),
+                "excluded_spread": excluded[i] if excluded else None,
+                "flag": implausible(candidate.feature, candidate.component, middle, physics),
             }
         )
-    ambiguous = _search_alternatives(result) if result.route == "library search" else _regression_alternatives(result)
     return {
         "found": result.found,
         "verdict": verdict(result, physics),
         "terms": terms,
-        "ambiguous": ambiguous,
+        "ambiguous": _ambiguous(result, physics),
+        "evidence": [_comparison_dict(c, physics) for c in result.evidence],
         "explained_r2": {s.component: s.explained_r2 for s in result.selections},
         "gap": result.gap,
         "locate": {
@@ -111,7 +161,11 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
             for step in result.search
         ],
         "family": result.fitted.family if result.fitted else None,
-        "family_training_discrepancy": result.family_scores,
+        "family_training_discrepancy": result.family.scores if result.family else {},
+        "family_difference": {f: {"difference": d, "standard_error": e} for f, (d, e) in result.family.differences.items()}
+        if result.family
+        else {},
+        "family_stopped_short": result.family.stopped_short if result.family else [],
         "dropped_by_heldout_check": result.dropped,
         "interval_method": intervals.method if intervals else None,
         "diverged": result.diverged,
@@ -122,25 +176,27 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
     }
 
 
-def _regression_alternatives(result: Discovery) -> list[dict[str, Any]]:
-    """When f_phi's regression named the terms: per kept term, the candidates that replace it in f_phi's fit."""
-    return [
-        {"feature": t.candidate.feature, "component": t.candidate.component, "alternatives": [a.feature for a in t.alternatives]}
-        for t in result.final_terms
-        if t.alternatives
-    ]
+def _comparison_dict(comparison: Any, physics: PhysicsModel) -> dict[str, Any]:
+    return {
+        "feature": comparison.replaced.feature,
+        "component": comparison.replaced.component,
+        "alternative": comparison.by.feature,
+        "alternative_name": term_name(comparison.by, comparison.coefficient, physics),
+        "alternative_coefficient": comparison.coefficient,
+        "difference": comparison.difference,
+        "standard_error": comparison.standard_error,
+        "standard_errors": comparison.standard_errors,
+        "ambiguous": comparison.ambiguous,
+    }
 
 
-def _search_alternatives(result: Discovery) -> list[dict[str, Any]]:
-    """When the library search named the terms (f_phi did not describe them, so its regression's alternatives say
-    nothing about them): per kept term, what another subset the kept one does not beat has instead."""
-    kept = result.fitted.candidates
-    step = next(s for s in result.search if s.candidates == kept)
+def _ambiguous(result: Discovery, physics: PhysicsModel) -> list[dict[str, Any]]:
+    """Per kept term, the alternatives that the validation measurements cannot tell from it, with their numbers."""
     entries = []
-    for c in kept:
-        instead = sorted({a.feature for alt in step.alternatives if c not in alt for a in alt if a not in kept})
-        if instead:
-            entries.append({"feature": c.feature, "component": c.component, "alternatives": instead})
+    for candidate in result.fitted.candidates if result.found else []:
+        close = [_comparison_dict(c, physics) for c in result.evidence if c.replaced == candidate and c.ambiguous]
+        if close:
+            entries.append({"feature": candidate.feature, "component": candidate.component, "alternatives": close})
     return entries
 
 
@@ -291,10 +347,8 @@ def _naming_section(report: dict[str, Any]) -> list[str]:
     elif report["terms"]:
         lines.append("\nNo intervals: the fit's discrepancy is not at a minimum there (its Hessian is not positive definite).")
     for t in report["terms"]:
-        if t["spread_interval"]:
-            low, high = t["spread_interval"]
-            spread = f"95 % interval [{low:.4g}, {high:.4g}]"
-            lines.append(f"\nSpread of `{t['feature']}` (half-width or standard deviation): {spread}.")
+        if t["flag"]:
+            lines.append(f"\n**Flagged:** {t['name']} ({t['coefficient']:+.4g} {code(t['feature'])}) {t['flag']}.")
     if report["undertrained"]:
         u = report["undertrained"]
         lines.append(
@@ -309,8 +363,7 @@ def _naming_section(report: dict[str, Any]) -> list[str]:
         for d in report["diverged"]:
             terms = ", ".join(f"`{t}`" for t in d["terms"]) or "nothing"
             lines.append(f"| {d['what']} | {terms} | {d['diverged']} of {d['of']} | {d['first_inputs'] or '-'} |")
-    for a in report["ambiguous"]:
-        lines.append(f"\n**Ambiguous:** `{a['feature']}` could equally be {', '.join(f'`{x}`' for x in a['alternatives'])}.")
+    lines += _evidence_section(report)
     lines += [
         "",
         "### Cross-check: each strong candidate alone added to f_p",
@@ -325,14 +378,74 @@ def _naming_section(report: dict[str, Any]) -> list[str]:
     if report["dropped_by_heldout_check"]:
         lines.append("")
         lines.append("Dropped (no held-out gain): " + ", ".join(f"`{d['feature']}`" for d in report["dropped_by_heldout_check"]))
-    if report["family"]:
-        lines += ["", f"Prior family of the coefficients: **{report['family']}** (energy discrepancy to the "
-                  "training measurements "
-                  "per family, a richer family chosen only if lower by more than two standard errors: "
-                  + ", ".join(f"{k} {v:.4g}" for k, v in report["family_training_discrepancy"].items()) + ")."]  # fmt: skip
+    lines += _family_section(report)
     if report["locate"]["sentence_after"]:
         lines += ["", f"After the fix: {report['locate']['sentence_after']}."]
     return lines + [""]
+
+
+def _evidence_section(report: dict[str, Any]) -> list[str]:
+    """Each kept term against its alternatives on the validation measurements, and the ambiguous ones."""
+    if not report["evidence"]:
+        return []
+    lines = [
+        "",
+        "### Evidence: each named term against its alternatives (validation measurements, which no fit saw)",
+        "",
+        "| named | swapped for | its coefficient | held-out energy, swapped minus named | standard errors |",
+        "|---|---|---|---|---|",
+    ]
+    for e in report["evidence"]:
+        if math.isfinite(e["difference"]):
+            difference, errors = f"{e['difference']:+.3g} ± {e['standard_error']:.2g}", f"{e['standard_errors']:+.1f}"
+        else:
+            difference, errors = "the swapped model diverges", "-"
+        lines.append(
+            f"| {code(e['feature'])} | {e['alternative_name']} ({code(e['alternative'])}) | {e['alternative_coefficient']:.4g} "
+            f"| {difference} | {errors} |"
+        )
+    lines.append("\nPositive: the named term fits better. Within ±2 standard errors the measurements cannot tell the two apart.")
+    for a in report["ambiguous"]:
+        others = ", ".join(f"{code(x['alternative'])} ({x['standard_errors']:+.1f} SE)" for x in a["alternatives"])
+        lines.append(f"\n**Ambiguous:** the measurements cannot tell {code(a['feature'])} from {others}.")
+    return lines
+
+
+def _family_section(report: dict[str, Any]) -> list[str]:
+    """The prior family: each family's score and difference to the chosen one, and the spread the data allow."""
+    if not report["family"]:
+        return []
+    differences = report["family_difference"]
+    scores = ", ".join(
+        f"{k} {v:.4g} ({differences[k]['difference']:+.2g} ± {differences[k]['standard_error']:.2g})"
+        for k, v in report["family_training_discrepancy"].items()
+        if k != report["family"]
+    )
+    lines = [
+        "",
+        f"Prior family of the coefficients: **{report['family']}** (energy discrepancy to the training measurements "
+        f"{report['family_training_discrepancy'][report['family']]:.4g}; the others, and their difference to it: {scores}; "
+        "a richer family is chosen only if lower by more than two standard errors).",
+    ]
+    for family in report["family_stopped_short"]:
+        lines.append(
+            f"The {family} fit scored worse than the constant, which its family contains (zero width): "
+            "it was taken at zero width."
+        )
+    for t in report["terms"]:
+        if t["spread_interval"]:
+            low, high = t["spread_interval"]
+            spread = f"95 % interval [{low:.4g}, {high:.4g}]"
+            lines.append(f"Spread of {code(t['feature'])} (half-width or standard deviation): {spread}.")
+        elif report["family"] == "constant":
+            lines.append(f"{code(t['feature'])} is constant; " + _spread_bound(t["excluded_spread"]))
+    return lines
+
+
+def _spread_bound(bound: float | None) -> str:
+    if bound is None:
+        return f"the data cannot exclude a spread up to {FIRST_SPREAD * 2**SPREAD_DOUBLINGS:.3g} times its size."
+    return f"a spread wider than {bound:.3g} (half-width around it) is excluded by the data (two standard errors)."
 
 
 def _search_section(report: dict) -> list[str]:

@@ -32,22 +32,16 @@ from torch import Tensor
 
 from otgb.data.measured import simulate_in_chunks
 from otgb.data.seeding import generator_for
+from otgb.discovery.evidence import Comparison, weigh
 from otgb.discovery.intervals import Intervals, sandwich_intervals
 from otgb.discovery.library import Candidate, build_library, physical_name
 from otgb.discovery.locate import DisagreementMap, describe, locate
 from otgb.discovery.log import DivergenceLog, diverged, progress
-from otgb.discovery.refine import (
-    FAMILIES,
-    FAMILY_REPEATS,
-    FittedTerms,
-    beats,
-    choose_family,
-    discrepancies,
-    fit,
-    sample_scores,
-)
+from otgb.discovery.refine import FAMILIES, FittedTerms, beats, discrepancies, fit, sample_scores
 from otgb.discovery.regression import SelectedTerm, Selection, describe_terms, design_matrix, regress, subset_coefficients
 from otgb.discovery.search import SearchStep, search
+from otgb.discovery.variation import FamilyChoice
+from otgb.discovery.variation import choose_prior as choose_family_of
 from otgb.errors import InputError
 from otgb.metrics.c2st import c2st
 from otgb.metrics.energy import energy_distance
@@ -135,7 +129,8 @@ class Discovery:
     fitted: FittedTerms | None = None
     final_terms: list[SelectedTerm] = field(default_factory=list)  # the regression on f_phi of the kept terms
     intervals: Intervals | None = None  # of the fitted coefficients (and spreads), :mod:`otgb.discovery.intervals`
-    family_scores: dict[str, float] = field(default_factory=dict)
+    family: FamilyChoice | None = None  # the prior family's choice and its evidence (otgb.discovery.variation)
+    evidence: list[Comparison] = field(default_factory=list)  # the kept terms against their alternatives (.evidence)
     dropped: list[dict] = field(default_factory=list)
     after: DisagreementMap | None = None
     sentence_after: str | None = None
@@ -296,7 +291,7 @@ def add_step(physics: PhysicsModel, selections: list[Selection], designs: dict, 
     leader before it) by two standard errors: f_phi's regression may select many small terms, each
     lowering the held-out score a little (reaction-diffusion). The sparsest model that the best
     does not beat by more than two standard errors is kept, then pruned backwards (:func:`prune`);
-    the terms left out are reported as dropped. Each prior family is fitted for the result.
+    the terms left out are reported as dropped. Returns the kept terms' constant fit and the dropped terms.
     """
     ordered = sorted(((t.size, t.candidate) for s in selections for t in s.terms), key=lambda pair: -pair[0])
     path = [c for _, c in ordered]
@@ -313,22 +308,35 @@ def add_step(physics: PhysicsModel, selections: list[Selection], designs: dict, 
     best = min(fits, key=lambda f: f.heldout_energy)
     current = prune(physics, next(f for f in fits if not beats(best.heldout, f.heldout)), data, settings, designs)
     dropped = [{"feature": c.feature, "component": c.component} for c in path if c not in current.candidates]
-    chosen, scores = choose_prior(physics, current, data, settings)
-    return chosen, scores, dropped
+    return current, dropped
 
 
-def choose_prior(physics: PhysicsModel, current: FittedTerms, data: Measurements, settings: DiscoverySettings):
-    """Each prior family fitted for ``current``'s terms; the simplest that no richer one beats, and every family's score."""
-    richer = [
-        fit(physics, current.candidates, [p.value for p in current.priors], family, data.train, data.val, **_fit_args(settings))
-        for family in settings.families
-        if family != "constant"
-    ]
-    candidates = [f for f in [current, *richer] if f.family in settings.families] or [current]
-    scores = {
-        f.family: discrepancies(physics, f.candidates, f.priors, data.train, settings.seed, FAMILY_REPEATS) for f in candidates
-    }
-    return choose_family(candidates, scores), {family: s.mean for family, s in scores.items()}
+def evidence_step(
+    physics: PhysicsModel, kept: FittedTerms, cross_check: list[dict], data: Measurements, settings: DiscoverySettings,
+    designs: dict,
+) -> tuple[FittedTerms, list[Comparison]]:  # fmt: skip
+    """The kept terms against every single-term swap among the strong candidates (and Coulomb friction), on the
+    validation measurements (:mod:`otgb.discovery.evidence`); a swap that fits better by two standard errors is taken."""
+
+    def refit(candidates: list[Candidate], init: list[float]) -> FittedTerms:
+        args = _fit_args(settings, candidates, designs)
+        return fit(physics, candidates, init, "constant", data.train, data.val, **args)
+
+    kept, comparisons = weigh(physics, kept, cross_check, settings.strong_candidates, refit, lambda c: _initial([c], designs)[0])
+    for c in comparisons:
+        progress(f"evidence: {c.replaced.feature} against {c.by.feature}: {c.standard_errors:+.1f} standard errors")
+    return kept, comparisons
+
+
+def choose_prior(physics: PhysicsModel, constant: FittedTerms, data: Measurements, settings: DiscoverySettings) -> FamilyChoice:
+    """Each prior family of ``settings.families`` for the constant fit's terms, fitted from its optimum; the choice
+    on the training measurements (:mod:`otgb.discovery.variation`)."""
+    start = [p.value for p in constant.priors]
+
+    def refit(family: str) -> FittedTerms:
+        return fit(physics, constant.candidates, start, family, data.train, data.val, **_fit_args(settings))
+
+    return choose_family_of(physics, constant, data.train, settings.families, refit, settings.seed)
 
 
 def prune(
@@ -419,11 +427,17 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
     result.cross_check = cross_check_step(physics, strong, data, settings, designs)
     progress(f"cross-checked {len(strong)} candidates alone")
     result.undertrained = undertrained(module, data.val, settings)
+    kept = None
     if selected and result.undertrained is None:
-        result.fitted, result.family_scores, result.dropped = add_step(physics, result.selections, designs, data, settings)
+        kept, result.dropped = add_step(physics, result.selections, designs, data, settings)
+        progress(f"kept {[c.feature for c in kept.candidates]}, coefficients {kept.priors}")
+    if kept is None or locate_step(kept.model(physics), data.val, settings, "augmented-check").any_significant:
+        kept = search_step(physics, kept, result, designs, data, settings)
+    if kept is not None:
+        kept, result.evidence = evidence_step(physics, kept, result.cross_check, data, settings, designs)
+        result.family = choose_prior(physics, kept, data, settings)
+        result.fitted = result.family.fitted
         progress(f"fitted {result.fitted.family} coefficients {result.fitted.priors}")
-    if not result.found or locate_step(result.fitted.model(physics), data.val, settings, "augmented-check").any_significant:
-        search_step(physics, result, designs, data, settings)
     sources = {
         "f_p": simulate_from_priors(physics, len(data.test), settings.seed, "gap-f_p"),
         "greybox": generated(module, len(data.test), settings.seed),
@@ -440,23 +454,26 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
     return result
 
 
-def search_step(physics: PhysicsModel, result: Discovery, designs: dict, data: Measurements, settings: DiscoverySettings) -> None:
-    """The library search (:mod:`otgb.discovery.search`), when f_phi's route named nothing or the physics it
-    augmented still disagrees with the measurements; its model replaces that route's if it beats it on held-out data."""
-    why = "f_phi named nothing" if result.fitted is None else "the augmented physics still disagrees with the measurements"
+def search_step(
+    physics: PhysicsModel, kept: FittedTerms | None, result: Discovery, designs: dict, data: Measurements,
+    settings: DiscoverySettings,
+) -> FittedTerms | None:  # fmt: skip
+    """The library search (:mod:`otgb.discovery.search`), when f_phi's route named nothing (``kept`` is None) or the
+    physics it augmented still disagrees with the measurements; its model replaces ``kept`` if it beats it on held-out
+    data. Returns the constant fit kept."""
+    why = "f_phi named nothing" if kept is None else "the augmented physics still disagrees with the measurements"
     progress(f"{why}: searching the local library")
     candidates = [c for design in designs.values() for c in design.candidates]
-    fitted = [] if result.fitted is None else zip(result.fitted.candidates, result.fitted.priors)
-    current = {c: p.quantile(torch.tensor(0.5)).item() for c, p in fitted}  # the medians
+    current = {} if kept is None else {c: p.value for c, p in zip(kept.candidates, kept.priors)}
     init = [current.get(c, 0.0) for c in candidates]
     scales = dict(zip(candidates, _fit_args(settings, candidates, designs)["scales"]))
-    kept, result.search = search(physics, candidates, init, data, _fit_args(settings), scales, progress)
-    if kept is None or (result.fitted is not None and not beats(kept.heldout, result.fitted.heldout)):
-        progress("search: nothing better than " + ("f_phi's terms" if result.fitted else "f_p alone"))
-        return
-    result.fitted, result.family_scores = choose_prior(physics, kept, data, settings)
+    found, result.search = search(physics, candidates, init, data, _fit_args(settings), scales, progress)
+    if found is None or (kept is not None and not beats(found.heldout, kept.heldout)):
+        progress("search: nothing better than " + ("f_phi's terms" if kept else "f_p alone"))
+        return kept
     result.dropped, result.route = [], "library search"
-    progress(f"search: fitted {result.fitted.family} coefficients {result.fitted.priors}")
+    progress(f"search: kept {[c.feature for c in found.candidates]}, coefficients {found.priors}")
+    return found
 
 
 UNDERTRAINED_REPEATS = 5  # simulation draws per held-out score of the grey-box and of f_p

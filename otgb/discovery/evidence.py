@@ -1,0 +1,112 @@
+"""Evidence from the measurements for every named term: the kept model against its close alternatives.
+
+For each term of the kept model, each close alternative is swapped in for it alone: the strong
+candidates on the same component that closed part of the gap when added to f_p alone
+(:func:`otgb.discovery.workflow.cross_check_step`) and, where the term is a friction of a
+velocity (``v``, ``v*|v|``, ``v^3``), Coulomb friction ``sign(v)``. The swapped model's
+coefficients are fitted by distribution matching on the training measurements and scored on the
+validation measurements with the same simulation draws as the kept model (common random
+numbers), so the difference of their held-out discrepancies and its standard error
+(:func:`otgb.discovery.refine.difference`) come from data that no fit saw.
+
+An alternative within two standard errors is *ambiguous*: the measurements cannot tell it from
+the named term. One that fits better by more than two standard errors replaces the named term
+(and the comparisons are made again around the new model), so every kept term is the one the
+measurements prefer among its alternatives, by the number of standard errors the report gives.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from otgb.discovery.library import Candidate
+from otgb.discovery.log import progress
+from otgb.discovery.refine import FittedTerms, difference
+from otgb.physics.base import PhysicsModel
+
+AMBIGUOUS_WITHIN = 2.0  # standard errors
+MAX_SWAPS = 3  # rounds in which a better alternative replaces a kept term
+
+
+@dataclass
+class Comparison:
+    """The kept model against the same model with ``replaced`` swapped for ``by``, on the validation measurements."""
+
+    replaced: Candidate
+    by: Candidate
+    coefficient: float  # ``by``'s fitted coefficient
+    difference: float  # the alternative's held-out discrepancy minus the kept model's: > 0 where the kept one fits better
+    standard_error: float
+
+    @property
+    def standard_errors(self) -> float:
+        """How many standard errors the measurements prefer the kept term by (negative: the alternative)."""
+        if not math.isfinite(self.difference):
+            return self.difference
+        return self.difference / self.standard_error if self.standard_error > 0 else math.copysign(math.inf, self.difference)
+
+    @property
+    def ambiguous(self) -> bool:
+        """Whether the measurements cannot tell the two apart (within two standard errors)."""
+        return math.isfinite(self.difference) and abs(self.standard_errors) <= AMBIGUOUS_WITHIN
+
+
+Refit = Callable[[list[Candidate], list[float]], FittedTerms]  # constant coefficients fitted from a start
+
+
+def alternatives(physics: PhysicsModel, kept: list[Candidate], cross_check: list[dict], per_term: int) -> list[tuple]:
+    """(index of a kept term, its alternative, the alternative's start): per kept term, the ``per_term`` cross-checked
+    candidates on its component that closed most of the gap alone, and Coulomb friction for a velocity's friction."""
+    swaps = []
+    for index, term in enumerate(kept):
+        rows = [
+            r for r in cross_check
+            if r["component"] == term.component and r["feature"] not in {c.feature for c in kept if c.component == term.component}
+            and math.isfinite(r["gap_closed"]) and r["gap_closed"] > 0
+        ]  # fmt: skip
+        options = {Candidate(r["feature"], r["component"]): r["coefficient"] for r in rows[:per_term]}
+        coulomb = Candidate(f"sign({term.component})", term.component)
+        if _is_friction(term, physics) and coulomb not in kept:
+            options.setdefault(coulomb, None)
+        swaps += [(index, candidate, start) for candidate, start in options.items()]
+    return swaps
+
+
+def _is_friction(term: Candidate, physics: PhysicsModel) -> bool:
+    v = term.component
+    return v in physics.velocity_names and term.feature in (v, f"{v}*|{v}|", f"{v}^3")
+
+
+def weigh(physics: PhysicsModel, kept: FittedTerms, cross_check: list[dict], per_term: int, refit: Refit, start: Callable):
+    """The kept model (a better alternative swapped in, up to ``MAX_SWAPS`` times) and its :class:`Comparison` s.
+
+    ``refit(candidates, init)`` fits constant coefficients and scores them on the validation part;
+    ``start(candidate)`` gives a coefficient's starting value where the cross-check has none.
+    """
+    compared = _compare(physics, kept, cross_check, per_term, refit, start)
+    for _ in range(MAX_SWAPS):
+        better = [(c, s) for c, s in compared if c.standard_errors < -AMBIGUOUS_WITHIN]
+        if not better:
+            break
+        comparison, kept = min(better, key=lambda pair: pair[0].standard_errors)
+        progress(
+            f"evidence: {comparison.by.feature} fits the validation measurements better than {comparison.replaced.feature} "
+            f"by {-comparison.standard_errors:.1f} standard errors; swapped in"
+        )
+        compared = _compare(physics, kept, cross_check, per_term, refit, start)
+    return kept, [c for c, _ in compared]
+
+
+def _compare(physics, kept: FittedTerms, cross_check: list[dict], per_term: int, refit: Refit, start: Callable) -> list[tuple]:
+    """(:class:`Comparison`, the swapped model's fit) for each alternative of ``kept``."""
+    compared = []
+    for index, by, value in alternatives(physics, kept.candidates, cross_check, per_term):
+        candidates = [by if i == index else c for i, c in enumerate(kept.candidates)]
+        init = [p.value for p in kept.priors]
+        init[index] = start(by) if value is None else value
+        swapped = refit(candidates, init)
+        gap, error = difference(kept.heldout, swapped.heldout)
+        compared.append((Comparison(kept.candidates[index], by, swapped.priors[index].value, gap, error), swapped))
+    return compared

@@ -1,0 +1,122 @@
+"""Whether an effect varies between trajectories: the coefficients' prior family, and the spread the data allow.
+
+The families are nested: a uniform U(c - w, c + w) or a normal N(c, w^2) of zero width is the
+constant c. Each richer family is fitted from the constant's optimum
+(:func:`otgb.discovery.refine.fit`) and scored on the training measurements with the same
+simulation draws as the constant (common random numbers, ``FAMILY_REPEATS`` draws). A richer
+fit that scores worse than the constant stopped short of the optimum its family contains (it
+cannot be worse at zero width); it is then taken at zero width, where it ties the constant, and
+the report says so. The simplest family that no richer family beats by two standard errors
+(:func:`otgb.discovery.refine.beats`) is chosen, and every family's difference to it is
+reported with its standard error.
+
+When the constant is chosen, :func:`excluded_spread` says how wide a spread the data still
+allow: per term, the smallest half-width (uniform; standard deviation for a normal) around the
+constant that the constant beats by two standard errors, found by doubling and then bisection.
+When a family that varies is chosen, the spread's 95 % interval comes from
+:mod:`otgb.discovery.intervals`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from torch import Tensor
+
+from otgb.discovery.refine import FAMILIES, FAMILY_REPEATS, MIN_WIDTH, FittedTerms, Scores, beats, difference, discrepancies
+from otgb.physics.base import PhysicsModel
+from otgb.physics.priors import Constant, Normal, Prior, Uniform
+
+FIRST_SPREAD = 0.02  # the first half-width tried by excluded_spread, in units of the coefficient's size
+SPREAD_DOUBLINGS = 8
+SPREAD_BISECTIONS = 2
+SPREAD_REPEATS = 10  # simulation draws per score of a spread (common random numbers: the measured sample dominates)
+
+
+@dataclass
+class FamilyChoice:
+    """The chosen family's fit, each family's score and difference to it, the fits that stopped short."""
+
+    fitted: FittedTerms
+    scores: dict[str, float]  # mean discrepancy to the training measurements per family
+    differences: dict[str, tuple[float, float]]  # per family: its score minus the chosen one's, and its standard error
+    stopped_short: list[str] = field(default_factory=list)  # families whose fit ended worse than the constant
+    excluded_spread: list[float | None] | None = None  # constant chosen: per term, the smallest spread the data exclude
+
+
+def choose_family(fits: list[FittedTerms], scores: dict[str, Scores]) -> FittedTerms:
+    """The simplest family (``FAMILIES`` order) that no richer family beats, by their ``scores``."""
+    ordered = sorted(fits, key=lambda f: FAMILIES.index(f.family))
+    chosen = ordered[0]
+    for richer in ordered[1:]:
+        if beats(scores[richer.family], scores[chosen.family]):
+            chosen = richer
+    return chosen
+
+
+def choose_prior(
+    physics: PhysicsModel, constant: FittedTerms, measured: Tensor, families: tuple[str, ...], refit: Callable, seed: int
+) -> FamilyChoice:
+    """Each family of ``families`` for ``constant``'s terms (``refit(family)`` fits one from the constant's optimum),
+    scored on ``measured``; the nested check, the choice, and the spread the data allow if the constant is chosen."""
+    score = lambda f: discrepancies(physics, f.candidates, f.priors, measured, seed, FAMILY_REPEATS)  # noqa: E731
+    fits, scores, stopped_short = [constant], {"constant": score(constant)}, []
+    for family in (f for f in families if f != "constant"):
+        richer = refit(family)
+        scores[family] = score(richer)
+        if difference(scores["constant"], scores[family])[0] > 0:  # worse than the width-zero member of its family
+            stopped_short.append(family)
+            richer, scores[family] = at_zero_width(richer, constant), scores["constant"]
+        fits.append(richer)
+    fits = [f for f in fits if f.family in families] or [constant]
+    chosen = choose_family(fits, scores)
+    differences = {f.family: difference(scores[chosen.family], scores[f.family]) for f in fits}
+    choice = FamilyChoice(chosen, {f.family: scores[f.family].mean for f in fits}, differences, stopped_short)
+    if chosen.family == "constant":
+        spread_family = next((f for f in ("uniform", "normal") if f in families), "uniform")
+        choice.excluded_spread = [
+            excluded_spread(physics, constant, k, spread_family, measured, seed)
+            for k in range(len(constant.candidates))
+        ]
+    return choice
+
+
+def at_zero_width(richer: FittedTerms, constant: FittedTerms) -> FittedTerms:
+    """``richer``'s family at the constant's centres and (nearly) zero width: the constant as a member of the family."""
+    sizes = richer.scales or [abs(p.value) for p in constant.priors]
+    priors = [widened(richer.family, p.value, MIN_WIDTH * max(size, 1e-12)) for p, size in zip(constant.priors, sizes)]
+    candidates = list(constant.candidates)
+    return FittedTerms(richer.family, candidates, priors, constant.heldout, richer.loss, richer.start, richer.scales)
+
+
+def widened(family: str, centre: float, width: float) -> Prior:
+    """A prior of ``family`` around ``centre``: half-width (uniform) or standard deviation (normal) ``width``."""
+    return Uniform(centre - width, centre + width) if family == "uniform" else Normal(centre, width)
+
+
+def excluded_spread(
+    physics: PhysicsModel, constant: FittedTerms, k: int, family: str, measured: Tensor, seed: int
+) -> float | None:
+    """The smallest spread of term ``k`` (the others constant) whose model the constant beats by two standard errors
+    on ``measured``: a spread this wide is excluded by the data. None if none up to 2^8 times the first is."""
+    centre = constant.priors[k].value
+    baseline = discrepancies(physics, constant.candidates, constant.priors, measured, seed, SPREAD_REPEATS)
+    size = max(abs(centre), (constant.scales or [0.0] * (k + 1))[k], 1e-12)
+
+    def excluded(width: float) -> bool:
+        priors: list[Prior] = [Constant(p.value) for p in constant.priors]
+        priors[k] = widened(family, centre, width)
+        return beats(baseline, discrepancies(physics, constant.candidates, priors, measured, seed, SPREAD_REPEATS))
+
+    allowed, width = 0.0, FIRST_SPREAD * size
+    for _ in range(SPREAD_DOUBLINGS):
+        if excluded(width):
+            break
+        allowed, width = width, 2 * width
+    else:
+        return None
+    for _ in range(SPREAD_BISECTIONS):
+        middle = (allowed + width) / 2
+        allowed, width = (allowed, middle) if excluded(middle) else (middle, width)
+    return width
