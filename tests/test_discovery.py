@@ -369,21 +369,54 @@ def test_discover_negative_control_names_nothing(tmp_path):
     assert not (tmp_path / run_dir / "checkpoints").exists(), "nothing to learn: no training"
 
 
-def test_discover_refuses_bad_settings_in_one_line(tmp_path):
-    done = _discover(tmp_path, _export(tmp_path, 0.0), "--discover.alpha=2")
-    assert done.returncode == 2 and done.stderr.strip().splitlines()[-1].startswith("otgb: error: discover: need")
-    assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").rglob("report.json"))
+def _bad_file(tmp_path: Path, kind: str) -> Path:
+    """A measured file with one mistake: too few trajectories, all NaN, or another time grid."""
+    y = generate_measured(Pendulum(), 200, 7)["y"].numpy()
+    path = tmp_path / "measured.npz"
+    if kind == "too small":
+        np.savez(path, y=y[:30])
+    elif kind == "all NaN":
+        np.savez(path, y=np.full_like(y, np.nan))
+    else:
+        np.savez(path, y=y, t=0.2 * np.arange(y.shape[1]))
+    return path
 
 
-@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("mistake", "expected"),
+    [
+        (("file", "too small"), "30 trajectories split by"),
+        (("file", "all NaN"), "contain NaN/Inf"),
+        (("file", "time grid"), "the time grid [0, 0.2, 0.4"),
+        (("setting", "--discover.alpha=2"), "discover: need"),
+        (("setting", "--discover.families=[constant,gamma]"), "discover.families=['constant', 'gamma']: expected"),
+    ],
+)
+def test_discover_refuses_bad_input_in_one_line_and_writes_nothing(tmp_path, mistake, expected):
+    kind, what = mistake
+    measured = _bad_file(tmp_path, what) if kind == "file" else _export(tmp_path, 0.0)
+    done = _discover(tmp_path, measured, *([what] if kind == "setting" else []))
+    last = done.stderr.strip().splitlines()[-1]
+    assert done.returncode == 2 and last.startswith("otgb: error: ") and expected in last, done.stderr[-1500:]
+    assert "Traceback" not in done.stderr
+    assert not (tmp_path / "runs").exists(), "nothing written"
+
+
 def test_discover_finds_friction_and_writes_a_config_fit_accepts(tmp_path):
+    """The real thing at a small budget: the grey-box trained, its f_phi named, no stand-in."""
     measured = _export(tmp_path, -1.2)
     done = _discover(tmp_path, measured, "--data.simulation_budget=16000", "--trainer.val_check_interval=250")
     assert done.returncode == 0, done.stderr[-2000:]
+    assert "otgb discover [" in done.stderr and "otgb discover [" not in done.stdout, "progress goes to stderr"
     run_dir = tmp_path / done.stdout.strip().splitlines()[-1].split("report in ")[1]
     report = json.loads((run_dir / "report.json").read_text())
     assert report["found"] and [t["feature"] for t in report["terms"]] == ["velocity"], report["terms"]
     assert abs(report["terms"][0]["coefficient"] + 1.2) < 0.12 and report["terms"][0]["name"] == "viscous friction"
+    assert report["undertrained"] is None and report["route"] == "f_phi regression"
+    low, high = report["terms"][0]["interval"]
+    assert low < report["terms"][0]["coefficient"] < high
+    coulomb = next(e for e in report["evidence"] if e["alternative"] == "sign(velocity)")
+    assert coulomb["standard_errors"] > 0 and "(sign(velocity))" in report["verdict"], report["verdict"]  # 30 held out
     config = yaml.safe_load((run_dir / "augmented.yaml").read_text())
     assert config["data"]["physics"]["class_path"] == "otgb.physics.Augmented"
     fit = subprocess.run(
