@@ -10,8 +10,9 @@ numbers), so the difference of their held-out discrepancies and its standard err
 (:func:`otgb.discovery.refine.difference`) come from data that no fit saw.
 
 An alternative within two standard errors is *ambiguous*: the measurements cannot tell it from
-the named term. One that fits better by more than two standard errors replaces the named term
-(and the comparisons are made again around the new model), so every kept term is the one the
+the named term. Of those that fit better by more than two standard errors, the one that lowers the
+held-out discrepancy most replaces the named term (and the comparisons are made again around the
+new model), so every kept term is the one the
 measurements prefer among its alternatives, by the number of standard errors the report gives.
 """
 
@@ -90,7 +91,7 @@ def weigh(physics: PhysicsModel, kept: FittedTerms, cross_check: list[dict], per
         better = [(c, s) for c, s in compared if c.standard_errors < -AMBIGUOUS_WITHIN]
         if not better:
             break
-        comparison, kept = min(better, key=lambda pair: pair[0].standard_errors)
+        comparison, kept = min(better, key=lambda pair: pair[0].difference)  # the largest improvement
         progress(
             f"evidence: {comparison.by.feature} fits the validation measurements better than {comparison.replaced.feature} "
             f"by {-comparison.standard_errors:.1f} standard errors; swapped in"

@@ -28,6 +28,8 @@ class DisagreementMap:
 
     ``statistic`` is the energy distance (in the observation's units), ``pvalue`` its
     permutation p-value, ``significant`` the cells kept at false discovery rate ``alpha``.
+    ``whole_*``: the same test between whole trajectories (one more p-value in the
+    Benjamini-Hochberg set): a difference spread thinly over many cells shows there first.
     ``mean_*`` / ``spread_*`` / ``amplitude_*`` are each sample's mean, standard deviation and
     mean absolute value per cell (averaged over the region), for the sentence.
     """
@@ -46,10 +48,13 @@ class DisagreementMap:
     spread_b: Tensor
     amplitude_a: Tensor
     amplitude_b: Tensor
+    whole_statistic: float = 0.0
+    whole_pvalue: float = 1.0
+    whole_significant: bool = False
 
     @property
     def any_significant(self) -> bool:
-        return bool(self.significant.any())
+        return bool(self.significant.any()) or self.whole_significant
 
     def to_dict(self) -> dict:
         return {
@@ -63,6 +68,7 @@ class DisagreementMap:
             "statistic": self.statistic.tolist(),
             "pvalue": self.pvalue.tolist(),
             "significant": self.significant.tolist(),
+            "whole": {"statistic": self.whole_statistic, "pvalue": self.whole_pvalue, "significant": self.whole_significant},
         }
 
 
@@ -139,7 +145,9 @@ def locate(
     cells_a, regions = cell_values(a, grid, regions_per_axis)
     cells_b, _ = cell_values(b, grid, regions_per_axis)
     statistic, pvalue = permutation_energy(cells_a, cells_b, n_permutations, seed)
-    significant = false_discovery_control(pvalue.numpy()) <= alpha
+    whole, whole_pvalue = permutation_energy(a.flatten(1)[None].double(), b.flatten(1)[None].double(), n_permutations, seed)
+    significant = false_discovery_control(torch.cat([pvalue, whole_pvalue]).numpy()) <= alpha
+    significant, whole_significant = significant[:-1], bool(significant[-1])
     shape = (steps, channels, len(regions))
     summary = {}
     for side, cells in (("a", cells_a), ("b", cells_b)):
@@ -156,6 +164,9 @@ def locate(
         alpha=alpha,
         n_permutations=n_permutations,
         **summary,
+        whole_statistic=float(whole[0]),
+        whole_pvalue=float(whole_pvalue[0]),
+        whole_significant=whole_significant,
     )
 
 
@@ -163,8 +174,13 @@ def describe(result: DisagreementMap, a_name: str = "measured", b_name: str = "s
     """A plain sentence: until when the samples agree, and how they differ afterwards, per component."""
     if not result.any_significant:
         return (
-            f"{b_name} and {a_name} trajectories agree everywhere: no time step, component or region differs "
-            f"at a false discovery rate of {result.alpha:g} ({result.n_permutations} permutations)"
+            f"{b_name} and {a_name} trajectories agree everywhere: neither the whole trajectories nor any time step, "
+            f"component or region differ at a false discovery rate of {result.alpha:g} ({result.n_permutations} permutations)"
+        )
+    if not result.significant.any():
+        return (
+            f"{b_name} and {a_name} trajectories differ as a whole (energy distance {result.whole_statistic:.3g}, "
+            f"permutation p = {result.whole_pvalue:.3g}), though no single time step, component or region does"
         )
     times = result.times
     flagged = result.significant.any(2).any(1)
