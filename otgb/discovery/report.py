@@ -52,7 +52,11 @@ def verdict(result: Discovery, physics: PhysicsModel) -> str:
         )
     names = ", ".join(f"{term_name(c, centre(p), physics)} ({c.feature} on d{c.component}/dt)" for c, p in _terms(result))
     if result.after is not None and not result.after.any_significant:
-        head = f"missing effect found, the gap is closed: {names}; {result.sentence_after}"
+        head = (
+            f"missing effect found, the gap is closed: {names} remove {gap_closed(result.gap):.0%} of f_p's energy distance "
+            f"to the {len(result.draws['f_p'])} test trajectories, which no longer tell the augmented physics apart; "
+            f"{result.sentence_after}"
+        )
     else:
         head = (
             f"missing effect partly found: {names} close {gap_closed(result.gap):.0%} of f_p's gap (energy distance on "
