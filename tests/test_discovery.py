@@ -105,6 +105,22 @@ def test_locate_finds_when_and_how_samples_differ():
     assert "amplitude (mean |value|) is smaller" in describe(found) and "agree up to t =" in describe(found)
 
 
+def test_locate_tests_whole_trajectories_where_no_single_step_differs():
+    """Each step's values have the same law in both samples (a random sign times a fixed curve), but one sample
+    shares its sign over the whole trajectory: only the whole-trajectory test can see it."""
+    g = torch.Generator().manual_seed(0)
+    curve = torch.linspace(0.5, 1.5, 20)
+    shared = torch.randint(0, 2, (150, 1), generator=g) * 2 - 1
+    independent = torch.randint(0, 2, (150, 20), generator=g) * 2 - 1
+    a, b = (shared * curve)[:, :, None], (independent * curve)[:, :, None]
+    found = locate(a, b, torch.arange(20.0), ("x",), n_permutations=199)
+    assert not found.significant.any() and found.whole_significant and found.any_significant
+    assert "differ as a whole" in describe(found)
+    also_shared = ((torch.randint(0, 2, (150, 1), generator=g) * 2 - 1) * curve)[:, :, None]
+    same = locate(a, also_shared, torch.arange(20.0), ("x",), n_permutations=199)
+    assert not same.any_significant
+
+
 def test_locate_maps_field_regions():
     model = AdvectionDiffusion()
     measured = _draws(model.with_hidden_effect([Advection(Constant(0.1))]), 100, 1)

@@ -12,8 +12,8 @@ numbers), so the difference of their held-out discrepancies and its standard err
 An alternative within two standard errors is *ambiguous*: the measurements cannot tell it from
 the named term. Of those that fit better by more than two standard errors, the one that lowers the
 held-out discrepancy most replaces the named term (and the comparisons are made again around the
-new model), so every kept term is the one the
-measurements prefer among its alternatives, by the number of standard errors the report gives.
+new model), so every kept term is the one the measurements prefer among its alternatives, by the
+number of standard errors the report gives.
 """
 
 from __future__ import annotations
@@ -46,7 +46,9 @@ class Comparison:
         """How many standard errors the measurements prefer the kept term by (negative: the alternative)."""
         if not math.isfinite(self.difference):
             return self.difference
-        return self.difference / self.standard_error if self.standard_error > 0 else math.copysign(math.inf, self.difference)
+        if self.standard_error > 0:
+            return self.difference / self.standard_error
+        return 0.0 if self.difference == 0 else math.copysign(math.inf, self.difference)
 
     @property
     def ambiguous(self) -> bool:

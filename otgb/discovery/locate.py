@@ -28,8 +28,10 @@ class DisagreementMap:
 
     ``statistic`` is the energy distance (in the observation's units), ``pvalue`` its
     permutation p-value, ``significant`` the cells kept at false discovery rate ``alpha``.
-    ``whole_*``: the same test between whole trajectories (one more p-value in the
-    Benjamini-Hochberg set): a difference spread thinly over many cells shows there first.
+    ``whole_*``: the same test between whole trajectories: a difference spread thinly over many
+    cells, or one in how the steps of a trajectory go together, shows there first. ``alpha`` is
+    split between the two families: the cells at false discovery rate alpha / 2, the whole
+    trajectories at level alpha / 2.
     ``mean_*`` / ``spread_*`` / ``amplitude_*`` are each sample's mean, standard deviation and
     mean absolute value per cell (averaged over the region), for the sentence.
     """
@@ -146,8 +148,10 @@ def locate(
     cells_b, _ = cell_values(b, grid, regions_per_axis)
     statistic, pvalue = permutation_energy(cells_a, cells_b, n_permutations, seed)
     whole, whole_pvalue = permutation_energy(a.flatten(1)[None].double(), b.flatten(1)[None].double(), n_permutations, seed)
-    significant = false_discovery_control(torch.cat([pvalue, whole_pvalue]).numpy()) <= alpha
-    significant, whole_significant = significant[:-1], bool(significant[-1])
+    # two families, alpha split between them (Bonferroni): one whole-trajectory p-value inside the cells'
+    # Benjamini-Hochberg set would need p < alpha / (cells + 1), below what the permutations can give
+    significant = false_discovery_control(pvalue.numpy()) <= alpha / 2
+    whole_significant = bool(whole_pvalue[0] <= alpha / 2)
     shape = (steps, channels, len(regions))
     summary = {}
     for side, cells in (("a", cells_a), ("b", cells_b)):

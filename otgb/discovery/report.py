@@ -449,7 +449,10 @@ def _family_section(report: dict[str, Any]) -> list[str]:
 def _spread_bound(bound: float | None) -> str:
     if bound is None:
         return f"the data cannot exclude a spread up to {FIRST_SPREAD * 2**SPREAD_DOUBLINGS:.3g} times its size."
-    return f"a spread wider than {bound:.3g} (half-width around it) is excluded by the data (two standard errors)."
+    return (
+        f"a spread wider than {bound:.3g} (half-width; standard deviation if only the normal family is tried) "
+        "is excluded by the data (two standard errors)."
+    )
 
 
 def _search_section(report: dict) -> list[str]:

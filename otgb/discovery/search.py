@@ -20,7 +20,7 @@ measurements, this route:
 3. scores the ten best subsets of each size on the validation measurements with their
    least-squares coefficients (g's residual alone ranks near-collinear subsets by noise), fits
    the three best of them by distribution matching and scores them again; the subsets the best
-   one does not beat are reported as alternatives (ambiguous). Sizes grow until two in a
+   one does not beat are kept as the step's alternatives (``report.json``'s ``search``). Sizes grow until two in a
    row do not improve; the sparsest model that the best does not beat by two standard errors
    (:func:`otgb.discovery.refine.beats`) is kept.
 """

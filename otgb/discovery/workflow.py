@@ -37,7 +37,7 @@ from otgb.discovery.intervals import Intervals, sandwich_intervals
 from otgb.discovery.library import Candidate, build_library, physical_name
 from otgb.discovery.locate import DisagreementMap, describe, locate
 from otgb.discovery.log import DivergenceLog, diverged, progress
-from otgb.discovery.refine import FAMILIES, FittedTerms, beats, discrepancies, fit, sample_scores
+from otgb.discovery.refine import FAMILIES, FittedTerms, beats, discrepancies, fit, sample_scores, simulate_finite, term_names
 from otgb.discovery.regression import SelectedTerm, Selection, describe_terms, design_matrix, regress, subset_coefficients
 from otgb.discovery.search import SearchStep, search
 from otgb.discovery.variation import FamilyChoice
@@ -162,14 +162,11 @@ def simulate_candidate(model: Augmented, n: int, seed: int, name: str) -> Tensor
     """:func:`simulate_from_priors` for a candidate model: the trajectories that diverge are dropped and logged."""
     g = generator_for(seed, "discover", name)
     x0, theta = model.sample_initial_state(n, g), model.sample_theta(n, g)
-    parts = [model.observe(model.solve(model.vector_field, x0[i : i + CHUNK], theta[i : i + CHUNK])) for i in range(0, n, CHUNK)]
-    trajectories = torch.cat(parts)
-    finite = torch.isfinite(trajectories.flatten(1)).all(1)
-    if not bool(finite.all()):
-        first = int((~finite).nonzero()[0])
-        terms = [f"{t.feature} on d{t.component}/dt" for t in model.added]
-        diverged(name, terms, int((~finite).sum()), n, theta[first].tolist())
-    return trajectories[finite]
+    kept, bad = zip(*(simulate_finite(model, x0[i : i + CHUNK], theta[i : i + CHUNK]) for i in range(0, n, CHUNK)))
+    bad = torch.cat(bad)
+    if bool(bad.any()):
+        diverged(name, term_names(model.added), int(bad.sum()), n, theta[int(bad.nonzero()[0])].tolist())
+    return torch.cat(kept)
 
 
 @torch.no_grad()
