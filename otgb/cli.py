@@ -220,6 +220,15 @@ def share_logger_version(loggers: object) -> list[Path]:
     return [root / f"version_{version}" for root, version in chosen.items()]
 
 
+MAIN_FILES = ("metrics.md", "metrics.json", "config.yaml", "metrics.csv", "checkpoints", "figures", "components.json")
+
+
+def closing_line(subcommand: str, run: Path) -> str:
+    """The last line of ``otgb fit`` / ``otgb test``: the run directory and the main files in it."""
+    present = [f"{name}/" if (run / name).is_dir() else name for name in MAIN_FILES if (run / name).exists()]
+    return f"otgb {subcommand}: results in {run}: {', '.join(present) or 'nothing written'}"
+
+
 def main(args: list[str] | None = None) -> None:
     """Run the ``otgb`` command; bad user input ends it with one line on stderr and status 2."""
     logging.getLogger("lightning.fabric.utilities.seed").setLevel(logging.WARNING)  # the seed is in config.yaml
@@ -230,7 +239,9 @@ def main(args: list[str] | None = None) -> None:
 
             discover(argv[1:])
             return
-        OTGBCLI(MapTraining, SimulationDataModule, args=args)
+        cli = OTGBCLI(MapTraining, SimulationDataModule, args=args)
+        if cli.trainer.is_global_zero and cli.trainer.log_dir:
+            print(closing_line(cli.subcommand, Path(cli.trainer.log_dir)), file=sys.stderr)
     except InputError as error:
         print(f"otgb: error: {error}", file=sys.stderr)
         raise SystemExit(2) from None

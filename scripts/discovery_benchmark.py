@@ -51,18 +51,31 @@ CASES = {
         PENDULUM,
     ),  # fmt: skip
     "pendulum_stochastic_drag": (
-        "pendulum.yaml", Pendulum, [term("velocity*|velocity|", "velocity", Uniform(-0.8, -0.2))], 1000, None, PENDULUM,
+        "pendulum.yaml",
+        Pendulum,
+        [term("velocity*|velocity|", "velocity", Uniform(-0.8, -0.2))],
+        1000,
+        None,
+        PENDULUM,
     ),  # fmt: skip
     "pendulum_friction_drag": (
-        "pendulum.yaml", Pendulum,
+        "pendulum.yaml",
+        Pendulum,
         [term("velocity", "velocity", Constant(-0.8)), term("velocity*|velocity|", "velocity", Constant(-0.4))],
-        1000, None, PENDULUM,
+        1000,
+        None,
+        PENDULUM,
     ),  # fmt: skip
     "pendulum_none": ("pendulum.yaml", Pendulum, [term("velocity", "velocity", Constant(0.0))], 1000, None, PENDULUM),
     "advdiff_advection": ("advdiff.yaml", AdvectionDiffusion, [term("d_s(T)", "T", Constant(-0.1))], 1000, None, ADVDIFF),
     "advdiff_decay": ("advdiff.yaml", AdvectionDiffusion, [term("T", "T", Constant(-0.5))], 1000, None, ADVDIFF),
     "advdiff_stochastic_decay": (
-        "advdiff.yaml", AdvectionDiffusion, [term("T", "T", Uniform(-0.8, -0.2))], 1000, None, ADVDIFF,
+        "advdiff.yaml",
+        AdvectionDiffusion,
+        [term("T", "T", Uniform(-0.8, -0.2))],
+        1000,
+        None,
+        ADVDIFF,
     ),  # fmt: skip
     "reactdiff_reaction": (
         "reactdiff.yaml",

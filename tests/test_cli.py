@@ -51,7 +51,7 @@ def _last(rows: list[dict], key: str) -> float:
     return [float(r[key]) for r in rows if r.get(key)][-1]
 
 
-def test_fit_writes_logs_checkpoints_and_figures(tmp_path):
+def test_fit_writes_logs_checkpoints_and_figures(tmp_path, capsys):
     main(
         [
             "fit",
@@ -59,6 +59,8 @@ def test_fit_writes_logs_checkpoints_and_figures(tmp_path):
         ]
     )
     run = tmp_path / "run" / "version_0"
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last == f"otgb fit: results in {run}: config.yaml, metrics.csv, checkpoints/, figures/, components.json", last
     assert {"metrics.csv", "config.yaml", "hparams.yaml"} <= {p.name for p in run.iterdir()}
     assert list(run.glob("events.out.tfevents.*")), "TensorBoard events next to the CSV log"
     assert (run / "checkpoints" / "last.ckpt").is_file() and list(run.glob("checkpoints/best-*.ckpt"))
@@ -218,10 +220,13 @@ def test_one_to_many_config_selects_on_joint_c2st(tmp_path):
     assert "gamma: 1.0" in (run / "config.yaml").read_text()
 
 
-def test_test_writes_metrics_json_and_table(tmp_path):
+def test_test_writes_metrics_json_and_table(tmp_path, capsys):
     main(["fit", *_args(tmp_path, "--trainer.max_steps=3")])
     ckpt = tmp_path / "run" / "version_0" / "checkpoints" / "last.ckpt"
+    capsys.readouterr()
     main(["test", *_args(tmp_path, "--evaluation.reference_repeats=2"), f"--ckpt_path={ckpt}"])
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith(f"otgb test: results in {tmp_path / 'run' / 'version_1'}: metrics.md, metrics.json"), last
     report = json.loads((tmp_path / "run" / "version_1" / "metrics.json").read_text())
     assert report["run"]["ckpt_path"] == str(ckpt) and report["run"]["global_step"] == 3 and report["run"]["n_inputs"] == 20
     assert report["reference"]["abs_err"] == {"mean": 0.0, "std": 0.0}, "a one-to-one DGP has no noise floor"

@@ -203,3 +203,21 @@ def test_own_data_walkthrough_as_written(tmp_path):
     done = _run("otgb fit --config my_pendulum.yaml --data.measured_path bad.csv", tmp_path)
     assert done.returncode == 2 and done.stderr.strip().splitlines()[-1] == error_line
     assert sorted(p.name for p in (tmp_path / "runs" / "my_pendulum").iterdir()) == before, "nothing written"
+
+
+def test_the_docs_site_builds_strict(tmp_path):
+    """`mkdocs build --strict`: every page in the navigation exists, every link and API reference resolves."""
+    done = subprocess.run(
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
+        cwd=ROOT, capture_output=True, text=True, env={**os.environ, "NO_MKDOCS_2_WARNING": "1"},
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert (tmp_path / "site" / "api" / "index.html").read_text().count("MapTraining") > 0
+
+
+def test_readme_is_a_front_door():
+    """README stays short: what otgb is, set-up, the three commands, links; the rest is on the docs site."""
+    readme = (ROOT / "README.md").read_text()
+    assert len(readme.splitlines()) <= 120
+    for link in re.findall(r"\]\((docs/[^)]+)\)", readme):
+        assert (ROOT / link).is_file(), link

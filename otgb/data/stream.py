@@ -30,11 +30,14 @@ class SourceStream(IterableDataset):
     Args:
         physics: f_p, whose priors are sampled.
         measured: the fixed measured set (N, T, *obs); batches are drawn with replacement.
-        batch_size: B, source inputs per map update. batches_per_step: K, source batches per item.
+        batch_size: B, source inputs per map update.
+        batches_per_step: K, source batches per item.
         measured_batch_size: B_y, measured trajectories per critic update.
         measured_batches_per_step: K_y, critic updates per item.
         budget: simulations this rank may spend; the stream ends before exceeding it.
-        seed, rank: keys of the random draws. start: first item index (resume).
+        seed: key of the random draws.
+        rank: this process's rank, the draws' second key.
+        start: first item index (resume).
     """
 
     def __init__(

@@ -14,6 +14,14 @@ the named term. Of those that fit better by more than two standard errors, the o
 held-out discrepancy most replaces the named term (and the comparisons are made again around the
 new model), so every kept term is the one the measurements prefer among its alternatives, by the
 number of standard errors the report gives.
+
+Then each strong candidate not yet kept is *added* to the kept model (its coefficient started at
+zero, so the richer fit starts where the kept model is): forward selection follows f_phi's ranking,
+and a network that learned friction and drag together as one mostly linear friction ranks drag
+low. An addition is taken when it fits the validation measurements better by more than two
+standard errors; among the additions within two standard errors of the best one, the measurements
+cannot choose, and the one that closed most of f_p's gap alone (the cross-check's order) is taken.
+The swaps are then weighed again around the larger model.
 """
 
 from __future__ import annotations
@@ -24,11 +32,12 @@ from dataclasses import dataclass
 
 from otgb.discovery.library import Candidate
 from otgb.discovery.log import progress
-from otgb.discovery.refine import FittedTerms, difference
+from otgb.discovery.refine import FittedTerms, beats, difference
 from otgb.physics.base import PhysicsModel
 
 AMBIGUOUS_WITHIN = 2.0  # standard errors
 MAX_SWAPS = 3  # rounds in which a better alternative replaces a kept term
+MAX_ADDITIONS = 2  # strong candidates added to the kept model
 
 
 @dataclass
@@ -83,11 +92,28 @@ def _is_friction(term: Candidate, physics: PhysicsModel) -> bool:
 
 
 def weigh(physics: PhysicsModel, kept: FittedTerms, cross_check: list[dict], per_term: int, refit: Refit, start: Callable):
-    """The kept model (a better alternative swapped in, up to ``MAX_SWAPS`` times) and its :class:`Comparison` s.
+    """The kept model (a better alternative swapped in, up to ``MAX_SWAPS`` times; a strong candidate added, up to
+    ``MAX_ADDITIONS`` times), its :class:`Comparison` s, and the additions (feature, component, difference, its
+    standard error: the kept model's held-out discrepancy minus the larger model's).
 
     ``refit(candidates, init)`` fits constant coefficients and scores them on the validation part;
     ``start(candidate)`` gives a coefficient's starting value where the cross-check has none.
     """
+    kept, compared = _swap(physics, kept, cross_check, per_term, refit, start)
+    added = []
+    for _ in range(MAX_ADDITIONS):
+        larger = _addition(kept, cross_check, per_term, refit)
+        if larger is None:
+            break
+        gap, error = difference(larger.heldout, kept.heldout)
+        term = larger.candidates[-1]
+        added.append({"feature": term.feature, "component": term.component, "difference": gap, "standard_error": error})
+        kept, compared = _swap(physics, larger, cross_check, per_term, refit, start)
+    return kept, compared, added
+
+
+def _swap(physics, kept: FittedTerms, cross_check: list[dict], per_term: int, refit: Refit, start: Callable):
+    """The kept model after up to ``MAX_SWAPS`` swaps for a better alternative, and its :class:`Comparison` s."""
     compared = _compare(physics, kept, cross_check, per_term, refit, start)
     for _ in range(MAX_SWAPS):
         better = [(c, s) for c, s in compared if c.standard_errors < -AMBIGUOUS_WITHIN]
@@ -113,3 +139,24 @@ def _compare(physics, kept: FittedTerms, cross_check: list[dict], per_term: int,
         gap, error = difference(kept.heldout, swapped.heldout)
         compared.append((Comparison(kept.candidates[index], by, swapped.priors[index].value, gap, error), swapped))
     return compared
+
+
+def _addition(kept: FittedTerms, cross_check: list[dict], per_term: int, refit: Refit) -> FittedTerms | None:
+    """The kept model with one more strong candidate, if one fits the validation measurements better by two standard
+    errors; of the additions within two standard errors of the best, the first in the cross-check's order."""
+    options = [
+        Candidate(r["feature"], r["component"]) for r in cross_check
+        if math.isfinite(r["gap_closed"]) and r["gap_closed"] > 0
+    ]  # fmt: skip
+    options = [c for c in dict.fromkeys(options) if c not in kept.candidates][: per_term * 2]
+    larger = [refit([*kept.candidates, c], [*(p.value for p in kept.priors), 0.0]) for c in options]
+    better = [fitted for fitted in larger if beats(fitted.heldout, kept.heldout)]
+    for fitted in larger:
+        gap, error = difference(fitted.heldout, kept.heldout)
+        progress(f"evidence: adding {fitted.candidates[-1].feature}: {gap / error if error > 0 else 0.0:+.1f} standard errors")
+    if not better:
+        return None
+    best = min(better, key=lambda f: f.heldout_energy)
+    chosen = next(f for f in better if not beats(best.heldout, f.heldout))  # better keeps the cross-check's order
+    progress(f"evidence: {chosen.candidates[-1].feature} added: it fits the validation measurements better")
+    return chosen

@@ -144,6 +144,7 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
         "terms": terms,
         "ambiguous": _ambiguous(result, physics),
         "evidence": [_comparison_dict(c, physics) for c in result.evidence],
+        "added_by_evidence": result.added,
         "explained_r2": {s.component: s.explained_r2 for s in result.selections},
         "gap": result.gap,
         "locate": {
@@ -409,6 +410,12 @@ def _evidence_section(report: dict[str, Any]) -> list[str]:
             f"| {difference} | {errors} |"
         )
     lines.append("\nPositive: the named term fits better. Within ±2 standard errors the measurements cannot tell the two apart.")
+    for a in report["added_by_evidence"]:
+        errors = a["difference"] / a["standard_error"] if a["standard_error"] > 0 else float("inf")
+        lines.append(
+            f"\nAdded by the evidence: {code(a['feature'])} on d{a['component']}/dt lowers the held-out energy by "
+            f"{a['difference']:.3g} ± {a['standard_error']:.2g} ({errors:.1f} standard errors)."
+        )
     for a in report["ambiguous"]:
         others = ", ".join(f"{code(x['alternative'])} ({x['standard_errors']:+.1f} SE)" for x in a["alternatives"])
         lines.append(f"\n**Ambiguous:** the measurements cannot tell {code(a['feature'])} from {others}.")

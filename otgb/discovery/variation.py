@@ -76,8 +76,7 @@ def choose_prior(
     if chosen.family == "constant":
         spread_family = next((f for f in ("uniform", "normal") if f in families), "uniform")
         choice.excluded_spread = [
-            excluded_spread(physics, constant, k, spread_family, measured, seed)
-            for k in range(len(constant.candidates))
+            excluded_spread(physics, constant, k, spread_family, measured, seed) for k in range(len(constant.candidates))
         ]
     return choice
 

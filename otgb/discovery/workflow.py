@@ -131,6 +131,7 @@ class Discovery:
     intervals: Intervals | None = None  # of the fitted coefficients (and spreads), :mod:`otgb.discovery.intervals`
     family: FamilyChoice | None = None  # the prior family's choice and its evidence (otgb.discovery.variation)
     evidence: list[Comparison] = field(default_factory=list)  # the kept terms against their alternatives (.evidence)
+    added: list[dict] = field(default_factory=list)  # strong candidates the evidence step added (.evidence)
     dropped: list[dict] = field(default_factory=list)
     after: DisagreementMap | None = None
     sentence_after: str | None = None
@@ -311,18 +312,22 @@ def add_step(physics: PhysicsModel, selections: list[Selection], designs: dict, 
 def evidence_step(
     physics: PhysicsModel, kept: FittedTerms, cross_check: list[dict], data: Measurements, settings: DiscoverySettings,
     designs: dict,
-) -> tuple[FittedTerms, list[Comparison]]:  # fmt: skip
+) -> tuple[FittedTerms, list[Comparison], list[dict]]:  # fmt: skip
     """The kept terms against every single-term swap among the strong candidates (and Coulomb friction), on the
-    validation measurements (:mod:`otgb.discovery.evidence`); a swap that fits better by two standard errors is taken."""
+    validation measurements (:mod:`otgb.discovery.evidence`); a swap or an added strong candidate that fits better by
+    two standard errors is taken. Returns the kept fit, its comparisons and the additions."""
 
     def refit(candidates: list[Candidate], init: list[float]) -> FittedTerms:
         args = _fit_args(settings, candidates, designs)
         return fit(physics, candidates, init, "constant", data.train, data.val, **args)
 
-    kept, comparisons = weigh(physics, kept, cross_check, settings.strong_candidates, refit, lambda c: _initial([c], designs)[0])
+    def start(candidate: Candidate) -> float:
+        return _initial([candidate], designs)[0]
+
+    kept, comparisons, added = weigh(physics, kept, cross_check, settings.strong_candidates, refit, start)
     for c in comparisons:
         progress(f"evidence: {c.replaced.feature} against {c.by.feature}: {c.standard_errors:+.1f} standard errors")
-    return kept, comparisons
+    return kept, comparisons, added
 
 
 def choose_prior(physics: PhysicsModel, constant: FittedTerms, data: Measurements, settings: DiscoverySettings) -> FamilyChoice:
@@ -431,7 +436,7 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
     if kept is None or locate_step(kept.model(physics), data.val, settings, "augmented-check").any_significant:
         kept = search_step(physics, kept, result, designs, data, settings)
     if kept is not None:
-        kept, result.evidence = evidence_step(physics, kept, result.cross_check, data, settings, designs)
+        kept, result.evidence, result.added = evidence_step(physics, kept, result.cross_check, data, settings, designs)
         result.family = choose_prior(physics, kept, data, settings)
         result.fitted = result.family.fitted
         progress(f"fitted {result.fitted.family} coefficients {result.fitted.priors}")

@@ -152,7 +152,7 @@ class C2ST(TwoSampleMetric):
         trajectory_shape: (T, *obs) of the trajectory part of each row (None: no grouping by inputs).
         n_permutations: relabelled cross-validations for a permutation p-value (0: none).
         precision: the "mlp"/"conv" classifier's arithmetic, "auto", "32-true" or "bf16-mixed".
-        kwargs: torchmetrics Metric options (e.g. ``sync_on_compute``).
+        **kwargs: torchmetrics Metric options (e.g. ``sync_on_compute``).
     """
 
     def __init__(
@@ -163,7 +163,7 @@ class C2ST(TwoSampleMetric):
         trajectory_shape: tuple[int, ...] | None = None,
         n_permutations: int = 0,
         precision: str = "auto",
-        **kwargs,
+        **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
         self.options = dict(

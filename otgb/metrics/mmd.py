@@ -30,6 +30,7 @@ O(chunk * (n + m)) whatever the sample sizes.
 from __future__ import annotations
 
 from collections.abc import Iterator
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -132,10 +133,10 @@ class MMD(TwoSampleMetric):
 
     Args:
         chunk: rows of the kernel matrix held in memory at a time.
-        kwargs: torchmetrics Metric options (e.g. ``sync_on_compute``).
+        **kwargs: torchmetrics Metric options (e.g. ``sync_on_compute``).
     """
 
-    def __init__(self, chunk: int = 1024, **kwargs) -> None:
+    def __init__(self, chunk: int = 1024, **kwargs: Any) -> None:
         super().__init__(**kwargs)
         self.chunk = chunk
 

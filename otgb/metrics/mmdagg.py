@@ -53,6 +53,7 @@ O(chunk * (n + m) + (n + m) * (B1 + B2)).
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -184,7 +185,7 @@ class MMDAgg(TwoSampleMetric):
         seed: seed of the permutations and of the median heuristic's subset.
         chunk: rows of the kernel matrix held in memory at a time.
         paired: row i of p and row i of q share their inputs (swaps within pairs).
-        kwargs: torchmetrics Metric options (e.g. ``sync_on_compute``).
+        **kwargs: torchmetrics Metric options (e.g. ``sync_on_compute``).
     """
 
     def __init__(
@@ -196,7 +197,7 @@ class MMDAgg(TwoSampleMetric):
         seed: int = 0,
         chunk: int = 1024,
         paired: bool = False,
-        **kwargs,
+        **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
         check_options(alpha, tuple(exponents), n_permutations, n_level)

@@ -61,9 +61,12 @@ class LSTMMap(BlackBoxMap):
     """An LSTM over time: at step t it reads x_t and the condition's code and outputs y_t - x_t.
 
     Args:
-        physics, z_dim: as for every map.
-        hidden: width of the LSTM. layers: stacked LSTM layers (the paper's pendulum map has 4).
-        cond_features: width of the condition's code. activation_name: of the encoder.
+        physics: f_p, whose inputs and observation the map takes and gives.
+        z_dim: dimension of the latent z.
+        hidden: width of the LSTM.
+        layers: stacked LSTM layers (the paper's pendulum map has 4).
+        cond_features: width of the condition's code.
+        activation_name: of the encoder.
         output_scale: factor on the output layer's initial weights.
     """
 
@@ -108,10 +111,15 @@ class ResNet1dMap(BlackBoxMap):
     """A 1-D ResNet over the grid of a field on one spatial axis; all frames (and channels) are its channels.
 
     Args:
-        physics, z_dim: as for every map; the observed trajectory is (T, C, S).
-        channels: width of the residual blocks. blocks: how many.
-        kernel_size: of every convolution (odd). padding_mode: "zeros" (Dirichlet) or "circular" (periodic).
-        cond_features: channels of the condition's code. activation_name, output_scale: as :class:`LSTMMap`.
+        physics: f_p, whose inputs and observation the map takes and gives; the observed trajectory is (T, C, S).
+        z_dim: dimension of the latent z.
+        channels: width of the residual blocks.
+        blocks: how many.
+        kernel_size: of every convolution (odd).
+        padding_mode: "zeros" (Dirichlet) or "circular" (periodic).
+        cond_features: channels of the condition's code.
+        activation_name: of the encoder.
+        output_scale: factor on the output layer's initial weights.
     """
 
     def __init__(
@@ -158,11 +166,14 @@ class UNet3dMap(BlackBoxMap):
     up, with skip connections; the condition's code enters every convolution as extra channels.
 
     Args:
-        physics, z_dim: as for every map; the observed trajectory is (T, C, H, W), H and W divisible
-            by 2 ** (len(channels) - 1).
+        physics: f_p, whose inputs and observation the map takes and gives; the observed trajectory is
+            (T, C, H, W), H and W divisible by 2 ** (len(channels) - 1).
+        z_dim: dimension of the latent z.
         channels: widths of the levels, finest first.
         padding_mode: "zeros" (Dirichlet) or "circular" (periodic).
-        cond_features, activation_name, output_scale: as :class:`LSTMMap`.
+        cond_features: width of the condition's code.
+        activation_name: of the encoder.
+        output_scale: factor on the output layer's initial weights.
     """
 
     def __init__(

@@ -35,7 +35,8 @@ class CompletePhysicsMap(nn.Module):
     own generator, seeded by ``seed``: the same run gives the same draws.
 
     Args:
-        physics, z_dim: as for every map (z is not used: the terms' priors are the randomness).
+        physics: f_p, whose inputs and observation the map takes and gives.
+        z_dim: dimension of the latent z (not used: the terms' priors are the randomness).
         hidden_effect: the terms the data-generating process adds to f_p (``data.hidden_effect``).
         seed: seed of the hidden parameters' draws.
     """
