@@ -32,15 +32,17 @@ from lightning import LightningModule, Trainer
 from lightning.pytorch.callbacks import ModelCheckpoint, ProgressBar
 from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.utilities import rank_zero_info
-from lightning.pytorch.utilities.exceptions import SIGTERMException
+from lightning.pytorch.utilities.exceptions import MisconfigurationException, SIGTERMException
 
 from otgb.callbacks import ComponentAnalysis, Evaluation
 from otgb.callbacks.progress import SimulationProgressBar
 from otgb.data import SimulationDataModule
 from otgb.errors import InputError, OutputNotWritten
 from otgb.guard import TrainingDiverged
+from otgb.parser_errors import ConciseParser
 from otgb.physics.base import SimulationDiverged
 from otgb.physics.solvers import COMPILE_AFTER, SOLVERS, checked_solver, set_solver
+from otgb.quiet import quiet_known_harmless
 from otgb.training import MapTraining
 
 DEFAULTS = Path(__file__).parent / "configs" / "defaults.yaml"
@@ -163,7 +165,12 @@ class OTGBCLI(LightningCLI):
         callbacks = config.get("callbacks") or []
         if config.get("enable_progress_bar") is not False and not any(isinstance(c, ProgressBar) for c in callbacks):
             self.trainer_defaults = {**self.trainer_defaults, "callbacks": [SimulationProgressBar()]}
-        return super().instantiate_trainer(**kwargs)
+        try:
+            return super().instantiate_trainer(**kwargs)
+        except MisconfigurationException as error:  # a trainer setting Lightning rejects (an accelerator, devices, ...)
+            raise InputError(f"trainer: {error}") from None
+        except ValueError as error:
+            raise InputError(f"trainer: {str(error).splitlines()[0]}") from None
 
     def instantiate_classes(self) -> None:
         super().instantiate_classes()
@@ -232,6 +239,7 @@ def closing_line(subcommand: str, run: Path) -> str:
 def main(args: list[str] | None = None) -> None:
     """Run the ``otgb`` command; bad user input ends it with one line on stderr and status 2."""
     logging.getLogger("lightning.fabric.utilities.seed").setLevel(logging.WARNING)  # the seed is in config.yaml
+    quiet_known_harmless()
     argv = sys.argv[1:] if args is None else args
     try:
         if argv[:1] == ["discover"]:
@@ -239,7 +247,7 @@ def main(args: list[str] | None = None) -> None:
 
             discover(argv[1:])
             return
-        cli = OTGBCLI(MapTraining, SimulationDataModule, args=args)
+        cli = OTGBCLI(MapTraining, SimulationDataModule, args=args, parser_class=ConciseParser)
         if cli.trainer.is_global_zero and cli.trainer.log_dir:
             print(closing_line(cli.subcommand, Path(cli.trainer.log_dir)), file=sys.stderr)
     except InputError as error:

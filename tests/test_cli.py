@@ -171,6 +171,29 @@ def test_bad_input_is_one_line_status_2_and_no_run_directory(tmp_path):
     assert not (tmp_path / "runs").exists()
 
 
+@pytest.mark.parametrize(
+    "args, last",
+    [
+        (["--data.simulation_budgit=640"], "unknown option --data.simulation_budgit (did you mean --data.simulation_budget?)"),
+        (
+            ["--data.physics=otgb.physics.Pendulm"],
+            "--data.physics: no class 'otgb.physics.Pendulm' (did you mean otgb.physics.Pend",
+        ),
+        (["--model.objective.gama=1"], "--model.objective: otgb.ot.WeakTransport has no option 'gama' (did you mean gamma?)"),
+        (["--data.simulation_budget=abc"], "--data.simulation_budget: expected int, got abc"),
+        (["--config", "bad.yaml"], "unknown key 'data.simulation_budgit' (did you mean data.simulation_budget?)"),
+        (["--trainer.accelerator=gpux"], "trainer: You selected an invalid accelerator name"),
+    ],
+)
+def test_parser_errors_are_a_few_lines_ending_with_the_closest_names(tmp_path, args, last):
+    (tmp_path / "bad.yaml").write_text("data:\n  simulation_budgit: 5\n")
+    done = _otgb(tmp_path, "fit", "--config", CONFIG, f"--data.cache_dir={tmp_path / 'cache'}", *args)
+    lines = done.stderr.splitlines()
+    assert done.returncode == 2 and len(lines) <= 3, done.stderr[-2000:]
+    assert lines[-1].startswith(f"otgb: error: {last}"), lines[-1]
+    assert not (tmp_path / "runs").exists(), "nothing written"
+
+
 class BadInputAtSetup(Callback):
     """Raises InputError once the trainer has started, as a bad measured-data file would."""
 

@@ -1,0 +1,97 @@
+"""The command line's own errors in one line: what, where, the closest valid names, and how to list them.
+
+jsonargparse prints the whole usage (about a hundred lines) before its error; an unknown option
+or class is then hard to find. :class:`ConciseParser` replaces that with one line
+``otgb <subcommand>: error: ...`` (exit 2); ``--help`` is unchanged.
+"""
+
+from __future__ import annotations
+
+import difflib
+import importlib
+import inspect
+import re
+import sys
+from typing import NoReturn
+
+from jsonargparse import ArgumentParser
+from lightning.pytorch.cli import LightningArgumentParser
+
+
+def closest(name: str, options: list[str], n: int = 3) -> list[str]:
+    """The valid names nearest to ``name`` (difflib's ratio), best first."""
+    return difflib.get_close_matches(name, options, n=n, cutoff=0.6)
+
+
+def _did_you_mean(names: list[str]) -> str:
+    return f" (did you mean {' or '.join(names)}?)" if names else ""
+
+
+def option_names(parser: ArgumentParser) -> list[str]:
+    """Every option string of ``parser``, nested ones (``--data.simulation_budget``) included."""
+    return [s for action in parser._actions for s in action.option_strings if s.startswith("--")]
+
+
+def _module_and_class(class_path: str) -> tuple[object | None, object | None]:
+    module, _, name = class_path.rpartition(".")
+    try:
+        found = importlib.import_module(module)
+    except ImportError:
+        return None, None
+    return found, getattr(found, name, None)
+
+
+def class_names(class_path: str) -> list[str]:
+    """The classes of the module of a dotted ``class_path`` (empty when the module cannot be imported)."""
+    module, _ = _module_and_class(class_path)
+    names = [n for n in dir(module) if isinstance(getattr(module, n), type)] if module else []
+    return [f"{class_path.rpartition('.')[0]}.{n}" for n in names]
+
+
+def init_options(class_path: str) -> list[str]:
+    """The parameters a class's ``__init__`` accepts."""
+    _, cls = _module_and_class(class_path)
+    try:
+        return [n for n in inspect.signature(cls).parameters if n not in ("self", "args", "kwargs")] if cls else []
+    except (TypeError, ValueError):
+        return []
+
+
+def concise(message: str, parser: ArgumentParser) -> str:
+    """One line for a jsonargparse error ``message``: what, where, and the closest valid names."""
+    where = re.search(r'Parser key "([\w.]+)"', message)
+    place = f"--{where.group(1)}: " if where else ""
+    unknown = re.match(r"unrecognized arguments: (.*)", message)
+    if unknown:
+        options = [token.split("=")[0] for token in unknown.group(1).split() if token.startswith("--")]
+        hints = "".join(_did_you_mean(closest(o, option_names(parser))) for o in options)
+        return f"unknown option {' '.join(options) or unknown.group(1)}{hints}"
+    key = re.search(r"does not accept option '([\w.]+)'", message)
+    if key:
+        names = [o[2:] for o in closest("--" + key.group(1), option_names(parser))]
+        return f"unknown key '{key.group(1)}'{_did_you_mean(names)}"
+    bad_class = re.search(r"given class_path '([\w.]+)'", message)
+    option = re.search(r"Option '(\w+)' is not accepted", message)
+    if bad_class and option:
+        path, name = bad_class.group(1), option.group(1)
+        return f"{place}{path} has no option '{name}'{_did_you_mean(closest(name, init_options(path)))}"
+    if bad_class:
+        path = bad_class.group(1)
+        return f"{place}no class '{path}'{_did_you_mean(closest(path, class_names(path)))}"
+    expected = re.search(r"Expected a <class '(\w+)'>\. Got value: (.*)", message)
+    if expected:
+        return f"{place}expected {expected.group(1)}, got {expected.group(2).strip()}"
+    lines = [line.strip(" -") for line in message.splitlines() if line.strip(" -")]
+    return f"{place}{lines[-1]}" if where and len(lines) > 1 else "; ".join(lines) or message
+
+
+class ConciseParser(LightningArgumentParser):
+    """Lightning's argument parser whose errors are one line naming the closest valid names."""
+
+    def error(self, message: str, ex: Exception | None = None) -> NoReturn:
+        if not self.exit_on_error:
+            super().error(message, ex)
+        parser = getattr(ex, "subcommand_parser", None) or self
+        prog = " ".join(["otgb", *parser.prog.replace(" [options]", "").split()[1:]])
+        sys.stderr.write(f"otgb: error: {concise(message, parser)}; list the options with: {prog} --help\n")
+        self.exit(2)

@@ -1,0 +1,36 @@
+"""Third-party messages known to be harmless in otgb's runs, filtered where they arise, each with the reason.
+
+Only these exact messages are dropped; every other warning and log line of Lightning and torch
+reaches the terminal as before.
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+
+
+class _Drop(logging.Filter):
+    """Drops the log records whose message contains ``text``."""
+
+    def __init__(self, text: str) -> None:
+        super().__init__()
+        self.text = text
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return self.text not in record.getMessage()
+
+
+def quiet_known_harmless() -> None:
+    """Install the filters (idempotent: ``warnings`` keeps one copy of each filter, loggers one of each object)."""
+    # Lightning advertises its cloud logger at the start of every fit: not about the run.
+    for name in ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero"):
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, _Drop) for f in logger.filters):
+            logger.addFilter(_Drop("litlogger"))
+    # The source stream is an IterableDataset whose __len__ is the number of steps its budget buys; its
+    # DataLoader workers take disjoint items (otgb.data.stream), so the length Lightning warns about is exact.
+    warnings.filterwarnings("ignore", message="Your `IterableDataset` has `__len__` defined", category=UserWarning)
+    # Lightning's own call of a torch pytree API that torch deprecated (lightning/pytorch/utilities/_pytree.py):
+    # nothing in otgb or in a user's config causes it or can change it.
+    warnings.filterwarnings("ignore", message=r"`isinstance\(treespec, LeafSpec\)` is deprecated")
