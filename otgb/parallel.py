@@ -52,7 +52,7 @@ class SigtermAgreement:
     process that alone got the signal would stop alone. Here the handler only notes the signal
     (and passes it on to the processes Lightning started); after each training step the
     processes agree on it (an all-reduce of one flag) and all of them stop there, so that
-    :class:`otgb.cli.BestAndLastCheckpoint` saves ``last.ckpt`` from all of them together.
+    :class:`otgb.command.BestAndLastCheckpoint` saves ``last.ckpt`` from all of them together.
     """
 
     def __init__(self) -> None:

@@ -18,7 +18,7 @@ import time
 
 import torch
 
-from otgb.cli import OTGBCLI
+from otgb.command import OTGBCLI
 from otgb.data import SimulationDataModule
 from otgb.metrics import MMD, joint_samples
 from otgb.metrics.joint import JointEvaluator, reference_scores

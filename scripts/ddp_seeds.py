@@ -27,7 +27,7 @@ from pathlib import Path
 
 import yaml
 
-from otgb.cli import logger_override
+from otgb.command import logger_override
 
 DDP = ["--trainer.strategy=ddp", "--trainer.devices=2", "--trainer.accelerator=cpu"]
 

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from otgb.cli import OTGBCLI
+from otgb.command import OTGBCLI
 from otgb.data import SimulationDataModule, generate_measured
 from otgb.training import MapTraining
 

@@ -17,7 +17,7 @@ import sys
 import time
 from pathlib import Path
 
-from otgb.cli import logger_override
+from otgb.command import logger_override
 
 
 def newest_version(root: Path) -> Path:

@@ -35,7 +35,7 @@ import sys
 from itertools import product
 from pathlib import Path
 
-from otgb.cli import OTGBCLI
+from otgb.command import OTGBCLI
 from otgb.data import SimulationDataModule
 from otgb.data.seeding import generator_for
 from otgb.metrics.joint import JointEvaluator

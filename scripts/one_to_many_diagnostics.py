@@ -44,7 +44,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 
-from otgb.cli import OTGBCLI  # noqa: E402
+from otgb.command import OTGBCLI  # noqa: E402
 from otgb.data import SimulationDataModule  # noqa: E402
 from otgb.metrics.c2st import c2st  # noqa: E402
 from otgb.metrics.samples import joint_samples  # noqa: E402

@@ -19,7 +19,7 @@ from contextlib import contextmanager
 
 import torch
 
-from otgb.cli import OTGBCLI
+from otgb.command import OTGBCLI
 from otgb.data import SimulationDataModule
 from otgb.ot import critic_loss
 from otgb.physics.solvers import SOLVERS, set_solver

@@ -35,7 +35,7 @@ from pathlib import Path
 import torch
 import yaml
 
-from otgb.cli import logger_override
+from otgb.command import logger_override
 
 ROOT = Path(__file__).parents[1]
 BASELINES = ROOT / "configs" / "baselines"

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-from otgb.cli import OTGBCLI
+from otgb.command import OTGBCLI
 from otgb.data import SimulationDataModule
 from otgb.metrics import abs_err
 from otgb.training import MapTraining

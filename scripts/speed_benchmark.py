@@ -62,7 +62,7 @@ class StepTimes(Callback):
 
 
 def time_steps(config: str, solver: str, steps: int, workdir: Path) -> list[float]:
-    from otgb.cli import OTGBCLI, logger_override
+    from otgb.command import OTGBCLI, logger_override
     from otgb.data import SimulationDataModule
     from otgb.training import MapTraining
 
@@ -118,7 +118,7 @@ def report(results: dict, config: str, solvers: list[str]) -> str:
 
 
 def run_fit(args: argparse.Namespace) -> None:
-    from otgb.cli import logger_override
+    from otgb.command import logger_override
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -12,7 +12,8 @@ import yaml
 from test_cli import _last, _otgb, _rows, _tiny
 from torch import nn
 
-from otgb.cli import logger_override, main
+from otgb.cli import main
+from otgb.command import logger_override
 from otgb.errors import InputError
 from otgb.ot import WassersteinGAN, WeakTransport, kernel_weak_cost
 

@@ -14,7 +14,8 @@ import torch
 import yaml
 from lightning import Callback
 
-from otgb.cli import OTGBCLI, BestAndLastCheckpoint, logger_override, main
+from otgb.cli import main
+from otgb.command import OTGBCLI, BestAndLastCheckpoint, logger_override
 from otgb.data import SimulationDataModule
 from otgb.errors import InputError
 from otgb.training import MapTraining

@@ -11,7 +11,8 @@ import torch
 from torch import nn
 
 from otgb.callbacks import component_analysis
-from otgb.cli import logger_override, main
+from otgb.cli import main
+from otgb.command import logger_override
 from otgb.data import SimulationDataModule
 from otgb.models import ConditionalMLP, GreyBoxODE, MLPCritic
 from otgb.physics import Constant, Pendulum, Uniform, ViscousFriction

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from otgb.cli import logger_override
+from otgb.command import logger_override
 
 ROOT = Path(__file__).parents[1]
 DDP = ["--trainer.strategy=ddp", "--trainer.devices=2", "--trainer.accelerator=cpu"]

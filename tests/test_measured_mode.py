@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from otgb.cli import logger_override, main
+from otgb.cli import main
+from otgb.command import logger_override
 
 ROOT = Path(__file__).parents[1]
 CONFIG = str(ROOT / "configs" / "pendulum.yaml")

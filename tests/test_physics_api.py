@@ -226,7 +226,8 @@ def test_joint_prior_draws_follow_each_prior(generator):
 
 
 def test_a_prior_argument_goes_through_the_cli(tmp_path, capsys):
-    from otgb.cli import OTGBCLI, main
+    from otgb.cli import main
+    from otgb.command import OTGBCLI
     from otgb.training import MapTraining
 
     config = str(Path(__file__).parents[1] / "configs" / "pendulum.yaml")

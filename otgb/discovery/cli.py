@@ -28,7 +28,7 @@ import yaml
 from jsonargparse import DefaultHelpFormatter
 
 from otgb.callbacks.components import component_analysis
-from otgb.cli import OTGBCLI
+from otgb.command import OTGBCLI
 from otgb.data import SimulationDataModule
 from otgb.discovery.known import pointwise_errors, write_measurements
 from otgb.discovery.locate import describe
@@ -44,6 +44,7 @@ from otgb.discovery.workflow import (
     simulate_from_priors,
 )
 from otgb.errors import InputError
+from otgb.parser_errors import ConciseParser
 from otgb.training import MapTraining
 
 
@@ -73,7 +74,9 @@ def discover(args: list[str]) -> Path:
     with warnings.catch_warnings():  # the arguments come from the command line, after the word "discover"
         warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
         parser = {"prog": "otgb discover", "description": _description(), "formatter_class": DescribedHelp}
-        cli = DiscoverCLI(MapTraining, SimulationDataModule, args=args, run=False, parser_kwargs=parser)
+        cli = DiscoverCLI(
+            MapTraining, SimulationDataModule, args=args, run=False, parser_kwargs=parser, parser_class=ConciseParser
+        )
     settings: DiscoverySettings = cli.config_init["discover"]
     show_on_stderr()
     datamodule, module, trainer = cli.datamodule, cli.model, cli.trainer
