@@ -1,6 +1,7 @@
 """Missing-effect discovery: the library term, the augmented physics, locate, name, add, and `otgb discover`."""
 
 import json
+import re
 import subprocess
 import sys
 from functools import partial
@@ -404,6 +405,7 @@ def _discover(tmp_path: Path, measured: Path, *extra: str) -> subprocess.Complet
 def test_discover_negative_control_names_nothing(tmp_path):
     done = _discover(tmp_path, _export(tmp_path, 0.0))
     assert done.returncode == 0, done.stderr[-2000:]
+    assert "otgb discover [" in done.stderr and "otgb discover [" not in done.stdout, "progress goes to stderr"
     run_dir = Path(done.stdout.strip().splitlines()[-1].split("report in ")[1])
     report = json.loads((tmp_path / run_dir / "report.json").read_text())
     assert report["found"] is False and report["terms"] == [] and report["verdict"].startswith("no missing effect found")
@@ -445,25 +447,35 @@ def test_discover_refuses_bad_input_in_one_line_and_writes_nothing(tmp_path, mis
     assert not (tmp_path / "runs").exists(), "nothing written"
 
 
-def test_discover_finds_friction_and_writes_a_config_fit_accepts(tmp_path):
-    """The real thing at a small budget: the grey-box trained, its f_phi named, no stand-in."""
-    measured = _export(tmp_path, -1.2)
-    done = _discover(tmp_path, measured, "--data.simulation_budget=16000", "--trainer.val_check_interval=250")
-    assert done.returncode == 0, done.stderr[-2000:]
-    assert "otgb discover [" in done.stderr and "otgb discover [" not in done.stdout, "progress goes to stderr"
-    run_dir = tmp_path / done.stdout.strip().splitlines()[-1].split("report in ")[1]
-    report = json.loads((run_dir / "report.json").read_text())
-    assert report["found"] and [t["feature"] for t in report["terms"]] == ["velocity"], report["terms"]
+def test_discover_from_python_as_the_tutorial_does_finds_friction_and_writes_a_config_fit_accepts(tmp_path, monkeypatch):
+    """docs/discover.md's Python block as written, at a small budget: the grey-box trained, its f_phi named, no
+    stand-in; the attributes agree with report.json, and `otgb fit` takes augmented.yaml."""
+    _export(tmp_path, -1.2)
+    block = re.findall(r"```python\n(.*?)\n```", (ROOT / "docs" / "discover.md").read_text(), re.S)[0]
+    settings = [str(ROOT / "configs" / "pendulum.yaml"), "--data.simulation_budget=16000", "--trainer.val_check_interval=250"]
+    settings += [f"--data.cache_dir={tmp_path / 'cache'}", "--trainer.enable_progress_bar=false"]
+    settings += [f"--discover.{k}={v}" for k, v in FAST.items()]
+    written = '"configs/pendulum.yaml", "--data.simulation_budget=32000"'
+    assert written in block
+    monkeypatch.chdir(tmp_path)
+    names: dict = {}
+    exec(block.replace(written, ", ".join(map(repr, settings))), names)
+    finder, report = names["finder"], names["report"]
+    assert report == json.loads((finder.run_dir_ / "report.json").read_text()) and finder.verdict_ == report["verdict"]
+    assert finder.found_ and [t["feature"] for t in report["terms"]] == ["velocity"], report["terms"]
     assert abs(report["terms"][0]["coefficient"] + 1.2) < 0.12 and report["terms"][0]["name"] == "viscous friction"
+    named = [(t.feature, t.priors["coefficient"].value) for t in finder.terms_]
+    assert named == [("velocity", report["terms"][0]["coefficient"])]
+    assert isinstance(names["augmented"], Augmented) and names["augmented"].added[0].feature == "velocity"
     assert report["undertrained"] is None and report["route"] == "f_phi regression"
     low, high = report["terms"][0]["interval"]
     assert low < report["terms"][0]["coefficient"] < high
     coulomb = next(e for e in report["evidence"] if e["alternative"] == "sign(velocity)")
     assert coulomb["standard_errors"] > 0 and "(sign(velocity))" in report["verdict"], report["verdict"]  # 30 held out
-    config = yaml.safe_load((run_dir / "augmented.yaml").read_text())
+    config = yaml.safe_load((finder.run_dir_ / "augmented.yaml").read_text())
     assert config["data"]["physics"]["class_path"] == "otgb.physics.Augmented"
     fit = subprocess.run(
-        [sys.executable, "-m", "otgb.cli", "fit", "--config", str(run_dir / "augmented.yaml"), "--trainer.max_steps=2",
+        [sys.executable, "-m", "otgb.cli", "fit", "--config", str(finder.run_dir_ / "augmented.yaml"), "--trainer.max_steps=2",
          "--trainer.enable_progress_bar=false"],
         cwd=tmp_path, capture_output=True, text=True, timeout=600,
     )  # fmt: skip

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import warnings
 from argparse import RawDescriptionHelpFormatter
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +46,7 @@ from otgb.discovery.workflow import (
 )
 from otgb.errors import InputError
 from otgb.parser_errors import ConciseParser
+from otgb.physics.base import PhysicsModel
 from otgb.training import MapTraining
 
 
@@ -69,8 +71,27 @@ class DiscoverCLI(OTGBCLI):
         )
 
 
+@dataclass
+class Finished:
+    """A finished ``otgb discover`` run: where it wrote, what it found, and the f_p it started from."""
+
+    run_dir: Path
+    result: Discovery
+    physics: PhysicsModel
+    report: dict
+
+
 def discover(args: list[str]) -> Path:
-    """Run the workflow with ``otgb discover`` arguments; returns the run directory."""
+    """Run ``otgb discover`` with its command-line arguments: the workflow, then the verdict and the run directory on
+    stdout. Returns the run directory."""
+    finished = discover_run(args)
+    print(f"otgb discover: {finished.report['verdict']}")
+    print(f"otgb discover: report in {finished.run_dir}")
+    return finished.run_dir
+
+
+def discover_run(args: list[str]) -> Finished:
+    """The workflow with ``otgb discover`` arguments: report, figures and ``augmented.yaml`` written."""
     with warnings.catch_warnings():  # the arguments come from the command line, after the word "discover"
         warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
         parser = {"prog": "otgb discover", "description": _description(), "formatter_class": DescribedHelp}
@@ -111,9 +132,7 @@ def discover(args: list[str]) -> Path:
             write_measurements(run_dir / "measured.npz", torch.cat([data.train, data.val, data.test]))
             config["data"].update(measured_path=str((run_dir / "measured.npz").resolve()), hidden_effect=[])
         write_augmented(run_dir / "augmented.yaml", augmented_config(config, physics, result))
-    print(f"otgb discover: {report['verdict']}")
-    print(f"otgb discover: report in {run_dir}")
-    return run_dir
+    return Finished(run_dir, result, physics, report)
 
 
 def _description() -> str:
