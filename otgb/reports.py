@@ -46,6 +46,19 @@ LABELS = {
     "c2st": "C2ST accuracy",
 }
 
+BETTER = {
+    "abs_err": "lower",
+    "nrmse": "lower",
+    "mmd": "lower, to the Reference",
+    "mmd2_median": "lower, to the Reference",
+    "energy": "lower, to the Reference",
+    "mmdagg_reject": "no (yes: the samples differ)",
+    "mmdagg_pvalue": "higher (below 0.05: they differ)",
+    "mmdagg_mmd2": "lower, to the Reference",
+    "c2st": "0.5: cannot be told apart; 1: always can",
+}
+HEADLINE = ("c2st", "energy", "abs_err")  # the summary sentence's metric: the first one present
+
 
 def split_sources(results: dict[str, float]) -> dict[str, dict[str, dict[str, float | None]]]:
     """Flat logged results (``fp_abs_err``, ``ref_c2st_std``, ``joint_mmd``, ...) -> {source: {metric: {mean, std}}}."""
@@ -68,7 +81,9 @@ def label(name: str) -> str:
     return GROUPS[group] + LABELS[name.removeprefix(group)]
 
 
-def format_value(mean: float, std: float | None) -> str:
+def format_value(mean: float, std: float | None, name: str = "", source: str = "model") -> str:
+    if name.endswith("mmdagg_reject"):  # a test's decision: yes / no; the Reference's is a rate over its splits
+        return f"rejects in {mean:.0%} of splits" if source == "reference" else ("yes" if mean >= 0.5 else "no")
     if std is None or math.isnan(std):
         return f"{mean:.4g}"
     return f"{mean:.4g} ± {std:.2g}"
@@ -76,11 +91,25 @@ def format_value(mean: float, std: float | None) -> str:
 
 def markdown_table(by_source: dict[str, dict[str, dict[str, float | None]]]) -> str:
     names = [name for name in metric_names() if any(name in by_source[s] for s in SOURCES)]
-    lines = ["| metric | " + " | ".join(HEADERS[s] for s in SOURCES) + " |", "|---" * (len(SOURCES) + 1) + "|"]
+    lines = ["| metric | better | " + " | ".join(HEADERS[s] for s in SOURCES) + " |", "|---" * (len(SOURCES) + 2) + "|"]
     for name in names:
-        cells = [format_value(**by_source[s][name]) if name in by_source[s] else "" for s in SOURCES]
-        lines.append(f"| {label(name)} | " + " | ".join(cells) + " |")
+        cells = [format_value(**by_source[s][name], name=name, source=s) if name in by_source[s] else "" for s in SOURCES]
+        better = BETTER[name.removeprefix("joint_")]
+        lines.append(f"| {label(name)} | {better} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def summary(by_source: dict[str, dict[str, dict[str, float | None]]]) -> str:
+    """One sentence: the headline metric for the model, f_p alone and the Reference, and the share of f_p's distance
+    to the Reference that the model closes."""
+    name = next((n for n in HEADLINE if all(n in by_source[s] for s in SOURCES)), None)
+    if name is None:
+        return ""
+    model, fp, ref = (by_source[s][name]["mean"] for s in SOURCES)
+    values = f"{LABELS[name]}: model {model:.3g}, f_p alone {fp:.3g}, Reference (noise floor) {ref:.3g}"
+    if not math.isfinite(fp - ref) or fp <= ref:
+        return f"{values}: f_p alone is already at the noise floor.\n\n"
+    return f"{values}: the model closes {(fp - model) / (fp - ref):.0%} of f_p's distance to the noise floor.\n\n"
 
 
 def per_time_section(per_time: dict[str, Any], times: list[float], components: list[str]) -> str:
@@ -129,10 +158,8 @@ def write_report(
         f"checkpoint `{run.get('ckpt_path')}` (step {run.get('global_step')}), {run.get('n_inputs')} test inputs x "
         f"{run.get('draws_per_input')} draws\n\n"
     )
-    note = (
-        "\nmean ± std: over test inputs (ABS ERR, N-RMSE) or C2ST folds for model and f_p; over "
-        f"{REFERENCE_NOTE[mode]} for the Reference.\n"
-    )
+    over = ("test inputs (ABS ERR, N-RMSE) or " if "abs_err" in by_source["model"] else "") + "C2ST folds"
+    note = f"\nmean ± std: over {over} for model and f_p; over {REFERENCE_NOTE[mode]} for the Reference.\n"
     section = per_time_section(vectors, labels["times"], labels["components"]) if vectors and labels else ""
-    (run_dir / "metrics.md").write_text(header + markdown_table(by_source) + note + section)
+    (run_dir / "metrics.md").write_text(header + summary(by_source) + markdown_table(by_source) + note + section)
     return content

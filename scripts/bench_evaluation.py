@@ -18,10 +18,9 @@ import time
 
 import torch
 
-from otgb.command import OTGBCLI
-from otgb.data import SimulationDataModule
 from otgb.metrics import MMD, joint_samples
 from otgb.metrics.joint import JointEvaluator, reference_scores
+from otgb.runs import load_run, load_weights
 from otgb.training import MapTraining
 
 
@@ -40,7 +39,7 @@ def peak_rss_mb() -> float:
 @torch.no_grad()
 def model_draws(model: MapTraining, ckpt: str, data: dict[str, torch.Tensor]) -> torch.Tensor:
     """The checkpoint's draws (its moving average when it has one) for every test input, like `otgb test`."""
-    model.load_state_dict(torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"])
+    load_weights(model, ckpt)
     draws = data["y"].shape[1]
     return model.generate(data["x"], data["x0"], data["theta"], draws)
 
@@ -53,8 +52,8 @@ def main() -> None:
     parser.add_argument("--ckpt", default=None, help="a checkpoint of the config's model: also time its draws")
     args = parser.parse_args()
 
-    cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=["--config", args.config])
-    data_module = cli.datamodule
+    run = load_run(args.config)
+    data_module = run.datamodule
     data_module.setup("test")
     data = data_module.test_set
     n, draws = data["y"].shape[:2]
@@ -62,7 +61,7 @@ def main() -> None:
     evaluator = JointEvaluator(tuple(data_module.physics.trajectory_shape))
     timed("model-like draws (DGP vs DGP)", lambda: evaluator.evaluate(data["y_ref"], data, tests=True))
     if args.ckpt is not None:
-        y_hat = model_draws(cli.model, args.ckpt, data)
+        y_hat = model_draws(run.model, args.ckpt, data)
         timed("trained model's draws", lambda: evaluator.evaluate(y_hat, data, tests=True))
     timed("f_p alone", lambda: evaluator.evaluate(data["x"].unsqueeze(1).expand_as(data["y"]), data, tests=True))
     timed(f"Reference ({args.repeats} splits)", lambda: reference_scores(evaluator, data, True, args.repeats))

@@ -19,9 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from otgb.command import OTGBCLI
-from otgb.data import SimulationDataModule, generate_measured
-from otgb.training import MapTraining
+from otgb.data import generate_measured
+from otgb.runs import load_run
 
 
 def main() -> None:
@@ -35,8 +34,7 @@ def main() -> None:
         raise SystemExit(f"export_measured: {args.out} exists; it is never overwritten")
     if args.out.suffix not in (".npz", ".csv"):
         raise SystemExit(f"export_measured: --out {args.out}: expected a .npz or .csv file")
-    cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=["--config", args.config, *overrides])
-    data = cli.datamodule
+    data = load_run(args.config, *overrides).datamodule
     sets = generate_measured(data.dgp, args.n or data.n_measured, data.seed)
     times = data.physics.observation_times().double().numpy().round(9)
     content = {"y": sets["y"].numpy(), "t": times}

@@ -35,11 +35,9 @@ import sys
 from itertools import product
 from pathlib import Path
 
-from otgb.command import OTGBCLI
-from otgb.data import SimulationDataModule
 from otgb.data.seeding import generator_for
 from otgb.metrics.joint import JointEvaluator
-from otgb.training import MapTraining
+from otgb.runs import load_run
 
 MARGINAL = ["--data.hidden_effect=[]"]
 METRICS = ("abs_err", "nrmse", "mmd", "energy", "c2st", "mmdagg_reject")
@@ -124,9 +122,8 @@ def separation(configs: list[str], out: Path, extra: list[str]) -> None:
 
 def ignores_theta(config: str, out: Path, extra: list[str], repeats: int = 20) -> None:
     measured = export(config, out, ["theta"])
-    dgp = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=["--config", config, *extra]).datamodule.dgp
-    marginal_args = ["--config", config, *extra, *MARGINAL, f"--data.measured_path={measured}"]
-    data_module = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=marginal_args).datamodule
+    dgp = load_run(config, *extra).datamodule.dgp
+    data_module = load_run(config, *extra, *MARGINAL, f"--data.measured_path={measured}").datamodule
     data_module.setup("test")
     data = data_module.test_set
     n, shape = len(data["y"]), tuple(dgp.trajectory_shape)

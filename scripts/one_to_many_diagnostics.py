@@ -44,10 +44,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 
-from otgb.command import OTGBCLI  # noqa: E402
-from otgb.data import SimulationDataModule  # noqa: E402
 from otgb.metrics.c2st import c2st  # noqa: E402
 from otgb.metrics.samples import joint_samples  # noqa: E402
+from otgb.runs import load_run  # noqa: E402
 from otgb.training import MapTraining  # noqa: E402
 
 
@@ -166,11 +165,8 @@ def main() -> None:
         raise SystemExit("--out: the per-frame figure needs a PNG path (or --no-per_frame)")
     if args.ckpt_path is not None and not args.ckpt_path.is_file():
         raise SystemExit(f"--ckpt_path {args.ckpt_path}: no such checkpoint file")
-    arguments = [*(arg for path in args.config for arg in ("--config", path)), "--trainer.logger=false", *overrides]
-    cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=arguments)
-    model, datamodule = cli.model, cli.datamodule
-    if args.ckpt_path is not None:
-        model.load_state_dict(torch.load(args.ckpt_path, map_location="cpu", weights_only=False)["state_dict"])
+    run = load_run(args.config, "--trainer.logger=false", *overrides, ckpt_path=args.ckpt_path)
+    model, datamodule = run.model, run.datamodule
     model.eval()
     datamodule.setup("test")
     data = datamodule.test_set

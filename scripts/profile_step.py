@@ -19,17 +19,16 @@ from contextlib import contextmanager
 
 import torch
 
-from otgb.command import OTGBCLI
 from otgb.data import SimulationDataModule
 from otgb.ot import critic_loss
 from otgb.physics.solvers import SOLVERS, set_solver
+from otgb.runs import load_run
 from otgb.training import MapTraining
 
 
 def build(config: str, overrides: list[str]) -> tuple[MapTraining, SimulationDataModule]:
-    args = ["--config", config, "--trainer.logger=false", *overrides]
-    cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=args)
-    return cli.model, cli.datamodule
+    run = load_run(config, "--trainer.logger=false", *overrides)
+    return run.model, run.datamodule
 
 
 def main() -> None:

@@ -18,9 +18,8 @@ from pathlib import Path
 
 import torch
 
-from otgb.command import OTGBCLI
-from otgb.data import SimulationDataModule
 from otgb.metrics import abs_err
+from otgb.runs import load_run, load_weights
 from otgb.training import MapTraining
 
 CRITERIA = ("val/energy", "val/mmd", "val/mmd2_median")
@@ -37,15 +36,15 @@ def main() -> None:
     parser.add_argument("--config", required=True, help="a config whose data.hidden_effect is the DGP of the run's measurements")
     parser.add_argument("--run", type=Path, required=True, help="the run's version directory (metrics.csv, checkpoints/)")
     args, overrides = parser.parse_known_args()
-    cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=["--config", args.config, *overrides])
-    model, data = cli.model, cli.datamodule
+    run = load_run(args.config, *overrides)
+    model, data = run.model, run.datamodule
     data.setup("validate")
     data.setup("test")
     scores = {}
     step_of = lambda path: int(re.search(r"step=(\d+)", path.name).group(1))  # noqa: E731
     for path in sorted((args.run / "checkpoints").glob("*step=*.ckpt"), key=step_of):
         step = step_of(path)
-        model.load_state_dict(torch.load(path, map_location="cpu", weights_only=False)["state_dict"])
+        load_weights(model, path)
         model.eval()
         scores[step] = {"val": joint_abs_err(model, data.val_set), "test": joint_abs_err(model, data.test_set)}
     with open(args.run / "metrics.csv") as handle:

@@ -62,19 +62,18 @@ class StepTimes(Callback):
 
 
 def time_steps(config: str, solver: str, steps: int, workdir: Path) -> list[float]:
-    from otgb.command import OTGBCLI, logger_override
-    from otgb.data import SimulationDataModule
-    from otgb.training import MapTraining
+    from otgb.command import logger_override
+    from otgb.runs import load_run
 
     timer = StepTimes()
     args = [
-        "--config", str(ROOT / "configs" / f"{config}.yaml"), logger_override(str(workdir / "runs"), f"{config}-{solver}"),
+        str(ROOT / "configs" / f"{config}.yaml"), logger_override(str(workdir / "runs"), f"{config}-{solver}"),
         "--trainer.enable_progress_bar=false", f"--trainer.max_steps={steps}", f"--trainer.val_check_interval={steps}",
         "--components.enabled=false", f"--data.cache_dir={workdir / 'cache'}", f"--solver={solver}",
     ]  # fmt: skip
-    cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=args)
-    cli.trainer.callbacks.append(timer)
-    cli.trainer.fit(cli.model, cli.datamodule)
+    run = load_run(args[0], *args[1:])
+    run.trainer.callbacks.append(timer)
+    run.trainer.fit(run.model, run.datamodule)
     return timer.times
 
 

@@ -18,6 +18,7 @@ from otgb.cli import main
 from otgb.command import OTGBCLI, BestAndLastCheckpoint, logger_override
 from otgb.data import SimulationDataModule
 from otgb.errors import InputError
+from otgb.runs import load_run
 from otgb.training import MapTraining
 
 ROOT = Path(__file__).parents[1]
@@ -258,7 +259,10 @@ def test_test_writes_metrics_json_and_table(tmp_path, capsys):
     assert report["reference"]["c2st"]["mean"] == 0.5, "identical DGP draws cannot be told apart"
     assert report["fp"]["c2st"]["mean"] > 0.7 and report["fp"]["mmdagg_reject"]["mean"] == 1.0
     table = (tmp_path / "run" / "version_1" / "metrics.md").read_text()
-    assert "| ABS ERR |" in table and "| C2ST accuracy |" in table and "Reference" in table
+    assert "| ABS ERR | lower |" in table and "| C2ST accuracy | 0.5: cannot be told apart; 1: always can |" in table
+    assert "| MMDAgg rejects H0 (alpha 0.05) | no (yes: the samples differ) | " in table, "a test's decision reads yes / no"
+    assert "| yes | " in table and "of splits |" in table, "f_p is rejected; the Reference's rejection rate over splits"
+    assert table.count("C2ST accuracy: model ") == 1 and "of f_p's distance to the noise floor." in table, "one summary"
 
 
 def test_checkpoint_on_a_test_metric_needs_tests_at_every_validation(tmp_path, capsys):
@@ -387,3 +391,17 @@ def test_categorical_latent_draws_equally_likely_one_hot_codes(tmp_path):
     assert z.shape == (n, 3) and set(z.unique().tolist()) == {0.0, 1.0} and torch.all(z.sum(1) == 1)
     counts = z.sum(0)
     assert torch.all((counts - n / 3).abs() <= 3 * (n * (1 / 3) * (2 / 3)) ** 0.5), counts
+
+
+def test_load_run_builds_the_model_and_data_of_a_run_quietly(tmp_path, capfd):
+    main(["fit", *_args(tmp_path, "--trainer.max_steps=2")])
+    ckpt = tmp_path / "run" / "version_0" / "checkpoints" / "last.ckpt"
+    capfd.readouterr()
+    run = load_run(CONFIG, *_args(tmp_path)[2:], "--data.batch_size", "8", ckpt_path=ckpt)
+    assert capfd.readouterr().err == "", "nothing printed: no evaluation line, no seed line, no warning"
+    assert run.datamodule.batch_size == 8, "the overrides, in order"
+    saved = torch.load(ckpt, weights_only=False)["state_dict"]
+    assert all(torch.equal(saved[k], v) for k, v in run.model.state_dict().items()), "the checkpoint's weights"
+    with pytest.raises(InputError, match="no such checkpoint file"):
+        load_run(CONFIG, ckpt_path=tmp_path / "missing.ckpt")
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["version_0"], "nothing written"

@@ -10,7 +10,7 @@ import pytest
 import torch
 from torch import nn
 
-from otgb.callbacks import component_analysis
+from otgb.analysis.components import component_analysis
 from otgb.cli import main
 from otgb.command import logger_override
 from otgb.data import SimulationDataModule

@@ -1,7 +1,7 @@
-"""Lightning callbacks: the joint evaluation, figures and the grey-box's component analysis."""
+"""Lightning callbacks: the evaluation, figures and the grey-box's component analysis (computed in :mod:`otgb.analysis`)."""
 
-from otgb.callbacks.components import ComponentAnalysis, component_analysis
+from otgb.callbacks.components import ComponentAnalysis
 from otgb.callbacks.evaluation import Evaluation
 from otgb.callbacks.figures import FieldFigure, TrajectoryFigure
 
-__all__ = ["ComponentAnalysis", "Evaluation", "FieldFigure", "TrajectoryFigure", "component_analysis"]
+__all__ = ["ComponentAnalysis", "Evaluation", "FieldFigure", "TrajectoryFigure"]

@@ -28,7 +28,7 @@ import torch
 import yaml
 from jsonargparse import DefaultHelpFormatter
 
-from otgb.callbacks.components import component_analysis
+from otgb.analysis.components import component_analysis
 from otgb.command import OTGBCLI
 from otgb.data import SimulationDataModule
 from otgb.discovery.known import pointwise_errors, write_measurements
@@ -44,9 +44,9 @@ from otgb.discovery.workflow import (
     run,
     simulate_from_priors,
 )
-from otgb.errors import InputError
 from otgb.parser_errors import ConciseParser
 from otgb.physics.base import PhysicsModel
+from otgb.runs import load_weights
 from otgb.training import MapTraining
 
 
@@ -150,13 +150,4 @@ def load_or_fit(cli: Any, ckpt_path: str | None) -> None:
         if not best:
             return
         ckpt_path = best
-    path = Path(ckpt_path)
-    if not path.is_file():
-        raise InputError(f"--ckpt_path {ckpt_path}: no such checkpoint file")
-    state = torch.load(path, map_location="cpu", weights_only=False)
-    try:
-        cli.model.load_state_dict(state["state_dict"])
-    except (KeyError, RuntimeError) as error:
-        raise InputError(
-            f"--ckpt_path {ckpt_path}: not a checkpoint of this config's grey-box ({str(error).splitlines()[0]})"
-        ) from None
+    load_weights(cli.model, ckpt_path)

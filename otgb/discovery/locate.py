@@ -248,33 +248,3 @@ def _where(result: DisagreementMap, c: int) -> str:
         return ""
     strongest = result.statistic[:, c].sum(0).argmax()
     return f", most in region {result.regions[int(strongest)]}"
-
-
-def draw(axes_row: list, result: DisagreementMap, title: str) -> None:
-    """Draw ``result`` into matplotlib axes: curves per component (ODE) or a heatmap (fields)."""
-    import matplotlib.colors as colors
-
-    ax = axes_row
-    times = result.times.numpy()
-    if len(result.regions) == 1:
-        for c, name in enumerate(result.components):
-            stat, sig = result.statistic[:, c, 0].numpy(), result.significant[:, c, 0].numpy()
-            (line,) = ax.plot(times, stat, label=name)
-            ax.plot(times[sig], stat[sig], "o", color=line.get_color(), ms=4, label=f"{name}: significant")
-        ax.set_xlabel("t")
-        ax.set_ylabel("energy distance per time step")
-        ax.legend(fontsize=7)
-    else:
-        values = result.statistic.flatten(1).T.numpy()  # (C * R, T)
-        image = ax.imshow(
-            values, aspect="auto", origin="lower", cmap="viridis", norm=colors.PowerNorm(0.5, vmin=0),
-            extent=(times[0], times[-1], -0.5, values.shape[0] - 0.5), interpolation="nearest",
-        )  # fmt: skip
-        rows, cols = np.nonzero(result.significant.flatten(1).T.numpy())
-        step = (times[-1] - times[0]) / max(len(times) - 1, 1)
-        ax.plot(times[0] + cols * step, rows, "r.", ms=3, label="significant")
-        labels = [f"{comp} {reg}" for comp in result.components for reg in result.regions]
-        ax.set_yticks(range(len(labels)), labels, fontsize=5)
-        ax.set_xlabel("t")
-        ax.figure.colorbar(image, ax=ax, label="energy distance")
-    ax.set_title(title, fontsize=9)

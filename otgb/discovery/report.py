@@ -7,22 +7,17 @@ import math
 from pathlib import Path
 from typing import Any
 
-import matplotlib
+import torch
+import yaml
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import torch  # noqa: E402
-import yaml  # noqa: E402
-
-from otgb.callbacks.components import components_figure, to_json  # noqa: E402
-from otgb.callbacks.figures import distribution_figure  # noqa: E402
-from otgb.discovery import locate  # noqa: E402
-from otgb.discovery.library import implausible  # noqa: E402
-from otgb.discovery.variation import FIRST_SPREAD, SPREAD_DOUBLINGS  # noqa: E402
-from otgb.discovery.workflow import Discovery, term_name  # noqa: E402
-from otgb.physics.augmented import Augmented  # noqa: E402
-from otgb.physics.base import PhysicsModel  # noqa: E402
-from otgb.physics.priors import Prior  # noqa: E402
+from otgb.analysis.components import to_json
+from otgb.analysis.figures import close, components_figure, disagreement_figure, distribution_figure, save
+from otgb.discovery.library import implausible
+from otgb.discovery.variation import FIRST_SPREAD, SPREAD_DOUBLINGS
+from otgb.discovery.workflow import Discovery, term_name
+from otgb.physics.augmented import Augmented
+from otgb.physics.base import PhysicsModel
+from otgb.physics.priors import Prior
 
 GAP_ROWS = {"f_p": "f_p alone", "greybox": "OT grey-box", "augmented": "augmented physics", "reference": "Reference"}
 
@@ -221,12 +216,9 @@ def draw_locate(result: Discovery, path: Path) -> None:
     maps = [(result.before, "f_p vs measured (before)")] + (
         [(result.after, "augmented vs measured (after)")] if result.after else []
     )
-    figure, axes = plt.subplots(1, len(maps), figsize=(6 * len(maps), 3.6), squeeze=False)
-    for ax, (disagreement, title) in zip(axes[0], maps):
-        locate.draw(ax, disagreement, title)
-    figure.tight_layout()
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
+    figure = disagreement_figure(maps)
+    save(figure, path)
+    close(figure)
 
 
 def write_report(
@@ -234,7 +226,7 @@ def write_report(
 ) -> dict:
     """Write report.json, report.md and the figures into ``run_dir``; returns the report dict.
 
-    ``components``: the grey-box's component analysis (:func:`otgb.callbacks.component_analysis`),
+    ``components``: the grey-box's component analysis (:func:`otgb.analysis.components.component_analysis`),
     written as ``components.json`` and ``figures/components.png`` and summarised in the report.
     """
     figures = run_dir / "figures"
@@ -244,13 +236,13 @@ def write_report(
     if components is not None:
         (run_dir / "components.json").write_text(json.dumps(to_json(components), indent=2))
         figure = components_figure(components)
-        figure.savefig(figures / "components.png", dpi=110)
-        plt.close(figure)
+        save(figure, figures / "components.png")
+        close(figure)
     (run_dir / "report.json").write_text(json.dumps(report, indent=2))
     draw_locate(result, figures / "disagreement.png")
     figure = distribution_figure(samples, physics.observation_times(), physics.observed)
-    figure.savefig(figures / "distributions.png", dpi=110)
-    plt.close(figure)
+    save(figure, figures / "distributions.png")
+    close(figure)
     (run_dir / "report.md").write_text(markdown(report, facts))
     return report
 

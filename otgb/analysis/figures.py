@@ -1,0 +1,252 @@
+"""Figures that compare sources (measured, generated, f_p, an augmented physics) by eye.
+
+Every figure has axis labels, a legend or colour bar, and a title saying what it shows and at
+which training step; comparisons that a reader judges by eye share one scale; figures are saved
+at :data:`DPI` and at least :data:`MIN_WIDTH_PX` pixels wide (:func:`save`). The callbacks
+(:mod:`otgb.callbacks`) and ``otgb discover`` (:mod:`otgb.discovery.report`) draw with these.
+"""
+
+from __future__ import annotations
+
+import textwrap
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.colors as colors  # noqa: E402
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from torch import Tensor  # noqa: E402
+
+from otgb.physics.base import PhysicsModel  # noqa: E402
+
+DPI = 150
+MIN_WIDTH_PX = 800
+STYLE = {"measured": ("black", "-"), "generated": ("tab:green", "-"), "f_p": ("tab:orange", "--"), "augmented": ("tab:blue", "-")}
+
+
+def save(figure: plt.Figure, path: Path) -> None:
+    """Save at :data:`DPI`, widened to :data:`MIN_WIDTH_PX` pixels where it is narrower."""
+    width, height = figure.get_size_inches()
+    if width * DPI < MIN_WIDTH_PX:
+        figure.set_size_inches(MIN_WIDTH_PX / DPI, height * MIN_WIDTH_PX / (DPI * width))
+    figure.savefig(path, dpi=DPI)
+
+
+def close(figure: plt.Figure) -> None:
+    plt.close(figure)
+
+
+def at_step(what: str, step: int | None) -> str:
+    return what if step is None else f"{what}, training step {step}"
+
+
+def theta_label(physics: PhysicsModel, theta: Tensor) -> str:
+    return ", ".join(f"{name}={v:.3g}" for name, v in zip(physics.theta_names, theta.tolist()))
+
+
+def probe_series(trajectories: Tensor, names: Sequence[str]) -> tuple[Tensor, list[str]]:
+    """(N, T, C, *space) or (N, T, C) -> (N, T, K) series and their labels.
+
+    ODE observations give one series per component; fields one per channel at up to three
+    cells along the grid's diagonal (a quarter, half and three quarters of the way).
+    """
+    channels, space = trajectories.shape[2], trajectories.shape[3:]
+    if not space:
+        return trajectories, list(names)
+    fractions = (0.25, 0.5, 0.75)
+    cells = sorted({tuple(min(int(f * size), size - 1) for size in space) for f in fractions})
+    series = torch.stack([trajectories[(slice(None), slice(None), c, *cell)] for c in range(channels) for cell in cells], dim=-1)
+    labels = [f"{names[c]} at cell {cell}" for c in range(channels) for cell in cells]
+    return series, labels
+
+
+def distribution_figure(
+    samples: dict[str, Tensor], times: Tensor, names: Sequence[str], step: int | None = None
+) -> plt.Figure:  # fmt: skip
+    """Median, 25-75 % and 5-95 % bands over time of each source, and three sample paths each, on one y scale per
+    series. ``samples``: source name -> trajectories (N, T, *obs) (the sources may differ in N)."""
+    series = {name: probe_series(values.float(), names) for name, values in samples.items()}
+    labels = next(iter(series.values()))[1]
+    cols = min(len(labels), 3)
+    rows = -(-len(labels) // cols)
+    figure, axes = plt.subplots(rows, cols, figsize=(max(4.5 * cols, 6.0), 3.0 * rows + 0.6), squeeze=False)
+    t = times.numpy()
+    for k, ax in enumerate(axes.flat):
+        if k >= len(labels):
+            ax.axis("off")
+            continue
+        for source, (values, _) in series.items():
+            colour, style = STYLE.get(source, ("tab:purple", "-"))
+            q = torch.quantile(values[..., k], torch.tensor([0.05, 0.25, 0.5, 0.75, 0.95]), dim=0).numpy()
+            ax.fill_between(t, q[0], q[4], color=colour, alpha=0.12, lw=0)
+            ax.fill_between(t, q[1], q[3], color=colour, alpha=0.25, lw=0)
+            ax.plot(t, q[2], color=colour, ls=style, lw=1.5, label=f"{source} (n={len(values)})")
+            for path in values[:3, :, k]:
+                ax.plot(t, path.numpy(), color=colour, ls=style, lw=0.5, alpha=0.6)
+        ax.set_title(labels[k], fontsize=8)
+        ax.set_xlabel("t", fontsize=7)
+        ax.set_ylabel(labels[k], fontsize=7)
+    axes.flat[0].legend(fontsize=7)
+    what = "distributions over time: median, 25-75 % and 5-95 % bands, 3 sample paths each (unpaired)"
+    figure.suptitle(at_step(what, step), fontsize=9)
+    figure.tight_layout()
+    return figure
+
+
+def trajectory_figure(
+    data: dict[str, Tensor], y_hat: Tensor, physics: PhysicsModel, component: int, step: int | None = None
+) -> plt.Figure:  # fmt: skip
+    """Measured draws, the map's draws and the f_p simulation of one observed component over time, one panel per
+    input, all panels on one y scale. ``data``: the joint set's rows (x, y, theta); ``y_hat`` (N, M, T, *obs)."""
+    n, name = len(y_hat), physics.observed[component]
+    cols = min(n, 3)
+    rows = -(-n // cols)
+    figure, axes = plt.subplots(rows, cols, figsize=(max(4 * cols, 6.0), 2.8 * rows + 0.6), squeeze=False, sharey=True)
+    t = physics.observation_times().numpy()
+    for i, ax in enumerate(axes.flat):
+        if i >= n:
+            ax.axis("off")
+            continue
+        y, x = data["y"][i], data["x"][i]
+        ax.plot(t, x[:, component].flatten(), color="tab:orange", ls="--", lw=1, label="f_p")
+        for j in range(y.shape[0]):
+            measured, generated = ("measured", "generated") if j == 0 else (None, None)
+            ax.plot(t, y[j, :, component].flatten(), color="black", lw=1, alpha=0.6, label=measured)
+            ax.plot(t, y_hat[i, j, :, component].flatten(), color="tab:green", lw=1, alpha=0.8, label=generated)
+        ax.set_title(theta_label(physics, data["theta"][i]), fontsize=8)
+        ax.set_xlabel("t", fontsize=7)
+        ax.set_ylabel(name, fontsize=7)
+    axes.flat[0].legend(fontsize=7)
+    figure.suptitle(at_step(f"{name}: measured, generated and f_p for {n} validation inputs", step), fontsize=9)
+    figure.tight_layout()
+    return figure
+
+
+def space_time_figure(
+    fields: dict[str, Tensor], theta: Tensor, physics: PhysicsModel, channel: str, step: int | None = None
+) -> plt.Figure:  # fmt: skip
+    """Space-time images of a 1-D field per source (one colour scale per input) and generated minus measured.
+    ``fields``: source -> (N, T, X)."""
+    n = len(theta)
+    figure, axes = plt.subplots(n, 4, figsize=(13, 2.8 * n + 0.6), squeeze=False)
+    extent = (0.0, float(physics.times()[-1]), 0.0, 1.0)  # time across, position (fraction of the domain) up
+    for i in range(n):
+        low = min(float(f[i].min()) for f in fields.values())
+        high = max(float(f[i].max()) for f in fields.values())
+        panels = [(name, fields[name][i], "viridis", low, high) for name in ("measured", "generated", "f_p")]
+        diff = fields["generated"][i] - fields["measured"][i]
+        scale = float(diff.abs().max()) or 1.0
+        panels.append(("generated - measured", diff, "RdBu_r", -scale, scale))
+        for ax, (name, field, cmap, vmin, vmax) in zip(axes[i], panels):
+            image = ax.imshow(field.T, aspect="auto", origin="lower", cmap=cmap, vmin=vmin, vmax=vmax, extent=extent)
+            ax.set_title(f"{name} ({theta_label(physics, theta[i])})", fontsize=7)
+            ax.set_xlabel("t", fontsize=7)
+            ax.set_ylabel("position (fraction of the domain)", fontsize=6)
+            figure.colorbar(image, ax=ax, label=channel)
+    figure.suptitle(at_step(f"{channel}: measured, generated and f_p over space and time", step), fontsize=9)
+    figure.tight_layout()
+    return figure
+
+
+def frames_figure(
+    fields: dict[str, Tensor], theta: Tensor, physics: PhysicsModel, frames: Sequence[int], channel: str,
+    step: int | None = None,
+) -> plt.Figure:  # fmt: skip
+    """A 2-D field at ``frames``, one row per source, one colour scale per input. ``fields``: source -> (N, T, X, Y)."""
+    times = physics.observation_times()
+    n = len(theta)
+    sources = ("measured", "generated", "f_p")
+    figure, axes = plt.subplots(3 * n, len(frames), figsize=(max(2.4 * len(frames), 6.0), 2.4 * 3 * n + 0.6), squeeze=False)
+    for i in range(n):
+        low = min(float(f[i].min()) for f in fields.values())
+        high = max(float(f[i].max()) for f in fields.values())
+        for r, name in enumerate(sources):
+            for c, frame in enumerate(frames):
+                ax = axes[3 * i + r, c]
+                image = ax.imshow(fields[name][i, frame], cmap="viridis", vmin=low, vmax=high)
+                ax.set_title(f"{name}, t={float(times[frame]):.2g}", fontsize=7)
+                ax.set_xlabel("y (cell)", fontsize=6)
+                ax.set_ylabel("x (cell)", fontsize=6)
+                ax.tick_params(labelsize=5)
+        label = f"{channel} ({theta_label(physics, theta[i])})"
+        figure.colorbar(image, ax=axes[3 * i : 3 * i + 3, :].ravel().tolist(), label=label)
+    figure.suptitle(at_step(f"{channel}: measured, generated and f_p at {len(frames)} frames", step), fontsize=9)
+    return figure
+
+
+def components_figure(result: dict[str, Any], step: int | None = None) -> plt.Figure:
+    """Three panels over time: trajectory-level error, function-level errors, |f_p| and |f_phi|
+    (:func:`otgb.analysis.components.component_analysis`'s result)."""
+    t = result["times"].numpy()
+    figure, (traj, func, parts) = plt.subplots(1, 3, figsize=(13, 3.6))
+    kind = "ABS ERR" if result["traj_err_kind"] == "abs_err" else "energy distance"
+    traj.plot(t, result["traj_err"].numpy(), color="tab:green", label="generated vs measured")
+    traj.set_title(f"trajectory level ({kind})", fontsize=9)
+    traj.set_ylabel(kind, fontsize=8)
+    traj.legend(fontsize=7)
+    if result["func_err"] is None:
+        reason = textwrap.fill(f"not available: {result['func_err_unavailable']}", 40)
+        func.text(0.5, 0.5, reason, ha="center", va="center", fontsize=8)
+        func.set_xticks([])
+        func.set_yticks([])
+    else:
+        func.plot(t, result["func_err_fp"].numpy(), color="tab:orange", ls="--", label="f_p")
+        func.plot(t, result["func_err"].numpy(), color="tab:green", label="f_p + f_phi")
+        func.legend(fontsize=7)
+    func.set_title("function level: mean |f - f_true|", fontsize=9)
+    func.set_ylabel("mean |f - f_true|", fontsize=8)
+    parts.plot(t, result["f_p_abs"].numpy(), color="tab:orange", ls="--", label="|f_p|")
+    parts.plot(t, result["f_phi_abs"].numpy(), color="tab:green", label="|f_phi|")
+    parts.set_title(f"components along the solve (f_phi share {result['summary']['correction_share']:.3g})", fontsize=9)
+    parts.set_ylabel("mean |f|", fontsize=8)
+    parts.legend(fontsize=7)
+    for ax in (traj, func, parts):
+        ax.set_xlabel("t", fontsize=8)
+    figure.suptitle(at_step("component analysis of the grey-box along its solve", step), fontsize=9)
+    figure.tight_layout()
+    return figure
+
+
+def disagreement_figure(maps: list[tuple[Any, str]]) -> plt.Figure:
+    """Disagreement maps (:class:`otgb.discovery.locate.DisagreementMap`) side by side on one scale, so that the
+    gap's shrinking is seen: curves per component (ODE) or a heatmap over (time, component x region) (fields)."""
+    figure, axes = plt.subplots(1, len(maps), figsize=(6.5 * len(maps), 3.8), squeeze=False, sharey=True)
+    top = max(float(m.statistic.max()) for m, _ in maps) or 1.0
+    for ax, (disagreement, title) in zip(axes[0], maps):
+        _draw_disagreement(ax, disagreement, title, top)
+    figure.suptitle("energy distance between the model's simulations and the measurements (dots: significant)", fontsize=9)
+    figure.tight_layout()
+    return figure
+
+
+def _draw_disagreement(ax: plt.Axes, result: Any, title: str, top: float) -> None:
+    times = result.times.numpy()
+    if len(result.regions) == 1:
+        for c, name in enumerate(result.components):
+            stat, sig = result.statistic[:, c, 0].numpy(), result.significant[:, c, 0].numpy()
+            (line,) = ax.plot(times, stat, label=name)
+            ax.plot(times[sig], stat[sig], "o", color=line.get_color(), ms=4, label=f"{name}: significant")
+        ax.set_ylim(min(0.0, float(result.statistic.min())), 1.05 * top)
+        ax.set_ylabel("energy distance per time step")
+        ax.legend(fontsize=7)
+    else:
+        values = result.statistic.flatten(1).T.numpy()  # (C * R, T)
+        image = ax.imshow(
+            values, aspect="auto", origin="lower", cmap="viridis", norm=colors.PowerNorm(0.5, vmin=0, vmax=top),
+            extent=(times[0], times[-1], -0.5, values.shape[0] - 0.5), interpolation="nearest",
+        )  # fmt: skip
+        rows, cols = np.nonzero(result.significant.flatten(1).T.numpy())
+        step = (times[-1] - times[0]) / max(len(times) - 1, 1)
+        ax.plot(times[0] + cols * step, rows, "r.", ms=3, label="significant")
+        labels = [f"{comp} {reg}" for comp in result.components for reg in result.regions]
+        ax.set_yticks(range(len(labels)), labels, fontsize=5)
+        ax.set_ylabel("component and region")
+        ax.legend(fontsize=7, loc="upper right")
+        ax.figure.colorbar(image, ax=ax, label="energy distance")
+    ax.set_xlabel("t")
+    ax.set_title(title, fontsize=9)

@@ -1,0 +1,80 @@
+"""Load a run from Python: config files (and a checkpoint) to the model and the data module, built as ``otgb`` builds
+them, without training, printing or writing anything.
+
+    from otgb.runs import load_run
+
+    run = load_run("configs/pendulum.yaml", "--data.n_measured=500", ckpt_path="runs/pendulum/version_0/checkpoints/last.ckpt")
+    run.model, run.datamodule, run.trainer
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+from collections.abc import Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from lightning import Trainer
+
+from otgb.command import OTGBCLI
+from otgb.data import SimulationDataModule
+from otgb.errors import InputError
+from otgb.training import MapTraining
+
+
+@dataclass
+class Run:
+    """A run's objects: the LightningModule (weights from the checkpoint, if one was given), the data module, the
+    trainer (not started) and the composed config."""
+
+    model: MapTraining
+    datamodule: SimulationDataModule
+    trainer: Trainer
+    config: Any
+
+
+def load_run(config: str | Path | Sequence[str | Path], *overrides: str, ckpt_path: str | Path | None = None) -> Run:
+    """Build a run from ``config`` (one config file, or several composed in order) and command-line ``overrides``
+    (``"--trainer.max_steps=5"``, or ``"--trainer.max_steps", "5"``); with ``ckpt_path``, the checkpoint's weights are
+    loaded into the model."""
+    files = [config] if isinstance(config, (str, Path)) else list(config)
+    args = [arg for path in files for arg in ("--config", str(path))] + list(overrides)
+    with _quiet():
+        cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=args)
+    if ckpt_path is not None:
+        load_weights(cli.model, ckpt_path)
+    return Run(cli.model, cli.datamodule, cli.trainer, cli.config)
+
+
+def load_weights(model: MapTraining, ckpt_path: str | Path) -> None:
+    """The checkpoint's weights into ``model``; a missing file or another model's checkpoint is an :class:`InputError`."""
+    path = Path(ckpt_path)
+    if not path.is_file():
+        raise InputError(f"ckpt_path={str(ckpt_path)!r}: no such checkpoint file")
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    try:
+        model.load_state_dict(state["state_dict"])
+    except (KeyError, RuntimeError) as error:
+        first = str(error).splitlines()[0]
+        raise InputError(f"ckpt_path={str(ckpt_path)!r}: not a checkpoint of this config's model ({first})") from None
+
+
+@contextmanager
+def _quiet():
+    """No start-up lines: Lightning's note that ``args`` is meant for Python use (it is, here), the seed line, and the
+    data module's evaluation-mode line (nothing is evaluated)."""
+    loggers = [logging.getLogger(name) for name in ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.seed")]
+    levels = [logger.level for logger in loggers]
+    for logger in loggers:
+        logger.setLevel(logging.WARNING)
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
+            yield
+    finally:
+        for logger, level in zip(loggers, levels):
+            logger.setLevel(level)
