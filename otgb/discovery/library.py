@@ -115,6 +115,8 @@ def _named(feature: str, own: str, coefficient: float, model: PhysicsModel) -> s
         return "Coulomb friction" if coefficient < 0 else "constant-magnitude push along the motion"
     if feature == f"{own}^2":
         return "logistic saturation" if coefficient < 0 else "quadratic growth"
+    if feature == f"{own}^3" and is_velocity:
+        return "cubic drag" if coefficient < 0 else "cubic anti-drag"
     if feature == f"{own}^3":
         return "cubic reaction (saturation)" if coefficient < 0 else "cubic reaction (growth)"
     if feature.startswith(("sin(", "cos(")) and is_velocity:
