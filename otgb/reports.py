@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import math
+import statistics
 from pathlib import Path
 from typing import Any
 
@@ -79,6 +80,15 @@ def metric_names() -> list[str]:
 def label(name: str) -> str:
     group = next(g for g in sorted(GROUPS, key=len, reverse=True) if name.startswith(g))
     return GROUPS[group] + LABELS[name.removeprefix(group)]
+
+
+def mean_spread(values: list[float], plus: str = "±", empty: str = "") -> str:
+    """One value as it is; several as mean ± standard deviation (over seeds or runs)."""
+    if not values:
+        return empty
+    if len(values) == 1:
+        return f"{values[0]:.4g}"
+    return f"{statistics.mean(values):.4g} {plus} {statistics.stdev(values):.2g}"
 
 
 def format_value(mean: float, std: float | None, name: str = "", source: str = "model") -> str:

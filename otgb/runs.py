@@ -10,6 +10,7 @@ them, without training, printing or writing anything.
 from __future__ import annotations
 
 import logging
+import platform
 import warnings
 from collections.abc import Sequence
 from contextlib import contextmanager
@@ -78,3 +79,17 @@ def _quiet():
     finally:
         for logger, level in zip(loggers, levels):
             logger.setLevel(level)
+
+
+def newest(folder: Path, pattern: str) -> Path | None:
+    """The most recently written file under ``folder`` matching the glob ``pattern`` (a resumed run writes the next
+    ``version_N``), or None."""
+    found = sorted(Path(folder).glob(pattern), key=lambda p: p.stat().st_mtime)
+    return found[-1] if found else None
+
+
+def machine(gpu: bool = False) -> str:
+    """The machine a benchmark ran on, for its result files: the GPU's name when ``gpu``, else the CPU and its threads."""
+    if gpu and torch.cuda.is_available():
+        return f"{torch.cuda.get_device_name()}, torch {torch.__version__}"
+    return f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}"

@@ -28,6 +28,7 @@ from pathlib import Path
 import yaml
 
 from otgb.command import logger_override
+from otgb.runs import newest
 
 DDP = ["--trainer.strategy=ddp", "--trainer.devices=2", "--trainer.accelerator=cpu"]
 
@@ -58,11 +59,6 @@ def fit_and_test(out: Path, config: str, seed: int, name: str, overrides: list[s
         last = newest(folder, "fit/version_*/checkpoints/last.ckpt")  # a fit run again after a failure writes the next version
         run(["test", *common, logger_override(str(folder), "test"), f"--ckpt_path={last}"], folder)
     return json.loads(newest(folder, "test/version_*/metrics.json").read_text())["model"]["abs_err"]["mean"]
-
-
-def newest(folder: Path, pattern: str) -> Path | None:
-    found = sorted(folder.glob(pattern), key=lambda p: p.stat().st_mtime)
-    return found[-1] if found else None
 
 
 def max_steps(overrides: list[str]) -> int:

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import subprocess
 import sys
 import time
@@ -28,6 +27,7 @@ import torch
 
 from otgb.data import generate_measured
 from otgb.physics import AdvectionDiffusion, Constant, LibraryTerm, Pendulum, ReactionDiffusion, Uniform
+from otgb.runs import machine
 
 ROOT = Path(__file__).parents[1]
 PENDULUM = ["--data.simulation_budget=32000", "--trainer.val_check_interval=250"]
@@ -202,10 +202,6 @@ def extrapolation(case: str, report: dict, n: int = 200) -> dict:
         error = (model.simulate(x0, theta, effect) - truth).abs()
         out[name] = {"train_horizon": float(error[:, : base.n_obs].mean()), "twice_horizon": float(error[:, base.n_obs :].mean())}
     return out
-
-
-def machine() -> str:
-    return f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}"
 
 
 def truth_text(case: str) -> str:

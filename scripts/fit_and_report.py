@@ -18,10 +18,7 @@ import time
 from pathlib import Path
 
 from otgb.command import logger_override
-
-
-def newest_version(root: Path) -> Path:
-    return max(root.glob("version_*"), key=lambda p: int(p.name.split("_")[1]))
+from otgb.runs import newest
 
 
 def read_rows(run: Path) -> list[dict[str, str]]:
@@ -57,12 +54,12 @@ def main() -> None:
     start = time.perf_counter()
     subprocess.run(["otgb", "fit", *common], check=True)
     fit_seconds = time.perf_counter() - start
-    run = newest_version(Path(args.save_dir) / args.name)
+    run = newest(Path(args.save_dir) / args.name, "version_*")
     best = sorted((run / "checkpoints").glob("best-*.ckpt"))
     if not best:
         sys.exit(f"no best checkpoint in {run / 'checkpoints'}")
     subprocess.run(["otgb", "test", *common, f"--ckpt_path={best[-1]}"], check=True)
-    test_run = newest_version(Path(args.save_dir) / args.name)
+    test_run = newest(Path(args.save_dir) / args.name, "version_*")
 
     lines = [
         f"# {args.name}: `otgb fit --config {args.config} {' '.join(overrides)}`",

@@ -14,11 +14,10 @@ from __future__ import annotations
 import argparse
 import json
 import re
-import statistics
 import sys
 from pathlib import Path
 
-from otgb.reports import HEADERS, LABELS, SOURCES
+from otgb.reports import HEADERS, LABELS, SOURCES, mean_spread
 
 
 def load(paths: list[Path]) -> list[dict]:
@@ -42,13 +41,8 @@ def group_runs(runs: list[dict], seed_suffix: str) -> dict[str, list[dict]]:
     return groups
 
 
-def cell(runs: list[dict], source: str, metric: str) -> str:
-    values = [r[source][metric]["mean"] for r in runs if metric in r.get(source, {})]
-    if not values:
-        return ""
-    if len(values) == 1:
-        return f"{values[0]:.4g}"
-    return f"{statistics.mean(values):.4g} ± {statistics.stdev(values):.2g}"
+def metric_cell(runs: list[dict], source: str, metric: str) -> str:
+    return mean_spread([r[source][metric]["mean"] for r in runs if metric in r.get(source, {})])
 
 
 def table(groups: dict[str, list[dict]], metrics: list[str]) -> str:
@@ -56,7 +50,7 @@ def table(groups: dict[str, list[dict]], metrics: list[str]) -> str:
     header = "| task | runs | " + " | ".join(f"{LABELS[m]} ({HEADERS[s]})" for m, s in columns) + " |"
     lines = [header, "|---" * (len(columns) + 2) + "|"]
     for name, runs in groups.items():
-        lines.append(f"| {name} | {len(runs)} | " + " | ".join(cell(runs, s, m) for m, s in columns) + " |")
+        lines.append(f"| {name} | {len(runs)} | " + " | ".join(metric_cell(runs, s, m) for m, s in columns) + " |")
     return "\n".join(lines) + "\n"
 
 

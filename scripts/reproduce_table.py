@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import statistics
 import subprocess
 import sys
@@ -32,10 +31,11 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import torch
 import yaml
 
 from otgb.command import logger_override
+from otgb.reports import mean_spread
+from otgb.runs import machine, newest
 
 ROOT = Path(__file__).parents[1]
 BASELINES = ROOT / "configs" / "baselines"
@@ -100,7 +100,7 @@ def add_fit_time(folder: Path, extra: list[str]) -> Callable[[float], None]:
     def add(seconds: float) -> None:
         path = folder / "wall_time.json"
         timing = json.loads(path.read_text()) if path.exists() else {"fit_s": 0.0}
-        path.write_text(json.dumps({**timing, "fit_s": timing["fit_s"] + seconds, "machine": machine(extra)}))
+        path.write_text(json.dumps({**timing, "fit_s": timing["fit_s"] + seconds, "machine": machine(asks_for_gpu(extra))}))
 
     return add
 
@@ -141,16 +141,8 @@ def run_fixed(out: Path, task: str, extra: list[str]) -> None:
         otgb(["test", *args, logger_override(str(folder), "test")], folder / "otgb.log")
 
 
-def machine(extra: list[str]) -> str:
-    """The machine a run used: the GPU's name when ``extra`` asks for one, else the CPU and its threads."""
-    cpu = f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads"
-    gpu = any(arg.replace(" ", "") in ("--trainer.accelerator=gpu", "--trainer.accelerator=cuda") for arg in extra)
-    return f"{torch.cuda.get_device_name() if gpu and torch.cuda.is_available() else cpu}, torch {torch.__version__}"
-
-
-def newest(folder: Path, pattern: str) -> Path | None:
-    found = sorted(folder.glob(pattern), key=lambda p: p.stat().st_mtime)
-    return found[-1] if found else None
+def asks_for_gpu(extra: list[str]) -> bool:
+    return any(arg.replace(" ", "") in ("--trainer.accelerator=gpu", "--trainer.accelerator=cuda") for arg in extra)
 
 
 def metrics(folder: Path) -> dict | None:
@@ -159,12 +151,8 @@ def metrics(folder: Path) -> dict | None:
     return json.loads(report.read_text()) if report is not None else None
 
 
-def cell(values: list[float]) -> str:
-    if not values:
-        return "-"
-    if len(values) == 1:
-        return f"{values[0]:.4g}"
-    return f"{statistics.mean(values):.4g} +- {statistics.stdev(values):.2g}"
+def seeds_cell(values: list[float]) -> str:
+    return mean_spread(values, plus="+-", empty="-")
 
 
 def task_table(out: Path, task: str) -> list[str]:
@@ -182,12 +170,13 @@ def task_table(out: Path, task: str) -> list[str]:
         walls = [json.loads((f / "wall_time.json").read_text())["fit_s"] for _, f in runs]
         published = " / ".join(f"{v}" for v in paper[method]) if method in paper else "-"
         wall = f"{statistics.mean(walls) / 60:.1f} min" if walls else "-"
-        lines.append(f"| {method} | {len(runs)} | {cell(values[0])} | {cell(values[1])} | {published} | {wall} |")
+        lines.append(f"| {method} | {len(runs)} | {seeds_cell(values[0])} | {seeds_cell(values[1])} | {published} | {wall} |")
     fixed = {name: metrics(out / task / name.replace(" ", "_")) for name in ("f_p only", "complete physics")}
     for name, m in fixed.items():
-        lines.append(f"| {name} | - | " + " | ".join(cell([m["model"][k]["mean"]] if m else []) for k in names) + " | - | - |")
+        cells = " | ".join(seeds_cell([m["model"][k]["mean"]] if m else []) for k in names)
+        lines.append(f"| {name} | - | {cells} | - | - |")
     reference = next((m["reference"] for m in fixed.values() if m is not None), None)
-    ref_cells = " | ".join(cell([reference[k]["mean"]] if reference else []) for k in names)
+    ref_cells = " | ".join(seeds_cell([reference[k]["mean"]] if reference else []) for k in names)
     published = " / ".join(map(str, paper["Reference"])) if "Reference" in paper else "-"
     lines.append(f"| Reference | - | {ref_cells} | {published} | - |")
     return lines

@@ -44,6 +44,8 @@ from pathlib import Path
 import torch
 import yaml
 
+from otgb.runs import newest
+
 ROOT = Path(__file__).parents[1]
 
 
@@ -81,7 +83,7 @@ def run_sampled(command: list[str], out: Path, sample_s: float, kill_at: float |
         while run.poll() is None:
             writer.writerow([round(time.time(), 1), round(group_rss_mb(run.pid), 1), *([gpu_used_mb()] if gpu else [])])
             memory.flush()
-            if kill_at is not None and time.time() - start > kill_at and newest(out, "last.ckpt") is not None:
+            if kill_at is not None and time.time() - start > kill_at and newest_in_run(out, "last.ckpt") is not None:
                 os.killpg(run.pid, signal.SIGKILL)
                 run.wait()
                 return -signal.SIGKILL, time.time() - start
@@ -89,9 +91,8 @@ def run_sampled(command: list[str], out: Path, sample_s: float, kill_at: float |
     return run.returncode, time.time() - start
 
 
-def newest(out: Path, name: str) -> Path | None:
-    found = sorted(out.glob(f"run/version_*/**/{name}"), key=lambda p: p.stat().st_mtime)
-    return found[-1] if found else None
+def newest_in_run(out: Path, name: str) -> Path | None:
+    return newest(out, f"run/version_*/**/{name}")
 
 
 def soak(args: argparse.Namespace) -> None:
@@ -106,7 +107,7 @@ def soak(args: argparse.Namespace) -> None:
     ]  # fmt: skip
     state = json.loads((out / "state.json").read_text()) if (out / "state.json").exists() else {"killed": None, "runs": []}
     while not state["runs"] or state["runs"][-1]["returncode"] != 0:
-        last = newest(out, "last.ckpt")
+        last = newest_in_run(out, "last.ckpt")
         kill_at = None
         if args.kill_after and state["killed"] is None:
             kill_at = random.Random(args.seed).uniform(args.kill_after / 2, args.kill_after)
@@ -126,8 +127,8 @@ def soak(args: argparse.Namespace) -> None:
 def summarise(out: Path, args: argparse.Namespace, state: dict) -> dict:
     rows = [row for path in sorted(out.glob("run/version_*/metrics.csv")) for row in csv.DictReader(open(path))]
     val = [(float(r["val/simulations"]), float(r["val/wall_time_s"])) for r in rows if r.get("val/wall_time_s")]
-    last = torch.load(newest(out, "last.ckpt"), weights_only=False)
-    config = yaml.safe_load(newest(out, "config.yaml").read_text())
+    last = torch.load(newest_in_run(out, "last.ckpt"), weights_only=False)
+    config = yaml.safe_load(newest_in_run(out, "config.yaml").read_text())
     per_step = config["data"]["batch_size"] * config["model"]["t_max"] * args.devices
     steps = {int(float(r["step"])) for r in rows if r.get("train/simulations")}
     every = min((b - a for a, b in zip(sorted(steps), sorted(steps)[1:])), default=1)
@@ -211,7 +212,7 @@ def throughput(args: argparse.Namespace) -> None:
                  *(["--trainer.strategy=ddp"] if processes > 1 else []), *args.overrides]  # fmt: skip
         start = time.time()
         subprocess.run(fit_command(args.config, folder, extra), check=True, capture_output=True, preexec_fn=pin, env=env)
-        rows = [r for r in csv.DictReader(open(newest(folder, "metrics.csv"))) if r.get("val/wall_time_s")]
+        rows = [r for r in csv.DictReader(open(newest_in_run(folder, "metrics.csv"))) if r.get("val/wall_time_s")]
         sims, seconds = float(rows[-1]["val/simulations"]), float(rows[-1]["val/wall_time_s"])
         results[name] = {"simulations": sims, "training_s": seconds, "simulations_per_s": sims / seconds,
                          "command_wall_s": time.time() - start, "cpus": args.cpus or os.cpu_count(),

@@ -221,3 +221,19 @@ def test_readme_is_a_front_door():
     assert len(readme.splitlines()) <= 120
     for link in re.findall(r"\]\((docs/[^)]+)\)", readme):
         assert (ROOT / link).is_file(), link
+
+
+def test_the_first_fit_tutorial_runs_as_written(tmp_path):
+    """docs/first-fit.md's commands in a fresh folder (at the tests' tiny size): fit, test, print_config, an override."""
+    (tmp_path / "configs").symlink_to(ROOT / "configs")
+    text = (ROOT / "docs" / "first-fit.md").read_text()
+    commands = [c for c in _commands(text) if c.startswith("otgb ")]
+    assert [c.split()[1] for c in commands] == ["fit", "test", "fit", "fit"], commands
+    for command in commands:
+        done = _run(command, tmp_path)
+        assert done.returncode == 0, f"{command}\n{done.stderr[-2000:]}"
+        if "--print_config" in command:
+            assert "simulation_budget" in done.stdout
+    runs = sorted(p.name for p in (tmp_path / "runs" / "pendulum").iterdir())
+    assert runs == ["version_0", "version_1", "version_2"], runs
+    assert (tmp_path / "runs" / "pendulum" / "version_1" / "metrics.md").is_file(), "otgb test wrote its report"
