@@ -46,14 +46,20 @@ def main(args: list[str] | None = None) -> None:
     quiet_known_harmless()
     argv = sys.argv[1:] if args is None else args
     try:
+        if argv[:1] == ["tune"]:
+            from otgb.tune import tune
+
+            tune(argv[1:])
+            return
         if argv[:1] == ["discover"]:
             from otgb.discovery.cli import discover
 
             discover(argv[1:])
             return
         cli = OTGBCLI(MapTraining, SimulationDataModule, args=args, parser_class=ConciseParser)
-        if cli.trainer.is_global_zero and cli.trainer.log_dir:
-            print(closing_line(cli.subcommand, Path(cli.trainer.log_dir)), file=sys.stderr)
+        loggers = cli.trainer.loggers  # not trainer.log_dir: a collective under DDP, and the other ranks have finished
+        if cli.trainer.is_global_zero and loggers and loggers[0].log_dir:
+            print(closing_line(cli.subcommand, Path(loggers[0].log_dir)), file=sys.stderr)
     except InputError as error:
         print(f"otgb: error: {error}", file=sys.stderr)
         raise SystemExit(2) from None

@@ -57,32 +57,33 @@ def init_options(class_path: str) -> list[str]:
         return []
 
 
-def concise(message: str, parser: ArgumentParser) -> str:
-    """One line for a jsonargparse error ``message``: what, where, and the closest valid names."""
+def concise(message: str, parser: ArgumentParser) -> tuple[str, bool]:
+    """One line for a jsonargparse error ``message`` (what, where, the closest valid names), and whether it is about a
+    name (an option, key or class), for which ``--help`` lists the valid ones."""
     where = re.search(r'Parser key "([\w.]+)"', message)
     place = f"--{where.group(1)}: " if where else ""
     unknown = re.match(r"unrecognized arguments: (.*)", message)
     if unknown:
         options = [token.split("=")[0] for token in unknown.group(1).split() if token.startswith("--")]
         hints = "".join(_did_you_mean(closest(o, option_names(parser))) for o in options)
-        return f"unknown option {' '.join(options) or unknown.group(1)}{hints}"
+        return f"unknown option {' '.join(options) or unknown.group(1)}{hints}", True
     key = re.search(r"does not accept option '([\w.]+)'", message)
     if key:
         names = [o[2:] for o in closest("--" + key.group(1), option_names(parser))]
-        return f"unknown key '{key.group(1)}'{_did_you_mean(names)}"
+        return f"unknown key '{key.group(1)}'{_did_you_mean(names)}", True
     bad_class = re.search(r"given class_path '([\w.]+)'", message)
     option = re.search(r"Option '(\w+)' is not accepted", message)
     if bad_class and option:
         path, name = bad_class.group(1), option.group(1)
-        return f"{place}{path} has no option '{name}'{_did_you_mean(closest(name, init_options(path)))}"
+        return f"{place}{path} has no option '{name}'{_did_you_mean(closest(name, init_options(path)))}", True
     if bad_class:
         path = bad_class.group(1)
-        return f"{place}no class '{path}'{_did_you_mean(closest(path, class_names(path)))}"
+        return f"{place}no class '{path}'{_did_you_mean(closest(path, class_names(path)))}", True
     expected = re.search(r"Expected a <class '(\w+)'>\. Got value: (.*)", message)
     if expected:
-        return f"{place}expected {expected.group(1)}, got {expected.group(2).strip()}"
+        return f"{place}expected {expected.group(1)}, got {expected.group(2).strip()}", False
     lines = [line.strip(" -") for line in message.splitlines() if line.strip(" -")]
-    return f"{place}{lines[-1]}" if where and len(lines) > 1 else "; ".join(lines) or message
+    return (f"{place}{lines[-1]}" if where and len(lines) > 1 else "; ".join(lines) or message), False
 
 
 class ConciseParser(LightningArgumentParser):
@@ -93,5 +94,7 @@ class ConciseParser(LightningArgumentParser):
             super().error(message, ex)
         parser = getattr(ex, "subcommand_parser", None) or self
         prog = " ".join(["otgb", *parser.prog.replace(" [options]", "").split()[1:]])
-        sys.stderr.write(f"otgb: error: {concise(message, parser)}; list the options with: {prog} --help\n")
+        text, about_names = concise(message, parser)
+        hint = f"; list the options with: {prog} --help" if about_names else ""
+        sys.stderr.write(f"otgb: error: {text}{hint}\n")
         self.exit(2)

@@ -24,6 +24,7 @@ from lightning import Trainer
 from otgb.command import OTGBCLI
 from otgb.data import SimulationDataModule
 from otgb.errors import InputError
+from otgb.parser_errors import ConciseParser
 from otgb.training import MapTraining
 
 
@@ -45,7 +46,7 @@ def load_run(config: str | Path | Sequence[str | Path], *overrides: str, ckpt_pa
     files = [config] if isinstance(config, (str, Path)) else list(config)
     args = [arg for path in files for arg in ("--config", str(path))] + list(overrides)
     with _quiet():
-        cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=args)
+        cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=args, parser_class=ConciseParser)
     if ckpt_path is not None:
         load_weights(cli.model, ckpt_path)
     return Run(cli.model, cli.datamodule, cli.trainer, cli.config)

@@ -267,6 +267,26 @@ def table(out: Path) -> str:
     return text.replace("|velocity|", "\\|velocity\\|")
 
 
+KEPT = ("report.json", "report.md", "wall_time.json", "extrapolation.json", "correction_after.json")
+START, END = "<!-- table: scripts/discovery_benchmark.py --table -->", "<!-- end table -->"
+
+
+def keep(out: Path, results: Path) -> None:
+    """The small result files of every finished run under ``out`` into ``results`` (same layout), for committing."""
+    for path in out.rglob("*"):
+        if path.name in KEPT and path.is_file():
+            target = results / path.relative_to(out)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(path.read_bytes())
+
+
+def write_doc(doc: Path, results: Path) -> None:
+    """The table of ``results`` between the page's START and END markers."""
+    head, _, rest = doc.read_text().partition(START)
+    _, _, tail = rest.partition(END)
+    doc.write_text(f"{head}{START}\n{table(results)}{END}{tail}")
+
+
 def _named(t: dict) -> str:
     interval = f" [{t['interval'][0]:.4g}, {t['interval'][1]:.4g}]" if t.get("interval") else ""
     spread = f", {t['distribution']}" if t["distribution"] else ""
@@ -280,6 +300,8 @@ def main() -> None:
     parser.add_argument("--seeds", nargs="*", type=int, default=[0], help="seeds of each case")
     parser.add_argument("--noise", type=float, default=0.0, help="Gaussian measurement noise, as a share of the data's std")
     parser.add_argument("--table", type=Path, help="only gather the finished runs into this Markdown file")
+    parser.add_argument("--keep", type=Path, help="copy the finished runs' result files (reports, timings) into this folder")
+    parser.add_argument("--doc", type=Path, help="only rewrite the table between the markers of this page (from --out)")
     parser.add_argument("--refit", action="store_true", help="also train a grey-box on each found augmented physics")
     args = parser.parse_args()
     args.out = args.out.resolve()  # each run's subprocess works inside its own folder
@@ -287,9 +309,15 @@ def main() -> None:
         args.table.write_text(table(args.out))
         print(f"wrote {args.table}")
         return
+    if args.doc:
+        write_doc(args.doc, args.out)
+        print(f"rewrote the table in {args.doc}")
+        return
     for case in args.cases:
         for seed in args.seeds:
             run_case(case, seed, args.noise, args.out, args.refit)
+    if args.keep:
+        keep(args.out, args.keep)
 
 
 if __name__ == "__main__":

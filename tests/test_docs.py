@@ -114,7 +114,7 @@ def test_the_documented_oscillator_trains_and_tests_from_the_users_folder(tmp_pa
     assert report["fp"]["abs_err"]["mean"] > 0.05 and report["reference"]["abs_err"]["mean"] == 0.0
     assert report["model"]["abs_err"]["mean"] > 0 and report["run"]["n_inputs"] == 20
     table = (runs / "version_1" / "metrics.md").read_text()
-    assert "| metric | model | f_p alone | Reference |" in table and "| ABS ERR |" in table
+    assert "| metric | better | model | f_p alone | Reference |" in table and "| ABS ERR | lower |" in table
 
     exported = (tmp_path / "measurements.csv").read_text().splitlines()
     assert len(exported) == 1 + 200 * 40
