@@ -1,0 +1,142 @@
+"""`otgb tune` measured: a study on Pendulum-1-m at a reduced budget, its best settings refitted at the full budget
+against the hand-tuned config over seeds, and one worker against two on the same study size.
+
+    python scripts/tune_benchmark.py study --out results/tune            # 12 trials at 16 000 simulations (resumable)
+    python scripts/tune_benchmark.py refit --out results/tune --seeds 0 1 2   # best.yaml and pendulum.yaml, full budget
+    python scripts/tune_benchmark.py workers --out bench/workers --trials 4   # wall time of 1 worker against 2
+    python scripts/tune_benchmark.py table --out results/tune               # summary.md from the result files
+
+Every step resumes: the study is an Optuna study on disk, and a refit whose test report exists is skipped. Result
+files (trials.md, best.yaml, refits.json, workers.json, summary.md) are small and meant to be committed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from otgb.command import logger_override
+from otgb.reports import mean_spread
+from otgb.runs import machine, newest
+
+ROOT = Path(__file__).parents[1]
+CONFIG = ROOT / "configs" / "pendulum.yaml"
+SPACE = ROOT / "configs" / "tune" / "pendulum.yaml"
+STUDY_BUDGET = ["--data.simulation_budget=16000", "--trainer.val_check_interval=125", "--trainer.enable_progress_bar=false"]
+
+
+def otgb(args: list[str], cwd: Path, log: Path) -> float:
+    """One ``otgb`` command in ``cwd``; its wall time in seconds."""
+    started = time.time()
+    with open(log, "a") as handle:
+        done = subprocess.run([sys.executable, "-m", "otgb.cli", *args], cwd=cwd, stdout=handle, stderr=subprocess.STDOUT)
+    if done.returncode != 0:
+        raise SystemExit(f"tune_benchmark: otgb {' '.join(args[:3])} failed (exit {done.returncode}); see {log}")
+    return time.time() - started
+
+
+def study(out: Path, trials: int) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    args = ["tune", "--config", str(CONFIG), f"--tune.space={SPACE}", f"--tune.trials={trials}", *STUDY_BUDGET]
+    seconds = otgb(args, out, out / "study.log")
+    study_dir = out / "runs" / "tune-pendulum"
+    for name in ("trials.md", "best.yaml", "history.png", "importances.png"):
+        if (study_dir / name).exists():
+            shutil.copy(study_dir / name, out / name)
+    timing = out / "study.json"
+    spent = json.loads(timing.read_text())["seconds"] if timing.exists() else 0.0
+    timing.write_text(json.dumps({"seconds": spent + seconds, "trials": trials, "machine": machine()}))
+
+
+def refit(out: Path, seeds: list[int]) -> None:
+    """best.yaml and the hand-tuned config at their full budget, fitted and tested per seed."""
+    results = json.loads((out / "refits.json").read_text()) if (out / "refits.json").exists() else {}
+    for name, config in (("tuned", out / "best.yaml"), ("hand-tuned", CONFIG)):
+        for seed in seeds:
+            key = f"{name}-seed{seed}"
+            if key in results:
+                continue
+            folder = out / "refit" / key
+            folder.mkdir(parents=True, exist_ok=True)
+            common = ["--config", str(config), f"--seed_everything={seed}", "--trainer.enable_progress_bar=false"]
+            seconds = otgb(["fit", *common, logger_override("runs", "fit")], folder, folder / "otgb.log")
+            best = newest(folder / "runs" / "fit", "version_*/checkpoints/best-*.ckpt")
+            otgb(["test", *common, logger_override("runs", "test"), f"--ckpt_path={best}"], folder, folder / "otgb.log")
+            report = json.loads(newest(folder / "runs" / "test", "version_*/metrics.json").read_text())
+            results[key] = {"abs_err": report["model"]["abs_err"]["mean"], "fit_s": seconds, "machine": machine()}
+            (out / "refits.json").write_text(json.dumps(results, indent=1))
+
+
+def workers(out: Path, trials: int) -> None:
+    """The same study size run by one worker and by two, each from an empty folder, one after the other."""
+    budget = ["--data.simulation_budget=3200", "--trainer.val_check_interval=50", "--trainer.enable_progress_bar=false"]
+    args = ["tune", "--config", str(CONFIG), f"--tune.space={SPACE}", f"--tune.trials={trials}", "--tune.pruner=none", *budget]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    walls = {}
+    for count in (1, 2):
+        folder = out / f"{count}-workers"
+        shutil.rmtree(folder, ignore_errors=True)
+        folder.mkdir(parents=True)
+        started = time.time()
+        command = [sys.executable, "-m", "otgb.cli", *args]
+        running = [
+            subprocess.Popen(command, cwd=folder, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            for _ in range(count)
+        ]
+        codes = [p.wait() for p in running]
+        if any(codes):
+            raise SystemExit(f"tune_benchmark workers: exit statuses {codes} in {folder}")
+        walls[count] = time.time() - started
+        folders = sorted(p.name for p in (folder / "runs" / "tune-pendulum").glob("trial_*"))
+        walls[f"{count}_trials"] = folders
+    walls["ratio"] = walls[2] / walls[1]
+    walls["machine"] = machine()
+    (out / "workers.json").write_text(json.dumps(walls, indent=1))
+    print(f"1 worker {walls[1]:.0f} s, 2 workers {walls[2]:.0f} s: ratio {walls['ratio']:.2f}")
+
+
+def table(out: Path) -> None:
+    lines = ["# otgb tune on Pendulum-1-m", ""]
+    if (out / "study.json").exists():
+        timing = json.loads((out / "study.json").read_text())
+        minutes = timing["seconds"] / 60
+        lines += [f"Study: {timing['trials']} trials at 16 000 simulations each, {minutes:.0f} min ({timing['machine']}).", ""]
+    if (out / "refits.json").exists():
+        results = json.loads((out / "refits.json").read_text())
+        lines += ["| config, full budget (1e5 simulations) | seeds | test ABS ERR, mean ± std | per seed |", "|---|---|---|---|"]
+        for name in ("tuned", "hand-tuned"):
+            runs = {k: v for k, v in results.items() if k.startswith(f"{name}-seed")}
+            values = [v["abs_err"] for v in runs.values()]
+            per_seed = ", ".join(f"{v:.4g}" for v in values)
+            label = "best.yaml (tuned)" if name == "tuned" else "configs/pendulum.yaml (hand-tuned)"
+            lines.append(f"| {label} | {len(values)} | {mean_spread(values) or '-'} | {per_seed} |")
+        lines.append("")
+    if (out / "workers.json").exists():
+        w = json.loads((out / "workers.json").read_text())
+        size = len(w["1_trials"])
+        lines.append(f"Workers: the same {size}-trial study took {w['1']:.0f} s with one worker and {w['2']:.0f} s with two")
+        lines += [f"(ratio {w['ratio']:.2f}; {w['machine']}); trials run by two workers: {len(w['2_trials'])}.", ""]
+    (out / "summary.md").write_text("\n".join(lines))
+    print("\n".join(lines))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("step", choices=["study", "refit", "workers", "table"])
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--trials", type=int, default=12)
+    parser.add_argument("--seeds", type=int, nargs="*", default=[0, 1, 2])
+    args = parser.parse_args()
+    out = args.out.resolve()
+    {"study": lambda: study(out, args.trials), "refit": lambda: refit(out, args.seeds),
+     "workers": lambda: workers(out, args.trials), "table": lambda: table(out)}[args.step]()  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
