@@ -206,7 +206,13 @@ def extrapolation(case: str, report: dict, n: int = 200) -> dict:
 
 def truth_text(case: str) -> str:
     terms = CASES[case.split("-")[0]][2]
-    return ", ".join(f"{t.feature} on d{t.component}/dt: {t.priors['coefficient']!r}" for t in terms)
+    return ", ".join(f"{t.feature} on d{t.component}/dt: {_prior_text(t.priors['coefficient'])}" for t in terms)
+
+
+def _prior_text(prior) -> str:
+    if isinstance(prior, Uniform):
+        return f"U({prior.low:.3g}, {prior.high:.3g})"
+    return f"{prior.value:.3g}" if hasattr(prior, "value") else repr(prior)
 
 
 HEADER = (
@@ -289,8 +295,18 @@ def write_doc(doc: Path, results: Path) -> None:
 
 def _named(t: dict) -> str:
     interval = f" [{t['interval'][0]:.4g}, {t['interval'][1]:.4g}]" if t.get("interval") else ""
-    spread = f", {t['distribution']}" if t["distribution"] else ""
-    return f"{t['name']}: {t['feature']} on d{t['component']}/dt {t['coefficient']:.4g}{interval}{spread}"
+    return f"{t['name']}: {t['feature']} on d{t['component']}/dt {t['coefficient']:.4g}{interval}{_spread(t['distribution'])}"
+
+
+def _spread(distribution: dict | None) -> str:
+    """The fitted prior of a coefficient that varies between trajectories: U(low, high) or N(mean, std)."""
+    if not distribution:
+        return ""
+    if distribution.get("kind") == "uniform":
+        return f", varies: U({distribution['low']:.3g}, {distribution['high']:.3g})"
+    if distribution.get("kind") == "normal":
+        return f", varies: N({distribution['mean']:.3g}, {distribution['std']:.3g})"
+    return f", varies: {distribution}"
 
 
 def main() -> None:
