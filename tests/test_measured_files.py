@@ -165,7 +165,7 @@ def test_recorded_inputs_are_the_evaluation_inputs(tmp_path, measurements):
     dm = _module(tmp_path, measured_path=str(tmp_path / "m.npz"), val_fraction=0.25, test_fraction=0.25)
     dm.setup("validate")
     assert dm.recorded_inputs == ("theta",)
-    val = dm.parts["val"]
+    val = dm.source.parts["val"]
     assert torch.equal(dm.val_set["theta"], measurements["theta"][val])
     assert torch.equal(dm.val_set["y"][:, 0], measurements["y"][val])
     assert not torch.equal(dm.val_set["x0"], measurements["x0"][val]), "x0 was not recorded: drawn from the prior"

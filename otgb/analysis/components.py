@@ -63,7 +63,7 @@ def trajectory_error(y_hat: Tensor, y: Tensor, datamodule: SimulationDataModule)
     at each time step (:func:`otgb.metrics.energy.energy_per_time`), averaged over components,
     paired where both sides share recorded inputs.
     """
-    if datamodule.mode == "joint" and not datamodule.dgp.is_stochastic:
+    if datamodule.source.pointwise_process is not None:
         return per_time(y_hat.flatten(0, 1) - y.flatten(0, 1)), "abs_err"
     rows = lambda v: v.flatten(0, 1).flatten(1)  # noqa: E731
     paired = bool(datamodule.recorded_inputs)

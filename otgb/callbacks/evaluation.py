@@ -96,22 +96,12 @@ class Evaluation(Callback):
         self.baselines_logged = False
 
     # --- what is compared -------------------------------------------------------------------
-    @staticmethod
-    def evaluation_plan(mode: str, recorded_inputs: tuple[str, ...]) -> dict[str, tuple[tuple[str, ...], bool]]:
-        """Metric-name prefix -> (conditioning inputs, paired) for a data module's mode."""
-        if mode == "joint":
-            return {"": (("theta", "x0"), True)}
-        plan = {"": ((), False)}
-        if recorded_inputs:
-            plan["joint_"] = (tuple(recorded_inputs), True)
-        return plan
-
     def validation_metrics(self, datamodule: Any) -> list[str]:
         """The ``val/<name>`` scalars every validation logs for this data module (tests included if every time)."""
         names = list(EVERY_VALIDATION) + (list(TESTS) if self.tests_every == 1 else [])
-        one_draw = datamodule.mode == "marginal" or datamodule.draws_per_input == 1  # a file holds one draw per input
+        one_draw = datamodule.source.draws_per_input == 1
         metrics = []
-        for prefix, (inputs, paired) in self.evaluation_plan(datamodule.mode, datamodule.recorded_inputs).items():
+        for prefix, (inputs, paired) in datamodule.source.evaluation_plan().items():
             pointwise = one_draw and JointEvaluator.is_pointwise(inputs, paired)
             metrics += [f"val/{prefix}{name}" for name in (list(POINTWISE) if pointwise else []) + names]
         return metrics
@@ -120,7 +110,7 @@ class Evaluation(Callback):
         datamodule = trainer.datamodule
         self._check_monitors(trainer, datamodule)
         shape = tuple(pl_module.physics.trajectory_shape)
-        self.plan = self.evaluation_plan(datamodule.mode, datamodule.recorded_inputs)
+        self.plan = datamodule.source.evaluation_plan()
 
         def make(prefix: str, paired: bool, sync: bool) -> JointEvaluator:
             per_time = prefix == ""  # the per-time statistic reads the trajectories alone: once per set
@@ -132,7 +122,8 @@ class Evaluation(Callback):
         self.evaluators = {prefix: make(prefix, paired, True) for prefix, (_, paired) in self.plan.items()}
         # f_p and the Reference are scored on the whole set on every rank: no cross-process sync
         self.baselines = {prefix: make(prefix, paired, False) for prefix, (_, paired) in self.plan.items()}
-        if datamodule.mode == "marginal":  # halves of the measurements have different inputs: unpaired
+        self.reference_on_same_inputs = datamodule.source.reference_on_same_inputs
+        if not self.reference_on_same_inputs:  # halves of the measurements have different inputs: unpaired
             self.references = {prefix: make(prefix, False, False) for prefix in self.plan}
 
     def _check_monitors(self, trainer: Trainer, datamodule: Any) -> None:
@@ -177,14 +168,14 @@ class Evaluation(Callback):
         tests = self.tests_every > 0 and self.validations % self.tests_every == 0
         results = self._model_results(tests)
         if not self.baselines_logged:
-            results.update(self._baselines(trainer.datamodule.val_set, trainer.datamodule.mode))
+            results.update(self._baselines(trainer.datamodule.val_set))
             self.baselines_logged = True
         self._log(pl_module, "val", results)
 
     def on_test_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
         datamodule = trainer.datamodule
         results = self._model_results(tests=True)
-        results.update(self._baselines(datamodule.test_set, datamodule.mode))
+        results.update(self._baselines(datamodule.test_set))
         scalars = self._log(pl_module, "test", results)
         log_dir = trainer.log_dir  # a collective call under DDP: every process makes it
         if trainer.is_global_zero and log_dir is not None:
@@ -205,12 +196,7 @@ class Evaluation(Callback):
     @staticmethod
     def mode_facts(datamodule: Any) -> dict[str, Any]:
         """What produced the numbers: the mode, and the measured file and its split when marginal."""
-        facts: dict[str, Any] = {"mode": datamodule.mode, "description": datamodule.describe()}
-        if datamodule.mode == "marginal":
-            facts["measured_path"] = datamodule.measured_path
-            facts["split"] = {part: len(index) for part, index in datamodule.parts.items()}
-            facts["recorded_inputs"] = list(datamodule.recorded_inputs)
-        return facts
+        return datamodule.source.facts()
 
     @staticmethod
     def _labels(pl_module: LightningModule) -> dict[str, list]:
@@ -226,7 +212,7 @@ class Evaluation(Callback):
         results["eval_seconds"] = torch.tensor(time.perf_counter() - start)
         return results
 
-    def _baselines(self, data: dict[str, Tensor], mode: str) -> dict[str, Tensor]:
+    def _baselines(self, data: dict[str, Tensor]) -> dict[str, Tensor]:
         """f_p alone and the Reference on a whole set, all metrics: ``fp_<name>``, ``ref_<name>``."""
         results = {}
         start = time.perf_counter()
@@ -236,7 +222,7 @@ class Evaluation(Callback):
         results["fp_eval_seconds"] = torch.tensor(time.perf_counter() - start)
         start = time.perf_counter()
         for prefix in self.plan:
-            if mode == "joint":
+            if self.reference_on_same_inputs:
                 reference = reference_scores(self.baselines[prefix], data, True, self.reference_repeats, self.seed)
             else:
                 reference = split_half_scores(self.references[prefix], data, True, self.reference_repeats, self.seed)

@@ -50,7 +50,7 @@ class ValidationFigure(Callback):
         if not trainer.is_global_zero:
             return
         datamodule = trainer.datamodule
-        if datamodule.mode == "marginal":
+        if not datamodule.source.draws_pair_with_inputs:
             tag, figure = "distributions", self._distributions(datamodule, pl_module, trainer.global_step)
         else:
             data = {k: v[: self.n_inputs].to(pl_module.device) for k, v in datamodule.val_set.items()}

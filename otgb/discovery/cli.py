@@ -31,7 +31,7 @@ from jsonargparse import DefaultHelpFormatter
 from otgb.analysis.components import component_analysis
 from otgb.command import OTGBCLI
 from otgb.data import SimulationDataModule
-from otgb.discovery.known import pointwise_errors, write_measurements
+from otgb.discovery.known import pointwise_errors
 from otgb.discovery.locate import describe
 from otgb.discovery.log import DivergenceLog, progress, show_on_stderr
 from otgb.discovery.report import augmented_config, write_augmented, write_report
@@ -111,10 +111,11 @@ def discover_run(args: list[str]) -> Finished:
         load_or_fit(cli, cli.config.get("ckpt_path"))
         components = component_analysis(module, datamodule, seed=settings.seed)
         result = run(module, data, settings, before)
-        if datamodule.mode == "joint" and not datamodule.dgp.is_stochastic:
+        process = datamodule.source.pointwise_process
+        if process is not None:
             augmented = result.fitted.model(physics) if result.found else None
             with DivergenceLog() as log:
-                result.pointwise = pointwise_errors(module, datamodule.dgp, augmented, datamodule.test_set, settings.seed)
+                result.pointwise = pointwise_errors(module, process, augmented, datamodule.test_set, settings.seed)
             result.diverged += log.records
     else:
         result = Discovery(before, describe(before))
@@ -126,11 +127,10 @@ def discover_run(args: list[str]) -> Finished:
     report = write_report(run_dir, result, physics, facts, samples, components)
     if result.found:
         config = yaml.safe_load(cli.parser.dump(cli.config, format="yaml", skip_none=False))
-        if (
-            datamodule.mode == "joint"
-        ):  # the next round needs these measurements, not the DGP (it would add the named terms twice)
-            write_measurements(run_dir / "measured.npz", torch.cat([data.train, data.val, data.test]))
-            config["data"].update(measured_path=str((run_dir / "measured.npz").resolve()), hidden_effect=[])
+        # the next round reads these measurements from a file (for generated ones, not the DGP: it would add the named
+        # terms twice)
+        measured = datamodule.source.as_file(run_dir, torch.cat([data.train, data.val, data.test]))
+        config["data"].update(measured_path=measured, hidden_effect=[])
         write_augmented(run_dir / "augmented.yaml", augmented_config(config, physics, result))
     return Finished(run_dir, result, physics, report)
 

@@ -11,10 +11,8 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
-from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -77,8 +75,3 @@ def _errors(prediction: Tensor, truth: Tensor, n_obs: int) -> dict[str, float]:
         out[f"abs_err_{label}"] = float(abs_err(prediction[:, part], truth[:, part]).mean())
         out[f"nrmse_{label}"] = float(nrmse(prediction[:, part], truth[:, part], value_range).mean())
     return out
-
-
-def write_measurements(path: Path, trajectories: Tensor) -> None:
-    """The generated measurements as a file ``data.measured_path`` reads, for the next round's config."""
-    np.savez(path, y=trajectories.numpy())
