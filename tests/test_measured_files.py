@@ -207,3 +207,20 @@ def test_npy_under_an_npz_name_and_a_folder(tmp_path, pendulum):
     (tmp_path / "folder.csv").mkdir()
     with pytest.raises(InputError, match="is not a file"):
         read_measured(tmp_path / "folder.csv", pendulum)
+
+
+def test_each_source_gives_the_next_round_a_file_of_its_measurements(tmp_path, measurements):
+    """Generated measurements are written once to measured.npz (the next round must not see the DGP); a file's own
+    measurements are that file. Either way, data.measured_path reads them back."""
+    friction = [ViscousFriction(Constant(1.2))]
+    generated = _module(tmp_path, hidden_effect=friction).source
+    (tmp_path / "round").mkdir()
+    written = generated.as_file(tmp_path / "round", measurements["y"])
+    assert written == str((tmp_path / "round" / "measured.npz").resolve())
+    assert torch.equal(read_measured(written, Pendulum()).y, measurements["y"])
+    path = tmp_path / "m.pt"
+    torch.save({"y": measurements["y"]}, path)
+    from_file = _module(tmp_path, measured_path=str(path), val_fraction=0.25, test_fraction=0.25).source
+    assert from_file.as_file(tmp_path / "round", measurements["y"]) == str(path.resolve())
+    assert (generated.selection_metric, from_file.selection_metric) == ("val/abs_err", "val/energy")
+    assert generated.reference_on_same_inputs and not from_file.reference_on_same_inputs
