@@ -141,8 +141,12 @@ def suggest(trial: optuna.Trial, key: str, spec: dict[str, list]) -> Any:
     return trial.suggest_float(key, *values, log=kind == "log_uniform")
 
 
+WARM_UP = 1 / 3  # share of a trial's steps before it may be pruned: early validation curves are noisy and cross
+
+
 class Pruning(Callback):
-    """Reports the selection metric to the trial after each validation and stops a trial the pruner rejects."""
+    """Reports the selection metric to the trial after each validation and, after the first :data:`WARM_UP` of the
+    run, stops a trial the pruner rejects."""
 
     def __init__(self, trial: optuna.Trial, monitor: str) -> None:
         self.trial, self.monitor = trial, monitor
@@ -152,7 +156,7 @@ class Pruning(Callback):
         if trainer.sanity_checking or value is None or not math.isfinite(float(value)):
             return
         self.trial.report(float(value), step=trainer.global_step)
-        if self.trial.should_prune():
+        if trainer.global_step >= WARM_UP * trainer.estimated_stepping_batches and self.trial.should_prune():
             raise optuna.TrialPruned(f"{self.monitor} {float(value):.4g} at step {trainer.global_step}")
 
 
