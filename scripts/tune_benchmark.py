@@ -4,7 +4,7 @@ against the hand-tuned config over seeds, and one worker against two on the same
     python scripts/tune_benchmark.py study --out results/tune            # 12 trials at 16 000 simulations (resumable)
     python scripts/tune_benchmark.py refit --out results/tune --seeds 0 1 2   # best.yaml and pendulum.yaml, full budget
     python scripts/tune_benchmark.py workers --out bench/workers --trials 4   # wall time of 1 worker against 2
-    python scripts/tune_benchmark.py table --out results/tune               # summary.md from the result files
+    python scripts/tune_benchmark.py table --out results/tune --doc docs/tune.md   # summary.md, and the docs' table
 
 Every step resumes: the study is an Optuna study on disk, and a refit whose test report exists is skipped. Result
 files (trials.md, best.yaml, refits.json, workers.json, summary.md) are small and meant to be committed.
@@ -28,6 +28,7 @@ from otgb.runs import machine, newest
 ROOT = Path(__file__).parents[1]
 CONFIG = ROOT / "configs" / "pendulum.yaml"
 SPACE = ROOT / "configs" / "tune" / "pendulum.yaml"
+FULL_BUDGET = 100_000  # configs/pendulum.yaml's budget: best.yaml holds the study's reduced one
 STUDY_BUDGET = ["--data.simulation_budget=16000", "--trainer.val_check_interval=125", "--trainer.enable_progress_bar=false"]
 
 
@@ -64,7 +65,8 @@ def refit(out: Path, seeds: list[int]) -> None:
                 continue
             folder = out / "refit" / key
             folder.mkdir(parents=True, exist_ok=True)
-            common = ["--config", str(config), f"--seed_everything={seed}", "--trainer.enable_progress_bar=false"]
+            common = ["--config", str(config), f"--seed_everything={seed}", f"--data.simulation_budget={FULL_BUDGET}"]
+            common.append("--trainer.enable_progress_bar=false")
             seconds = otgb(["fit", *common, logger_override("runs", "fit")], folder, folder / "otgb.log")
             best = newest(folder / "runs" / "fit", "version_*/checkpoints/best-*.ckpt")
             otgb(["test", *common, logger_override("runs", "test"), f"--ckpt_path={best}"], folder, folder / "otgb.log")
@@ -101,7 +103,11 @@ def workers(out: Path, trials: int) -> None:
     print(f"1 worker {walls[1]:.0f} s, 2 workers {walls[2]:.0f} s: ratio {walls['ratio']:.2f}")
 
 
-def table(out: Path) -> None:
+START, END = "<!-- results: scripts/tune_benchmark.py table -->", "<!-- end results -->"
+
+
+def table(out: Path, doc: Path | None = None) -> None:
+    """summary.md from the result files; with ``doc``, the same between that page's markers."""
     lines = ["# otgb tune on Pendulum-1-m", ""]
     if (out / "study.json").exists():
         timing = json.loads((out / "study.json").read_text())
@@ -124,6 +130,10 @@ def table(out: Path) -> None:
         lines += [f"(ratio {w['ratio']:.2f}; {w['machine']}); trials run by two workers: {len(w['2_trials'])}.", ""]
     (out / "summary.md").write_text("\n".join(lines))
     print("\n".join(lines))
+    if doc is not None:
+        head, _, rest = doc.read_text().partition(START)
+        _, _, tail = rest.partition(END)
+        doc.write_text(f"{head}{START}\n" + "\n".join(lines[2:]) + f"\n{END}{tail}")
 
 
 def main() -> None:
@@ -132,10 +142,11 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--trials", type=int, default=12)
     parser.add_argument("--seeds", type=int, nargs="*", default=[0, 1, 2])
+    parser.add_argument("--doc", type=Path, help="table: also write the results between this page's markers")
     args = parser.parse_args()
     out = args.out.resolve()
     {"study": lambda: study(out, args.trials), "refit": lambda: refit(out, args.seeds),
-     "workers": lambda: workers(out, args.trials), "table": lambda: table(out)}[args.step]()  # fmt: skip
+     "workers": lambda: workers(out, args.trials), "table": lambda: table(out, args.doc)}[args.step]()  # fmt: skip
 
 
 if __name__ == "__main__":
