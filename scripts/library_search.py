@@ -24,7 +24,7 @@ from discovery_benchmark import CASES, ROOT, export
 from otgb.data import SimulationDataModule
 from otgb.discovery.cli import DiscoverCLI
 from otgb.discovery.library import Candidate, build_library
-from otgb.discovery.refine import discrepancies, fit
+from otgb.discovery.refine import Fitting, discrepancies
 from otgb.discovery.regression import design_matrix
 from otgb.discovery.search import search
 from otgb.discovery.workflow import DiscoverySettings, Measurements, acting_components, gap_step, simulate_from_priors
@@ -83,12 +83,12 @@ def run_search(physics, data: Measurements, args: argparse.Namespace, truth: lis
     if first_term not in library:
         example = f"{library[0].feature}:{library[0].component}"
         raise SystemExit(f"library_search.py: --start {args.start!r} is not a candidate of this model; e.g. {example}")
-    fit_args = {"steps": 50, "batch": args.batch, "seed": args.seed}
+    fitting = Fitting(physics, data.train, data.val, 50, args.batch, args.seed)
     started = time.time()
-    first = fit(physics, [first_term], [0.0], "constant", data.train, data.val, **fit_args).priors[0].value
-    scales = natural_scales(physics, library, max(abs(first), 1e-3), args.seed)
+    first = fitting([first_term], [0.0]).priors[0].value
+    fitting.natural = natural_scales(physics, library, max(abs(first), 1e-3), args.seed)
     kept, path = search(
-        physics, library, [first if c == first_term else 0.0 for c in library], data, fit_args, scales,
+        library, [first if c == first_term else 0.0 for c in library], fitting,
         lambda m: print(f"[{time.time() - started:.0f} s] {m}", flush=True),
     )  # fmt: skip
     true_terms = [Candidate(t.feature, t.component) for t in truth]

@@ -263,6 +263,27 @@ def fit(
     return FittedTerms(family, list(candidates), priors, scored, losses, list(init), scales)
 
 
+@dataclass
+class Fitting:
+    """How every coefficient fit of one discovery run is made (:func:`fit`): on the training part, scored on the
+    validation part, with one run's steps, batch and seed; each coefficient moved in units of its natural scale
+    (``natural``: the slope at which its term alone is as large as f_phi) where one is known."""
+
+    physics: PhysicsModel
+    train: Tensor
+    val: Tensor
+    steps: int
+    batch: int
+    seed: int
+    natural: dict[Candidate, float] = field(default_factory=dict)
+
+    def __call__(self, candidates: list[Candidate], init: list[float], family: str = "constant", natural_scales: bool = True):
+        """The fitted prior of ``family`` for ``candidates`` started at ``init``; without ``natural_scales`` each
+        coefficient moves in units of its start's size."""
+        scales = [self.natural[c] for c in candidates] if natural_scales and self.natural else None
+        return fit(self.physics, candidates, init, family, self.train, self.val, self.steps, self.batch, self.seed, scales=scales)
+
+
 @torch.no_grad()
 def discrepancies(
     base: PhysicsModel,

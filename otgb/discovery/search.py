@@ -37,7 +37,7 @@ import torch
 from torch import Tensor
 
 from otgb.discovery.library import Candidate
-from otgb.discovery.refine import FittedTerms, beats, discrepancies, fit
+from otgb.discovery.refine import FittedTerms, Fitting, beats, discrepancies
 from otgb.discovery.regression import design_matrix
 from otgb.physics.base import PhysicsModel
 from otgb.physics.features import is_local
@@ -109,20 +109,27 @@ def subset_values(X: np.ndarray, y: np.ndarray, subset: list[int]) -> list[float
     return list(np.linalg.lstsq(X[:, subset], y, rcond=None)[0])
 
 
-def _proxy(physics: PhysicsModel, terms: list[Candidate], values: list[float], data: Any, seed: int) -> float:
+def _proxy(physics: PhysicsModel, terms: list[Candidate], values: list[float], heldout: Tensor, seed: int) -> float:
     """A proposal's held-out discrepancy with its least-squares coefficients on g, before any fit (cheap: no gradients)."""
-    return discrepancies(physics, terms, [Constant(float(v)) for v in values], data.val, seed, PROXY_REPEATS).mean
+    return discrepancies(physics, terms, [Constant(float(v)) for v in values], heldout, seed, PROXY_REPEATS).mean
 
 
 def _best_of_size(
-    physics: PhysicsModel, local: list[Candidate], X: np.ndarray, y: np.ndarray, size: int, data: Any, seed: int, fitted: Any
+    physics: PhysicsModel,
+    local: list[Candidate],
+    X: np.ndarray,
+    y: np.ndarray,
+    size: int,
+    heldout: Tensor,
+    seed: int,
+    fitted: Fitting,
 ) -> SearchStep | None:
     """Step 3 for one size: proposals by g's residual, ranked by their held-out score, the best few fitted."""
     ranked = best_subsets(X, y, size, PROPOSALS)
     if ranked is None:
         return None
     proposals = [([local[j] for j in subset], residual, subset_values(X, y, subset)) for subset, residual in ranked]
-    proposals.sort(key=lambda p: _proxy(physics, p[0], p[2], data, seed))
+    proposals.sort(key=lambda p: _proxy(physics, p[0], p[2], heldout, seed))
     steps = [SearchStep(terms, residual, fitted(terms, start)) for terms, residual, start in proposals[:REFITS]]
     step = min(steps, key=lambda s: s.fitted.heldout_energy)
     step.alternatives = [s.candidates for s in steps if s is not step and not beats(step.fitted.heldout, s.fitted.heldout)]
@@ -130,34 +137,24 @@ def _best_of_size(
 
 
 def search(
-    physics: PhysicsModel,
-    candidates: list[Candidate],
-    init: list[float],
-    data: Any,
-    fit_args: dict,
-    scales: dict[Candidate, float],
-    report: Any = print,
+    candidates: list[Candidate], init: list[float], fitting: Fitting, report: Any = print
 ) -> tuple[FittedTerms | None, list[SearchStep]]:
-    """Steps 1-3 of the module docstring on ``candidates`` (started at ``init``, each coefficient's natural
-    size in ``scales``): the model kept and the path. ``fit_args``: steps, batch and seed of each fit."""
+    """Steps 1-3 of the module docstring on ``candidates`` (started at ``init``), each fit made by ``fitting``: the
+    model kept and the path."""
+    physics, seed = fitting.physics, fitting.seed
     pairs = [(c, v) for c, v in zip(candidates, init) if is_local(c.feature, physics)]
     if not pairs:
         return None, []
     local, values = [c for c, _ in pairs], [v for _, v in pairs]
-
-    def fitted(terms: list[Candidate], start: list[float]) -> FittedTerms:
-        sizes = [scales[c] for c in terms]
-        return fit(physics, terms, start, "constant", data.train, data.val, scales=sizes, **fit_args)
-
-    dense = fitted(local, values)
+    dense = fitting(local, values)
     report(f"search: {len(local)} local candidates fitted together, held-out energy {dense.heldout_energy:.4g}")
     if not dense.heldout.finite:
         return None, []
-    states, theta, correction = fitted_correction(physics, dense, TRAJECTORIES, fit_args.get("seed", 0))
-    X, y = stacked_design(physics, local, states, theta, correction, fit_args.get("seed", 0))
+    states, theta, correction = fitted_correction(physics, dense, TRAJECTORIES, seed)
+    X, y = stacked_design(physics, local, states, theta, correction, seed)
     path: list[SearchStep] = []
     for size in range(1, len(local) + 1):
-        step = _best_of_size(physics, local, X, y, size, data, fit_args.get("seed", 0), fitted)
+        step = _best_of_size(physics, local, X, y, size, fitting.val, seed, fitting)
         if step is None:
             break
         path.append(step)

@@ -37,7 +37,7 @@ from otgb.discovery.intervals import Intervals, sandwich_intervals
 from otgb.discovery.library import Candidate, build_library, physical_name
 from otgb.discovery.locate import DisagreementMap, describe, locate
 from otgb.discovery.log import DivergenceLog, diverged, progress
-from otgb.discovery.refine import FAMILIES, FittedTerms, beats, discrepancies, fit, sample_scores, simulate_finite, term_names
+from otgb.discovery.refine import FAMILIES, FittedTerms, Fitting, beats, discrepancies, sample_scores, simulate_finite, term_names
 from otgb.discovery.regression import SelectedTerm, Selection, describe_terms, design_matrix, regress, subset_coefficients
 from otgb.discovery.search import SearchStep, search
 from otgb.discovery.variation import FamilyChoice
@@ -244,15 +244,13 @@ def strong_candidates(selections: list[Selection], designs: dict, k: int) -> lis
     return [(c, slopes[c]) for c in dict.fromkeys(chosen)]
 
 
-def cross_check_step(
-    physics: PhysicsModel, strong: list[tuple], data: Measurements, settings: DiscoverySettings, designs: dict
-) -> list[dict]:
+def cross_check_step(strong: list[tuple], fitting: Fitting) -> list[dict]:
     """Each strong candidate alone added to f_p, its coefficient fitted: the share of f_p's held-out gap it closes."""
-    baseline = discrepancies(physics, [], [], data.val, settings.seed)
+    baseline = discrepancies(fitting.physics, [], [], fitting.val, fitting.seed)
     gap = baseline.mean
     rows = []
     for candidate, init in strong:
-        fitted = fit(physics, [candidate], [init], "constant", data.train, data.val, **_fit_args(settings, [candidate], designs))
+        fitted = fitting([candidate], [init])
         rows.append(
             {
                 "feature": candidate.feature,
@@ -265,13 +263,11 @@ def cross_check_step(
     return sorted(rows, key=lambda r: -r["gap_closed"])
 
 
-def _fit_args(settings: DiscoverySettings, candidates: list[Candidate] | None = None, designs: dict | None = None) -> dict:
-    """Keyword arguments of :func:`fit`; with ``designs``, each coefficient's natural scale: the slope at
-    which its term alone would be as large as f_phi on its component."""
-    args = {"steps": settings.fit_steps, "batch": settings.fit_batch, "seed": settings.seed}
-    if candidates is not None and designs is not None:
-        args["scales"] = [_natural_scale(c, designs[c.component]) for c in candidates]
-    return args
+def fitting_for(physics: PhysicsModel, data: Measurements, settings: DiscoverySettings, designs: dict) -> Fitting:
+    """The run's :class:`otgb.discovery.refine.Fitting`: the settings' steps, batch and seed, and each library
+    candidate's natural scale, the slope at which its term alone would be as large as f_phi on its component."""
+    natural = {c: _natural_scale(c, design) for design in designs.values() for c in design.candidates}
+    return Fitting(physics, data.train, data.val, settings.fit_steps, settings.fit_batch, settings.seed, natural)
 
 
 def _natural_scale(candidate: Candidate, design: Any) -> float:
@@ -279,7 +275,7 @@ def _natural_scale(candidate: Candidate, design: Any) -> float:
     return float(np.sqrt((design.y**2).mean()) / max(design.scale[index], 1e-12))
 
 
-def add_step(physics: PhysicsModel, selections: list[Selection], designs: dict, data: Measurements, settings: DiscoverySettings):
+def add_step(selections: list[Selection], designs: dict, fitting: Fitting):
     """Forward selection on held-out measurements, then the prior family.
 
     The selected terms are ordered by the size of their contribution to f_phi; the models made
@@ -297,53 +293,46 @@ def add_step(physics: PhysicsModel, selections: list[Selection], designs: dict, 
     leader = 0  # the last model that beat the leader before it
     for k in range(1, len(path) + 1):
         init = _initial(path[:k], designs)
-        fits.append(fit(physics, path[:k], init, "constant", data.train, data.val, **_fit_args(settings, path[:k], designs)))
+        fits.append(fitting(path[:k], init))
         progress(f"{k} term(s) {[c.feature for c in path[:k]]}: held-out energy {fits[-1].heldout_energy:.4g}")
         if beats(fits[-1].heldout, fits[leader].heldout):
             leader = k - 1
         elif k - 1 - leader >= 2:
             break
     best = min(fits, key=lambda f: f.heldout_energy)
-    current = prune(physics, next(f for f in fits if not beats(best.heldout, f.heldout)), data, settings, designs)
+    current = prune(next(f for f in fits if not beats(best.heldout, f.heldout)), fitting)
     dropped = [{"feature": c.feature, "component": c.component} for c in path if c not in current.candidates]
     return current, dropped
 
 
 def evidence_step(
-    physics: PhysicsModel, kept: FittedTerms, cross_check: list[dict], data: Measurements, settings: DiscoverySettings,
-    designs: dict,
+    kept: FittedTerms, cross_check: list[dict], designs: dict, fitting: Fitting, per_term: int
 ) -> tuple[FittedTerms, list[Comparison], list[dict]]:  # fmt: skip
     """The kept terms against every single-term swap among the strong candidates (and Coulomb friction), on the
     validation measurements (:mod:`otgb.discovery.evidence`); a swap or an added strong candidate that fits better by
     two standard errors is taken. Returns the kept fit, its comparisons and the additions."""
 
-    def refit(candidates: list[Candidate], init: list[float]) -> FittedTerms:
-        args = _fit_args(settings, candidates, designs)
-        return fit(physics, candidates, init, "constant", data.train, data.val, **args)
-
     def start(candidate: Candidate) -> float:
         return _initial([candidate], designs)[0]
 
-    kept, comparisons, added = weigh(physics, kept, cross_check, settings.strong_candidates, refit, start)
+    kept, comparisons, added = weigh(fitting.physics, kept, cross_check, per_term, fitting, start)
     for c in comparisons:
         progress(f"evidence: {c.replaced.feature} against {c.by.feature}: {c.standard_errors:+.1f} standard errors")
     return kept, comparisons, added
 
 
-def choose_prior(physics: PhysicsModel, constant: FittedTerms, data: Measurements, settings: DiscoverySettings) -> FamilyChoice:
-    """Each prior family of ``settings.families`` for the constant fit's terms, fitted from its optimum; the choice
-    on the training measurements (:mod:`otgb.discovery.variation`)."""
+def choose_prior(constant: FittedTerms, fitting: Fitting, families: tuple[str, ...]) -> FamilyChoice:
+    """Each prior family of ``families`` for the constant fit's terms, fitted from its optimum; the choice on the
+    training measurements (:mod:`otgb.discovery.variation`)."""
     start = [p.value for p in constant.priors]
 
     def refit(family: str) -> FittedTerms:
-        return fit(physics, constant.candidates, start, family, data.train, data.val, **_fit_args(settings))
+        return fitting(constant.candidates, start, family, natural_scales=False)
 
-    return choose_family_of(physics, constant, data.train, settings.families, refit, settings.seed)
+    return choose_family_of(fitting.physics, constant, fitting.train, families, refit, fitting.seed)
 
 
-def prune(
-    physics: PhysicsModel, current: FittedTerms, data: Measurements, settings: DiscoverySettings, designs: dict
-) -> FittedTerms:
+def prune(current: FittedTerms, fitting: Fitting) -> FittedTerms:
     """Backward elimination: drop a kept term while the model without it is not beaten on held-out data.
 
     The forward order comes from f_phi; the measurements may need a later term instead of an
@@ -355,9 +344,7 @@ def prune(
         for k in range(len(current.candidates)):
             keep = [i for i in range(len(current.candidates)) if i != k]
             init = [current.priors[i].value for i in keep]
-            trials.append(
-                fit(physics, [current.candidates[i] for i in keep], init, "constant", data.train, data.val, **_fit_args(settings))
-            )
+            trials.append(fitting([current.candidates[i] for i in keep], init, natural_scales=False))
         reduced = min(trials, key=lambda f: f.heldout_energy)
         if beats(current.heldout, reduced.heldout):
             return current
@@ -426,18 +413,21 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
     selected = [(t.candidate, t.coefficient) for s in result.selections for t in s.terms]
     progress(f"named {[f'{c.feature} on d{c.component}/dt: {v:.4g}' for c, v in selected] or 'nothing'}")
     strong = strong_candidates(result.selections, designs, settings.strong_candidates)
-    result.cross_check = cross_check_step(physics, strong, data, settings, designs)
+    fitting = fitting_for(physics, data, settings, designs)
+    result.cross_check = cross_check_step(strong, fitting)
     progress(f"cross-checked {len(strong)} candidates alone")
     result.undertrained = undertrained(module, data.val, settings)
     kept = None
     if selected and result.undertrained is None:
-        kept, result.dropped = add_step(physics, result.selections, designs, data, settings)
+        kept, result.dropped = add_step(result.selections, designs, fitting)
         progress(f"kept {[c.feature for c in kept.candidates]}, coefficients {kept.priors}")
     if kept is None or locate_step(kept.model(physics), data.val, settings, "augmented-check").any_significant:
-        kept = search_step(physics, kept, result, designs, data, settings)
+        kept = search_step(kept, result, designs, fitting)
     if kept is not None:
-        kept, result.evidence, result.added = evidence_step(physics, kept, result.cross_check, data, settings, designs)
-        result.family = choose_prior(physics, kept, data, settings)
+        kept, result.evidence, result.added = evidence_step(
+            kept, result.cross_check, designs, fitting, settings.strong_candidates
+        )
+        result.family = choose_prior(kept, fitting, settings.families)
         result.fitted = result.family.fitted
         progress(f"fitted {result.fitted.family} coefficients {result.fitted.priors}")
     sources = {
@@ -456,10 +446,7 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
     return result
 
 
-def search_step(
-    physics: PhysicsModel, kept: FittedTerms | None, result: Discovery, designs: dict, data: Measurements,
-    settings: DiscoverySettings,
-) -> FittedTerms | None:  # fmt: skip
+def search_step(kept: FittedTerms | None, result: Discovery, designs: dict, fitting: Fitting) -> FittedTerms | None:
     """The library search (:mod:`otgb.discovery.search`), when f_phi's route named nothing (``kept`` is None) or the
     physics it augmented still disagrees with the measurements; its model replaces ``kept`` if it beats it on held-out
     data. Returns the constant fit kept."""
@@ -468,8 +455,7 @@ def search_step(
     candidates = [c for design in designs.values() for c in design.candidates]
     current = {} if kept is None else {c: p.value for c, p in zip(kept.candidates, kept.priors)}
     init = [current.get(c, 0.0) for c in candidates]
-    scales = dict(zip(candidates, _fit_args(settings, candidates, designs)["scales"]))
-    found, result.search = search(physics, candidates, init, data, _fit_args(settings), scales, progress)
+    found, result.search = search(candidates, init, fitting, progress)
     if found is None or (kept is not None and not beats(found.heldout, kept.heldout)):
         progress("search: nothing better than " + ("f_phi's terms" if kept else "f_p alone"))
         return kept
