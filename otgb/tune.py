@@ -327,6 +327,8 @@ class Study:
                 figure = plot(self.study).figure
             except (ValueError, RuntimeError):  # too few completed trials for an importance
                 continue
+            figure.set_size_inches(10, 4.5)  # room for the config keys' full names
+            figure.tight_layout()
             save(figure, self.directory / name)
             close(figure)
             written.append(name)
