@@ -16,6 +16,7 @@ import yaml
 from otgb.cli import main
 from otgb.data import generate_measured
 from otgb.physics import Constant, Pendulum, ViscousFriction
+from otgb.tune import GRACE_S
 
 ROOT = Path(__file__).parents[1]
 CONFIG = str(ROOT / "configs" / "pendulum.yaml")
@@ -159,3 +160,20 @@ def test_a_study_name_taken_by_another_space_is_refused(tmp_path, monkeypatch, c
     code, _, err = _tune_here(tmp_path, monkeypatch, capsys, "--tune.trials=1", *_tiny(tmp_path), space=space)
     assert code == 2 and "was started with another space" in err.strip().splitlines()[-1]
     assert sorted(p.name for p in (tmp_path / "runs" / "tune-pendulum").iterdir()) == before, "nothing written"
+
+
+@pytest.mark.slow
+def test_a_killed_worker_s_trial_is_retried_once_its_heartbeat_is_stale(tmp_path):
+    worker = _tune(tmp_path, "--tune.trials=2", "--tune.pruner=none", *_tiny(tmp_path, steps=30), wait=False)
+    second = tmp_path / "runs" / "tune-pendulum" / "trial_0001" / "version_0" / "metrics.csv"
+    deadline = time.time() + 600
+    while not second.exists() and worker.poll() is None and time.time() < deadline:
+        time.sleep(0.5)
+    worker.kill()
+    worker.wait()
+    time.sleep(GRACE_S + 10)
+    done = _tune(tmp_path, "--tune.trials=2", "--tune.pruner=none", *_tiny(tmp_path, steps=30))
+    assert done.returncode == 0, done.stderr[-2000:]
+    trials = _trials(tmp_path / "runs" / "tune-pendulum")
+    assert [s for _, s, _ in trials] == ["COMPLETE", "FAIL", "COMPLETE"], trials
+    assert trials[1][2] == trials[2][2], "the killed trial's settings ran again"
