@@ -125,13 +125,14 @@ def table(out: Path, doc: Path | None = None) -> None:
         lines += [f"Study: {timing['trials']} trials at 16 000 simulations each, {minutes:.0f} min ({timing['machine']}).", ""]
     if (out / "refits.json").exists():
         results = json.loads((out / "refits.json").read_text())
-        lines += ["| config, full budget (1e5 simulations) | seeds | test ABS ERR, mean ± std | per seed |", "|---|---|---|---|"]
         trial = results.get("study_best")
         as_is = [v["val_best"] for k, v in results.items() if k.startswith("tuned-as-is-seed")]
         if as_is:
             against = f", against its trial's {trial:.4g}" if trial is not None else ""
+            per_seed = ", ".join(f"{v:.4g}" for v in as_is)
             lines.append(f"best.yaml refitted as it is (the study's budget): best validation ABS ERR {mean_spread(as_is)}")
-            lines += [f"over {len(as_is)} seeds{against}.", ""]
+            lines += [f"over {len(as_is)} seeds ({per_seed}){against}.", ""]
+        lines += ["| config, full budget (1e5 simulations) | seeds | test ABS ERR, mean ± std | per seed |", "|---|---|---|---|"]
         for name in ("tuned", "hand-tuned"):
             runs = {k: v for k, v in results.items() if k.startswith(f"{name}-seed")}
             values = [v["abs_err"] for v in runs.values()]
@@ -143,7 +144,7 @@ def table(out: Path, doc: Path | None = None) -> None:
         w = json.loads((out / "workers.json").read_text())
         size = len(w["1_trials"])
         lines.append(f"Workers: the same {size}-trial study took {w['1']:.0f} s with one worker and {w['2']:.0f} s with two")
-        lines += [f"(ratio {w['ratio']:.2f}; {w['machine']}); trials run by two workers: {len(w['2_trials'])}.", ""]
+        lines += [f"(ratio {w['ratio']:.2f}; each worker 1 thread, {w['machine']}); trials run: {len(w['2_trials'])}.", ""]
     (out / "summary.md").write_text("\n".join(lines))
     print("\n".join(lines))
     if doc is not None:
