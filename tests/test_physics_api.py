@@ -149,7 +149,7 @@ def test_repr_records_every_constructor_argument_so_cache_keys_differ(tmp_path):
 
     def key(physics: PhysicsModel, **kwargs) -> str:
         kwargs = {"hidden_effect": [ConstantDrain(Constant(0.0))], **kwargs}  # generated measurements need a DGP
-        return SimulationDataModule(physics, cache_dir=str(tmp_path), **kwargs)._key("measured", 10)
+        return SimulationDataModule(physics, cache_dir=str(tmp_path), **kwargs).source._key("measured", 10)
 
     assert key(narrow) != key(wide)
     assert repr(ConstantDrain(Constant(1.0), channel=0)) != repr(ConstantDrain(Constant(1.0), channel=1))
