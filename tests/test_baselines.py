@@ -85,6 +85,7 @@ def test_objective_and_map_train_through_the_cli(tmp_path, monkeypatch, system, 
         assert BLACK_BOX_CLASS[system] in (run / "config.yaml").read_text()
 
 
+@pytest.mark.slow  # 90 s of real fits; every config's smoke run and the gather path stay in the default suite
 def test_reproduce_table_quick_runs_the_grid_resumes_and_writes_the_table(tmp_path):
     """scripts/reproduce_table.py --quick: every method, f_p only, complete physics and Reference rows in the table."""
     script = [sys.executable, str(ROOT / "scripts" / "reproduce_table.py"), "--out", str(tmp_path), "--quick"]

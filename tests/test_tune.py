@@ -88,7 +88,7 @@ def test_a_study_runs_real_fits_writes_its_results_and_a_config_fit_takes(tmp_pa
 
 
 def test_sigterm_stops_a_trial_and_the_same_command_finishes_the_study_without_losing_or_repeating(tmp_path):
-    worker = _tune(tmp_path, "--tune.trials=2", "--tune.pruner=none", *_tiny(tmp_path, steps=30), wait=False)
+    worker = _tune(tmp_path, "--tune.trials=2", "--tune.pruner=none", *_tiny(tmp_path, steps=18), wait=False)
     second = tmp_path / "runs" / "tune-pendulum" / "trial_0001" / "version_0" / "metrics.csv"
     deadline = time.time() + 600
     while not second.exists() and worker.poll() is None and time.time() < deadline:
@@ -98,7 +98,7 @@ def test_sigterm_stops_a_trial_and_the_same_command_finishes_the_study_without_l
     assert worker.returncode == 128 + signal.SIGTERM, worker.stderr.read()[-2000:]
     stopped = _trials(tmp_path / "runs" / "tune-pendulum")
     assert [s for _, s, _ in stopped] == ["COMPLETE", "FAIL", "WAITING"], stopped
-    done = _tune(tmp_path, "--tune.trials=2", "--tune.pruner=none", *_tiny(tmp_path, steps=30))
+    done = _tune(tmp_path, "--tune.trials=2", "--tune.pruner=none", *_tiny(tmp_path, steps=18))
     assert done.returncode == 0, done.stderr[-2000:]
     trials = _trials(tmp_path / "runs" / "tune-pendulum")
     complete = [params for _, state, params in trials if state == "COMPLETE"]
