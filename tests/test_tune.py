@@ -87,12 +87,18 @@ def test_a_study_runs_real_fits_writes_its_results_and_a_config_fit_takes(tmp_pa
     assert code == 0 and len(_trials(study)) == 3, "the study is complete: the same command adds nothing"
 
 
-def test_sigterm_stops_a_trial_and_the_same_command_finishes_the_study_without_losing_or_repeating(tmp_path):
-    worker = _tune(tmp_path, "--tune.trials=2", "--tune.pruner=none", *_tiny(tmp_path, steps=18), wait=False)
+def _worker_in_its_second_trial(tmp_path: Path, steps: int) -> subprocess.Popen:
+    """A worker of a 2-trial study, once its second trial has begun logging."""
+    worker = _tune(tmp_path, "--tune.trials=2", "--tune.pruner=none", *_tiny(tmp_path, steps=steps), wait=False)
     second = tmp_path / "runs" / "tune-pendulum" / "trial_0001" / "version_0" / "metrics.csv"
     deadline = time.time() + 600
     while not second.exists() and worker.poll() is None and time.time() < deadline:
         time.sleep(0.5)
+    return worker
+
+
+def test_sigterm_stops_a_trial_and_the_same_command_finishes_the_study_without_losing_or_repeating(tmp_path):
+    worker = _worker_in_its_second_trial(tmp_path, steps=18)
     worker.send_signal(signal.SIGTERM)
     worker.wait(timeout=300)
     assert worker.returncode == 128 + signal.SIGTERM, worker.stderr.read()[-2000:]
@@ -164,11 +170,7 @@ def test_a_study_name_taken_by_another_space_is_refused(tmp_path, monkeypatch, c
 
 @pytest.mark.slow
 def test_a_killed_worker_s_trial_is_retried_once_its_heartbeat_is_stale(tmp_path):
-    worker = _tune(tmp_path, "--tune.trials=2", "--tune.pruner=none", *_tiny(tmp_path, steps=30), wait=False)
-    second = tmp_path / "runs" / "tune-pendulum" / "trial_0001" / "version_0" / "metrics.csv"
-    deadline = time.time() + 600
-    while not second.exists() and worker.poll() is None and time.time() < deadline:
-        time.sleep(0.5)
+    worker = _worker_in_its_second_trial(tmp_path, steps=30)
     worker.kill()
     worker.wait()
     time.sleep(GRACE_S + 10)
