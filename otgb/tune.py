@@ -50,6 +50,7 @@ from otgb.runs import load_run
 
 KINDS = ("uniform", "log_uniform", "int", "choice")
 SAMPLERS = {"tpe": optuna.samplers.TPESampler, "random": optuna.samplers.RandomSampler}
+OPEN_ATTEMPTS = 4
 HEARTBEAT_S, GRACE_S = 30, 90  # a trial whose worker stopped beating for GRACE_S is queued again
 
 
@@ -198,12 +199,15 @@ class Study:
         if url.endswith(".log"):  # a journal file: for file systems where SQLite's locks are unsafe (NFS)
             return optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(url))
         retry = optuna.storages.RetryFailedTrialCallback(max_retry=3)
-        try:
-            return optuna.storages.RDBStorage(
-                url, heartbeat_interval=HEARTBEAT_S, grace_period=GRACE_S, failed_trial_callback=retry
-            )
-        except Exception as error:  # noqa: BLE001 - SQLAlchemy's errors differ by database
-            raise InputError(f"tune.storage={url!r}: cannot be opened ({str(error).splitlines()[0]})") from None
+        for attempt in range(OPEN_ATTEMPTS):  # workers started together race to create the tables of a new storage
+            try:
+                return optuna.storages.RDBStorage(
+                    url, heartbeat_interval=HEARTBEAT_S, grace_period=GRACE_S, failed_trial_callback=retry
+                )
+            except Exception as error:  # noqa: BLE001 - SQLAlchemy's errors differ by database
+                if attempt == OPEN_ATTEMPTS - 1:
+                    raise InputError(f"tune.storage={url!r}: cannot be opened ({str(error).splitlines()[0]})") from None
+                time.sleep(1.0 + attempt)
 
     def finished(self) -> int:
         """Trials that count toward ``--tune.trials``: completed, pruned, or failed for a reason of their own."""

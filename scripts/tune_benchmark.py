@@ -3,7 +3,7 @@ against the hand-tuned config over seeds, and one worker against two on the same
 
     python scripts/tune_benchmark.py study --out results/tune            # 12 trials at 16 000 simulations (resumable)
     python scripts/tune_benchmark.py refit --out results/tune --seeds 0 1 2   # best.yaml and pendulum.yaml, full budget
-    python scripts/tune_benchmark.py workers --out bench/workers --trials 4   # wall time of 1 worker against 2
+    python scripts/tune_benchmark.py workers --out bench/workers --trials 4   # 1 worker against 2, 16 000 sims a trial
     python scripts/tune_benchmark.py table --out results/tune --doc docs/tune.md   # summary.md, and the docs' table
 
 Every step resumes: the study is an Optuna study on disk, and a refit whose test report exists is skipped. Result
@@ -85,9 +85,13 @@ def refit(out: Path, seeds: list[int]) -> None:
             (out / "refits.json").write_text(json.dumps(results, indent=1))
 
 
-def workers(out: Path, trials: int) -> None:
+def workers(out: Path, trials: int, simulations: int) -> None:
     """The same study size run by one worker and by two, each from an empty folder, one after the other."""
-    budget = ["--data.simulation_budget=3200", "--trainer.val_check_interval=50", "--trainer.enable_progress_bar=false"]
+    budget = [
+        f"--data.simulation_budget={simulations}",
+        "--trainer.val_check_interval=125",
+        "--trainer.enable_progress_bar=false",
+    ]
     args = ["tune", "--config", str(CONFIG), f"--tune.space={SPACE}", f"--tune.trials={trials}", "--tune.pruner=none", *budget]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     walls = {}
@@ -108,6 +112,7 @@ def workers(out: Path, trials: int) -> None:
         folders = sorted(p.name for p in (folder / "runs" / "tune-pendulum").glob("trial_*"))
         walls[f"{count}_trials"] = folders
     walls["ratio"] = walls[2] / walls[1]
+    walls["simulations_per_trial"] = simulations
     walls["machine"] = machine()
     (out / "workers.json").write_text(json.dumps(walls, indent=1))
     print(f"1 worker {walls[1]:.0f} s, 2 workers {walls[2]:.0f} s: ratio {walls['ratio']:.2f}")
@@ -143,7 +148,11 @@ def table(out: Path, doc: Path | None = None) -> None:
     if (out / "workers.json").exists():
         w = json.loads((out / "workers.json").read_text())
         size = len(w["1_trials"])
-        lines.append(f"Workers: the same {size}-trial study took {w['1']:.0f} s with one worker and {w['2']:.0f} s with two")
+        per_trial = w.get("simulations_per_trial", 3200)
+        lines.append(
+            f"Workers: the same {size}-trial study ({per_trial} simulations per trial) took {w['1']:.0f} s with one worker"
+        )
+        lines[-1] += f" and {w['2']:.0f} s with two"
         lines += [f"(ratio {w['ratio']:.2f}; each worker 1 thread, {w['machine']}); trials run: {len(w['2_trials'])}.", ""]
     (out / "summary.md").write_text("\n".join(lines))
     print("\n".join(lines))
@@ -158,12 +167,18 @@ def main() -> None:
     parser.add_argument("step", choices=["study", "refit", "workers", "table"])
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--trials", type=int, default=12)
+    parser.add_argument("--simulations", type=int, default=16_000, help="workers: simulations per trial")
     parser.add_argument("--seeds", type=int, nargs="*", default=[0, 1, 2])
     parser.add_argument("--doc", type=Path, help="table: also write the results between this page's markers")
     args = parser.parse_args()
     out = args.out.resolve()
-    {"study": lambda: study(out, args.trials), "refit": lambda: refit(out, args.seeds),
-     "workers": lambda: workers(out, args.trials), "table": lambda: table(out, args.doc)}[args.step]()  # fmt: skip
+    steps = {
+        "study": lambda: study(out, args.trials),
+        "refit": lambda: refit(out, args.seeds),
+        "workers": lambda: workers(out, args.trials, args.simulations),
+        "table": lambda: table(out, args.doc),
+    }
+    steps[args.step]()
 
 
 if __name__ == "__main__":
