@@ -82,6 +82,13 @@ def label(name: str) -> str:
     return GROUPS[group] + LABELS[name.removeprefix(group)]
 
 
+def write_between(doc: Path, start: str, end: str, text: str) -> None:
+    """Replace what lies between the marker lines ``start`` and ``end`` of the page ``doc`` by ``text``."""
+    head, _, rest = doc.read_text().partition(start)
+    _, _, tail = rest.partition(end)
+    doc.write_text(f"{head}{start}\n{text.rstrip()}\n{end}{tail}")
+
+
 def mean_spread(values: list[float], plus: str = "±", empty: str = "") -> str:
     """One value as it is; several as mean ± standard deviation (over seeds or runs)."""
     if not values:

@@ -27,6 +27,7 @@ import torch
 
 from otgb.data import generate_measured
 from otgb.physics import AdvectionDiffusion, Constant, LibraryTerm, Pendulum, ReactionDiffusion, Uniform
+from otgb.reports import write_between
 from otgb.runs import machine
 
 ROOT = Path(__file__).parents[1]
@@ -288,9 +289,7 @@ def keep(out: Path, results: Path) -> None:
 
 def write_doc(doc: Path, results: Path) -> None:
     """The table of ``results`` between the page's START and END markers."""
-    head, _, rest = doc.read_text().partition(START)
-    _, _, tail = rest.partition(END)
-    doc.write_text(f"{head}{START}\n{table(results)}{END}{tail}")
+    write_between(doc, START, END, table(results))
 
 
 def _named(t: dict) -> str:

@@ -27,6 +27,7 @@ from otgb.discovery.intervals import sandwich_intervals
 from otgb.discovery.library import Candidate
 from otgb.discovery.refine import fit
 from otgb.physics import AdvectionDiffusion, Constant, LibraryTerm, Pendulum, Uniform
+from otgb.reports import write_between
 
 ROOT = Path(__file__).parents[1]
 OUT = ROOT / "results" / "intervals"
@@ -124,9 +125,7 @@ def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
 
 
 def write_table(doc: Path) -> None:
-    head, _, rest = doc.read_text().partition(MARK)
-    _, _, tail = rest.partition(MARK)
-    doc.write_text(f"{head}{MARK}\n{coverage_table()}\n{MARK}{tail}")
+    write_between(doc, MARK, MARK, coverage_table())
 
 
 def main() -> None:

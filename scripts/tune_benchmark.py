@@ -25,7 +25,7 @@ import optuna
 import torch
 
 from otgb.command import logger_override
-from otgb.reports import mean_spread
+from otgb.reports import mean_spread, write_between
 from otgb.runs import machine, newest
 
 ROOT = Path(__file__).parents[1]
@@ -157,9 +157,7 @@ def table(out: Path, doc: Path | None = None) -> None:
     (out / "summary.md").write_text("\n".join(lines))
     print("\n".join(lines))
     if doc is not None:
-        head, _, rest = doc.read_text().partition(START)
-        _, _, tail = rest.partition(END)
-        doc.write_text(f"{head}{START}\n" + "\n".join(lines[2:]) + f"\n{END}{tail}")
+        write_between(doc, START, END, "\n".join(lines[2:]))
 
 
 def main() -> None:
