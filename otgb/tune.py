@@ -245,6 +245,11 @@ class Study:
         except (InputError, TrainingDiverged, SimulationDiverged) as error:
             trial.set_user_attr("failed_because", str(error))
             score = None
+        except SystemExit as error:  # the config parser rejected a sampled value (its one line is on stderr)
+            if error.code != 2:
+                raise
+            trial.set_user_attr("failed_because", f"the config parser rejected these settings: {values}")
+            score = None
         except optuna.TrialPruned:
             trial.set_user_attr("wall_s", time.time() - started)
             raise

@@ -179,3 +179,14 @@ def test_a_killed_worker_s_trial_is_retried_once_its_heartbeat_is_stale(tmp_path
     trials = _trials(tmp_path / "runs" / "tune-pendulum")
     assert [s for _, s, _ in trials] == ["COMPLETE", "FAIL", "COMPLETE"], trials
     assert trials[1][2] == trials[2][2], "the killed trial's settings ran again"
+
+
+def test_a_sampled_value_the_parser_rejects_fails_that_trial_not_the_study(tmp_path, monkeypatch, capsys):
+    space = "data.batch_size: {choice: [16, not-a-number]}\n"
+    code, out, err = _tune_here(
+        tmp_path, monkeypatch, capsys, "--tune.trials=3", "--tune.sampler=random", *_tiny(tmp_path), space=space
+    )
+    assert code == 0, err[-2000:]
+    table = (tmp_path / "runs" / "tune-pendulum" / "trials.md").read_text()
+    assert table.count("| complete |") + table.count("| fail |") == 3, table
+    assert "| fail |" in table and "the config parser rejected these settings" in table, "seeded: trials 0 and 1 draw it"
