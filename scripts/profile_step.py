@@ -21,7 +21,7 @@ import torch
 
 from otgb.data import SimulationDataModule
 from otgb.ot import critic_loss
-from otgb.physics.solvers import SOLVERS, set_solver
+from otgb.physics.solvers import SOLVERS, current_solver
 from otgb.runs import load_run
 from otgb.training import MapTraining
 
@@ -38,8 +38,8 @@ def main() -> None:
     parser.add_argument("--batch-size", type=int, default=None, help="source batch size (default: the config's)")
     parser.add_argument("--solver", choices=SOLVERS, default="compiled", help="the solve path (otgb fit's --solver)")
     args = parser.parse_args()
-    set_solver(args.solver)
-    model, dm = build(args.config, [] if args.batch_size is None else [f"--data.batch_size={args.batch_size}"])
+    overrides = [f"--solver={args.solver}"] + ([] if args.batch_size is None else [f"--data.batch_size={args.batch_size}"])
+    model, dm = build(args.config, overrides)  # the run's --solver is set as `otgb fit` sets it
     dm.setup("fit")
     map_opt = torch.optim.Adam(model.transport_map.parameters(), lr=1e-4)
     critic_opt = torch.optim.Adam(model.critic.parameters(), lr=1e-4)
@@ -83,7 +83,7 @@ def main() -> None:
     total = sum(times.values())
     print(
         f"{args.config}: {1000 * total / args.steps:.1f} ms per training step (T_max = {model.t_max}, batch {dm.batch_size}, "
-        f"threads {torch.get_num_threads()}, solver {args.solver}); the 2 warm-up steps took {warmup:.1f} s"
+        f"threads {torch.get_num_threads()}, solver {current_solver()}); the 2 warm-up steps took {warmup:.1f} s"
     )
     for name, seconds in sorted(times.items(), key=lambda kv: -kv[1]):
         print(f"  {name:32s} {1000 * seconds / args.steps:8.1f} ms  {100 * seconds / total:5.1f} %")

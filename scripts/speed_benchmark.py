@@ -2,6 +2,7 @@
 
     python scripts/speed_benchmark.py steps --out results/speed [--configs pendulum advdiff reactdiff] [--steps 40]
     python scripts/speed_benchmark.py fit --out results/speed --config reactdiff -- --data.simulation_budget=1600
+    python scripts/speed_benchmark.py judges --out results/speed [--rows 6000 --features 1041]
     python scripts/speed_benchmark.py table --out results/speed --doc docs/results.md
 
 ``steps`` trains each config with a real Lightning Trainer for ``--steps`` training steps, once
@@ -20,6 +21,12 @@ sets before training and the validation after it are not in these figures (``fit
 data, compile, training, validation, test-free), alternating ``--rounds`` times, and writes
 ``fit.json`` with each run's wall time and final validation metrics.
 
+``judges`` times the paper's C2ST judge (``classifier="paper"``) on rows of the Adv-diff-m-m test
+draws' size: seconds per training epoch of one fold with otgb's convolution and with the library's
+(``torch.nn.Conv1d``, the reference), alternating ``--rounds`` times, then one whole 5-fold C2ST
+on otgb's path (wall time, epochs per fold), and writes ``judges.json``. The rows are Gaussian,
+the two samples 2 % apart in mean and 5 % in scale: close enough that the judge trains long.
+
 Each writes its results as it goes; a rerun skips what is done. ``table`` writes the figures of
 both files into ``--doc`` between the markers ``<!-- speed: scripts/speed_benchmark.py -->`` and
 ``<!-- end speed -->`` (appended when missing), so the docs' figures come from the result files.
@@ -35,8 +42,11 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 from lightning import Callback
+
+from otgb.metrics.classifiers import PaperConvClassifier, PaperConvNet
 
 ROOT = Path(__file__).parents[1]
 
@@ -144,6 +154,58 @@ def run_fit(args: argparse.Namespace) -> None:
     print(f"speed_benchmark: wrote {path}")
 
 
+class LibraryConvNet(PaperConvNet):
+    """The paper's judge network on ``torch.nn.Conv1d``'s own forward: the reference of ``judges``."""
+
+    def forward(self, rows: torch.Tensor) -> torch.Tensor:
+        return torch.nn.Sequential.forward(self, rows.unsqueeze(1)).squeeze(1)
+
+
+class LibraryConvJudge(PaperConvClassifier):
+    def _network(self, n_features: int) -> torch.nn.Module:
+        return LibraryConvNet(n_features)
+
+
+def judge_rows(rows: int, features: int) -> tuple[np.ndarray, np.ndarray]:
+    g = torch.Generator().manual_seed(0)
+    p = torch.randn(rows // 2, features, generator=g)
+    q = torch.randn(rows - rows // 2, features, generator=g) * 1.05 + 0.02
+    return torch.cat([p, q]).numpy(), np.r_[np.zeros(len(p)), np.ones(len(q))].astype(np.int64)
+
+
+def run_judges(args: argparse.Namespace) -> None:
+    from otgb.metrics.c2st import c2st
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "judges.json"
+    results = json.loads(path.read_text()) if path.exists() else {}
+    features, labels = judge_rows(args.rows, args.features)
+    fold = np.random.default_rng(0).permutation(len(labels))[: len(labels) * 4 // 5]  # one fold's training rows
+    judges = {"library-conv1d": LibraryConvJudge, "otgb": PaperConvClassifier}
+    for round_ in range(args.rounds):
+        for name, judge in judges.items():
+            key = f"paper/{name}/{round_}"
+            if key not in results:
+                estimator = judge(max_epochs=args.epochs, n_iter_no_change=args.epochs, precision=args.precision)
+                start = time.perf_counter()
+                estimator.fit(features[fold], labels[fold])
+                results[key] = {"s_per_epoch": (time.perf_counter() - start) / estimator.n_iter_}
+                path.write_text(json.dumps(results, indent=1))
+    if "paper/otgb/c2st" not in results:
+        start = time.perf_counter()
+        p, q = (torch.as_tensor(features[labels == c]) for c in (0, 1))
+        score = c2st(p, q, classifier="paper", precision=args.precision)
+        results["paper/otgb/c2st"] = {"wall_s": time.perf_counter() - start, "c2st": float(score["c2st"])}
+        path.write_text(json.dumps(results, indent=1))
+    for name in judges:
+        each = [v["s_per_epoch"] for k, v in results.items() if k.startswith(f"paper/{name}/") and "s_per_epoch" in v]
+        print(f"paper judge, {name:15s} {statistics.median(each):6.3f} s per epoch (runs: {', '.join(f'{e:.3f}' for e in each)})")
+    whole = results["paper/otgb/c2st"]
+    print(f"paper judge, whole 5-fold C2ST on otgb's path: {whole['wall_s'] / 60:.1f} min (C2ST {whole['c2st']:.3f})")
+    print(f"speed_benchmark: wrote {path}")
+
+
 SECTION_START, SECTION_END = "<!-- speed: scripts/speed_benchmark.py -->", "<!-- end speed -->"
 
 
@@ -200,12 +262,18 @@ def main() -> None:
     for sub in (steps, fit):
         sub.add_argument("--solvers", nargs="+", default=["torchdiffeq", "compiled"], help="the reference first")
         sub.add_argument("--rounds", type=int, default=2, help="alternations of the solvers")
+    judges = commands.add_parser("judges", help="the paper's C2ST judge: otgb's convolution against torch.nn.Conv1d")
+    judges.add_argument("--rows", type=int, default=6000)
+    judges.add_argument("--features", type=int, default=1041)
+    judges.add_argument("--epochs", type=int, default=5, help="epochs per timed fit")
+    judges.add_argument("--rounds", type=int, default=2)
+    judges.add_argument("--precision", default="auto", help="the judge's arithmetic (otgb.metrics.classifiers)")
     table = commands.add_parser("table", help="write the figures of --out into --doc")
     table.add_argument("--doc", required=True)
-    for sub in (steps, fit, table):
+    for sub in (steps, fit, judges, table):
         sub.add_argument("--out", required=True)
     args = parser.parse_args()
-    {"steps": run_steps, "fit": run_fit, "table": write_table}[args.command](args)
+    {"steps": run_steps, "fit": run_fit, "judges": run_judges, "table": write_table}[args.command](args)
 
 
 if __name__ == "__main__":

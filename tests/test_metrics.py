@@ -9,7 +9,7 @@ from sklearn.neural_network import MLPClassifier
 from otgb.data import generate_joint
 from otgb.metrics import C2ST, MMD, NRMSE, AbsErr, MMDAgg, abs_err, c2st, joint_samples, mmd2, mmdagg, nrmse
 from otgb.metrics.c2st import make_classifier
-from otgb.metrics.classifiers import PRECISIONS, PaperConvClassifier
+from otgb.metrics.classifiers import PRECISIONS, PaperConvClassifier, few_channel_conv
 from otgb.metrics.classifiers import MLPClassifier as TorchMLP
 from otgb.metrics.joint import JointEvaluator, reference_scores
 from otgb.metrics.mmd import PAPER_MULTIPLIERS, mmd_median, mmd_multiscale, standardise
@@ -243,6 +243,18 @@ def test_paper_judge_finds_a_shifted_field_and_not_an_equal_one(generator):
     assert c2st(p, shifted, classifier=judge, folds=2)["c2st"] > 0.9
     assert abs(float(c2st(p, same, classifier=judge, folds=2)["c2st"]) - 0.5) <= 1.5 / math.sqrt(2 * n)
     assert isinstance(make_classifier("paper", 49, None, seed=0), PaperConvClassifier), "selectable by name"
+
+
+def test_the_paper_judges_convolution_is_the_library_convolution_forward_and_backward(generator):
+    for channels_in in (1, 3):
+        conv = torch.nn.Conv1d(channels_in, 3, 3, padding=1)
+        x = torch.randn(16, channels_in, 41, generator=generator, requires_grad=True)
+        fast, library = few_channel_conv(x, conv), conv(x)
+        torch.testing.assert_close(fast, library, rtol=1e-5, atol=1e-6)
+        weights = torch.randn_like(library)
+        grads = [torch.autograd.grad((out * weights).sum(), (x, conv.weight, conv.bias)) for out in (fast, library)]
+        for fast_grad, library_grad in zip(*grads):
+            torch.testing.assert_close(fast_grad, library_grad, rtol=1e-4, atol=1e-5)
 
 
 def test_c2st_permutation_pvalue(generator):
