@@ -133,7 +133,8 @@ class OTGBCLI(LightningCLI):
             type=str,
             default="auto",
             help=f"how every fixed-step solve runs: {', '.join(SOLVERS)} (otgb.physics.solvers; auto compiles a field's "
-            f"Runge-Kutta step once it has been, or a training run plans it to be, solved {COMPILE_AFTER} times; "
+            f"solve (a small state's whole loop, a grid's Runge-Kutta step) once it has been, or a training run plans it "
+            f"to be, solved {COMPILE_AFTER} times; "
             "torchdiffeq is the reference path)",
         )
 

@@ -3,6 +3,7 @@
     python scripts/speed_benchmark.py steps --out results/speed [--configs pendulum advdiff reactdiff] [--steps 40]
     python scripts/speed_benchmark.py fit --out results/speed --config reactdiff -- --data.simulation_budget=1600
     python scripts/speed_benchmark.py judges --out results/speed [--rows 6000 --features 1041]
+    python scripts/speed_benchmark.py designs --out results/speed [--config pendulum]
     python scripts/speed_benchmark.py table --out results/speed --doc docs/results.md
 
 ``steps`` trains each config with a real Lightning Trainer for ``--steps`` training steps, once
@@ -26,6 +27,13 @@ draws' size: seconds per training epoch of one fold with otgb's convolution and 
 (``torch.nn.Conv1d``, the reference), alternating ``--rounds`` times, then one whole 5-fold C2ST
 on otgb's path (wall time, epochs per fold), and writes ``judges.json``. The rows are Gaussian,
 the two samples 2 % apart in mean and 5 % in scale: close enough that the judge trains long.
+
+``designs`` measures the ways a solve can be compiled, on the grey-box map of ``--config`` (its
+initial network, a batch of the config's size): the median time of one solve and its backward,
+and the compile time, for torchdiffeq, the eager Runge-Kutta loop, one compiled step per call
+(otgb's path), a compiled block of ``--block`` steps per call, and the whole solve as one
+compiled ``scan`` (torch's prototype loop operator); with the largest difference to the eager
+trajectories. It writes ``designs.json``.
 
 Each writes its results as it goes; a rerun skips what is done. ``table`` writes the figures of
 both files into ``--doc`` between the markers ``<!-- speed: scripts/speed_benchmark.py -->`` and
@@ -154,6 +162,110 @@ def run_fit(args: argparse.Namespace) -> None:
     print(f"speed_benchmark: wrote {path}")
 
 
+def solve_designs(field, x0: torch.Tensor, args: tuple, n_steps: int, h: float, block: int) -> dict:
+    """Solve functions (no argument, returning (B, n_steps + 1, *state)) for each design of ``designs``."""
+    from torchdiffeq import odeint
+
+    from otgb.physics.solvers import STEPS
+
+    rk4 = STEPS["rk4"]
+
+    def looped(step):
+        def solve():
+            states, y = [x0], x0
+            for _ in range(n_steps):
+                y = step(field, y, h, args())
+                states.append(y)
+            return torch.stack(states, 1)
+
+        return solve
+
+    def steps_in_block(field, y, h, args):
+        states = []
+        for _ in range(block):
+            y = rk4(field, y, h, args)
+            states.append(y)
+        return torch.stack(states, 1)
+
+    compiled_block = torch.compile(steps_in_block, dynamic=True, fullgraph=True)
+
+    def blocked():
+        states, y = [x0[:, None]], x0
+        for _ in range(n_steps // block):
+            part = compiled_block(field, y, h, args())
+            states.append(part)
+            y = part[:, -1]
+        return torch.cat(states, 1)
+
+    def scanned_solve(x0, *arguments):
+        from torch._higher_order_ops.scan import scan
+
+        def body(y, _):
+            y = rk4(field, y, h, arguments)
+            return y, y.clone()
+
+        return torch.cat([x0[:, None], scan(body, x0, torch.zeros(n_steps, 1))[1].transpose(0, 1)], 1)
+
+    compiled_scan = torch.compile(scanned_solve, dynamic=False, fullgraph=True)
+    times = torch.arange(n_steps + 1, dtype=torch.float32) * h
+
+    return {
+        "torchdiffeq": lambda: odeint(lambda _, y: field(y, *args()), x0, times, method="rk4").movedim(0, 1),
+        "eager loop": looped(rk4),
+        "compiled step (otgb)": looped(torch.compile(rk4, dynamic=True, fullgraph=True)),
+        f"compiled block of {block} steps": blocked,
+        "compiled scan": lambda: compiled_scan(x0, *args()),
+    }
+
+
+def run_designs(args: argparse.Namespace) -> None:
+    from otgb.runs import load_run
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "designs.json"
+    results = json.loads(path.read_text()) if path.exists() else {}
+    run = load_run(str(ROOT / "configs" / f"{args.config}.yaml"), "--trainer.logger=false")
+    greybox, physics = run.model.transport_map, run.model.physics
+    g = torch.Generator().manual_seed(0)
+    batch = run.datamodule.batch_size
+    x0, theta = physics.sample_initial_state(batch, g), physics.sample_theta(batch, g)
+    cond = torch.cat([theta, torch.randn(batch, greybox.z_dim, generator=g)], 1)
+    n_times = physics.n_obs if physics.include_initial else physics.n_obs + 1
+    n_steps = (n_times - 1) * round(physics.dt / physics.step_size)
+    if hasattr(greybox.correction, "condition"):  # as GreyBoxODE.solve: the condition's share once per solve
+        field, field_args = greybox.conditioned_field, lambda: (theta, *greybox.correction.condition(cond))
+    else:
+        field, field_args = greybox.vector_field, lambda: (theta, cond)
+    designs = solve_designs(field, x0, field_args, n_steps, physics.step_size, args.block)
+    reference = designs["eager loop"]().detach()
+    for name, solve in designs.items():
+        key = f"{args.config}/{name}"
+        if key in results:
+            continue
+        start = time.perf_counter()
+        solve().square().sum().backward()
+        first = time.perf_counter() - start
+        each = []
+        for _ in range(args.repeats):
+            start = time.perf_counter()
+            solve().square().sum().backward()
+            each.append(time.perf_counter() - start)
+        difference = float((solve().detach() - reference).abs().max())
+        results[key] = {"median_ms": 1000 * statistics.median(each), "first_s": first, "max_difference": difference}
+        path.write_text(json.dumps(results, indent=1))
+    eager = results[f"{args.config}/eager loop"]["median_ms"]
+    threads = torch.get_num_threads()
+    print(f"{args.config}: one grey-box solve + backward, batch {batch}, {n_steps} RK4 steps (torch threads {threads}):")
+    for key, value in results.items():
+        if key.startswith(f"{args.config}/"):
+            print(
+                f"  {key.split('/', 1)[1]:28s} {value['median_ms']:7.1f} ms  x{eager / value['median_ms']:4.2f} of eager  "
+                f"first call {value['first_s']:6.1f} s  max |difference| {value['max_difference']:.1e}"
+            )
+    print(f"speed_benchmark: wrote {path}")
+
+
 class LibraryConvNet(PaperConvNet):
     """The paper's judge network on ``torch.nn.Conv1d``'s own forward: the reference of ``judges``."""
 
@@ -268,12 +380,16 @@ def main() -> None:
     judges.add_argument("--epochs", type=int, default=5, help="epochs per timed fit")
     judges.add_argument("--rounds", type=int, default=2)
     judges.add_argument("--precision", default="auto", help="the judge's arithmetic (otgb.metrics.classifiers)")
+    designs = commands.add_parser("designs", help="ways of compiling a solve, on a config's grey-box")
+    designs.add_argument("--config", default="pendulum")
+    designs.add_argument("--block", type=int, default=7, help="steps per compiled block (divides the solve's steps)")
+    designs.add_argument("--repeats", type=int, default=20)
     table = commands.add_parser("table", help="write the figures of --out into --doc")
     table.add_argument("--doc", required=True)
-    for sub in (steps, fit, judges, table):
+    for sub in (steps, fit, judges, designs, table):
         sub.add_argument("--out", required=True)
     args = parser.parse_args()
-    {"steps": run_steps, "fit": run_fit, "judges": run_judges, "table": write_table}[args.command](args)
+    {"steps": run_steps, "fit": run_fit, "judges": run_judges, "designs": run_designs, "table": write_table}[args.command](args)
 
 
 if __name__ == "__main__":

@@ -123,18 +123,47 @@ def _inputs(greybox: GreyBoxODE, n: int) -> tuple[torch.Tensor, torch.Tensor, to
 
 def test_auto_solves_eagerly_until_a_field_has_been_solved_often(monkeypatch):
     monkeypatch.setattr(solvers, "COMPILE_AFTER", 3)
-    compiled_steps = []
+    compiled_solves = []
 
-    def recording_step(method):
-        return lambda *args: compiled_steps.append(1) or solvers.STEPS[method](*args)
+    def recording_solve():
+        return lambda *args: compiled_solves.append(1) or solvers._whole_solve(*args)
 
-    monkeypatch.setattr(solvers, "_compiled_step", recording_step)
+    monkeypatch.setattr(solvers, "_compiled_whole_solve", recording_solve)
     counts = []
     with torch.no_grad():
         for _ in range(4):
             _simulate(Pendulum(), "auto")
-            counts.append(len(compiled_steps))
-    assert counts == [0, 0, 0, 49], "the 4th solve of the field is its first compiled one"
+            counts.append(len(compiled_solves))
+    assert counts == [0, 0, 0, 1], "the 4th solve of the field is its first compiled one"
+
+
+def test_a_small_state_is_solved_as_one_compiled_loop_and_a_field_step_by_step(monkeypatch):
+    calls = []
+    monkeypatch.setattr(solvers, "_compiled_whole_solve", lambda: lambda *a: calls.append("whole") or solvers._whole_solve(*a))
+    monkeypatch.setattr(solvers, "_compiled_step", lambda m: lambda *a: calls.append("step") or solvers.STEPS[m](*a))
+    with torch.no_grad():
+        _simulate(Pendulum(), "compiled")
+        assert calls == ["whole"]
+        _simulate(ReactionDiffusion(n_grid=8, n_obs=3), "compiled")  # a state of 2 x 8 x 8 numbers
+    assert calls[1:] == ["step"] * 3, "its 3 frames after the initial state, one compiled step each"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(_systems()))
+def test_compiled_trajectories_and_input_gradients_equal_torchdiffeq(name):
+    model = _systems()[name]
+    results = {}
+    for solver in ("torchdiffeq", "compiled"):
+        solvers.set_solver(solver)
+        g = torch.Generator().manual_seed(0)
+        x0, theta = model.sample_initial_state(6, g).requires_grad_(), model.sample_theta(6, g).requires_grad_()
+        y = model.simulate(x0, theta, model.sample_effect_params(6, g))
+        weights = torch.linspace(-1, 1, y[0].numel()).reshape(y.shape[1:])
+        results[solver] = (y.detach(), torch.autograd.grad((y * weights).sum(), (x0, theta)))
+    (y, grads), (y_ref, grads_ref) = results["compiled"], results["torchdiffeq"]
+    assert (y - y_ref).abs().max() <= 1e-5 * y_ref.abs().max()
+    for grad, grad_ref in zip(grads, grads_ref):
+        assert (grad - grad_ref).abs().max() <= 1e-4 * grad_ref.abs().max().clamp_min(1e-12)
 
 
 def _branching_field(state: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:

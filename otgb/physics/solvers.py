@@ -5,10 +5,18 @@ with an explicit Runge-Kutta method (RK4 by default). torchdiffeq (``odeint``) d
 Python loop over hundreds of tiny tensor operations per solve, each paying the interpreter's
 and the kernel launch's overhead: for the pendulum (2 states, batch 32) that overhead is most
 of a training step. The fast path takes the same methods with the same formulas (torchdiffeq's
-Butcher tableaus, RK4 as its 3/8 rule), and runs one whole Runge-Kutta step (all its stages
-and the field they call) as one ``torch.compile``-d graph: a few fused kernels forward and a
-few backward, shape-generic in the batch so that a partial last batch, validation and test
-sizes and every DDP process reuse it.
+Butcher tableaus, RK4 as its 3/8 rule) and compiles them with ``torch.compile``, shape-generic
+in the batch so that a partial last batch, validation and test sizes and every DDP process
+reuse one graph. Two designs, chosen by the size of the state (measured with
+``scripts/speed_benchmark.py designs``):
+
+- a small state (at most :data:`WHOLE_SOLVE_MAX_STATE` numbers per trajectory, an ODE such as
+  the pendulum): the whole solve is one compiled loop (torch's ``scan``), forward and backward,
+  so no Python or autograd bookkeeping runs between steps; for such states that bookkeeping is
+  most of the time.
+- a field (a PDE on a grid): one whole Runge-Kutta step (its stages and the field they call) is
+  one compiled graph, called once per step. Its convolutions are most of the time, and a
+  compiled loop over them measured slower than the step and took minutes to compile.
 
 The path is one process-wide setting (``otgb fit --solver NAME``, :func:`set_solver`):
 
@@ -36,12 +44,14 @@ from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
+from torch._higher_order_ops.scan import scan
 from torchdiffeq import odeint
 
 from otgb.errors import InputError
 
 SOLVERS = ("auto", "compiled", "eager", "torchdiffeq")
 COMPILE_AFTER = 500  # solves of one field (per grad mode) that `auto` runs eagerly before compiling its step
+WHOLE_SOLVE_MAX_STATE = 64  # numbers per trajectory's state up to which the whole solve is one compiled loop
 
 Field = Callable[..., Tensor]
 log = logging.getLogger("otgb.solvers")
@@ -117,15 +127,41 @@ STEPS: dict[str, Callable[[Field, Tensor, float, Sequence[Tensor]], Tensor]] = {
     "heun3": _heun3,
     "rk4": _rk4,
 }
-_compiled_steps: dict[str, Callable] = {}
+_compiled: dict[str, Callable] = {}
+
+
+def _compile(function: Callable) -> Callable:
+    # every field, grad mode and dtype is one more graph of the same function; step sizes are constants of the graph
+    torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
+    torch._dynamo.config.specialize_float = True
+    return torch.compile(function, dynamic=True, fullgraph=True)
 
 
 def _compiled_step(method: str) -> Callable:
-    if method not in _compiled_steps:
-        # every field, grad mode and dtype is one more graph of the same step function
-        torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
-        _compiled_steps[method] = torch.compile(STEPS[method], dynamic=True, fullgraph=True)
-    return _compiled_steps[method]
+    if method not in _compiled:
+        _compiled[method] = _compile(STEPS[method])
+    return _compiled[method]
+
+
+def _whole_solve(
+    field: Field, initial_state: Tensor, args: Sequence[Tensor], method: str, step_size: float, substeps: int, n_intervals: int
+) -> Tensor:
+    """States (B, n_intervals + 1, *state): ``substeps`` steps per interval, the loop over intervals as torch's ``scan``."""
+    step = STEPS[method]
+
+    def interval(state: Tensor, _: Tensor) -> tuple[Tensor, Tensor]:
+        for _ in range(substeps):
+            state = step(field, state, step_size, args)
+        return state, state.clone()
+
+    _, states = scan(interval, initial_state, initial_state.new_zeros(n_intervals, 1))
+    return torch.cat([initial_state[:, None], states.movedim(0, 1)], dim=1)
+
+
+def _compiled_whole_solve() -> Callable:
+    if "whole solve" not in _compiled:
+        _compiled["whole solve"] = _compile(_whole_solve)
+    return _compiled["whole solve"]
 
 
 # --- the solve ---------------------------------------------------------------------------
@@ -141,43 +177,60 @@ def integrate(
         t = torch.arange(n_times, device=initial_state.device, dtype=torch.float32) * dt
         states = odeint(lambda _, s: field(s, *args), initial_state, t, method=method, options={"step_size": step_size})
         return states.movedim(0, 1)
-    step = _choose_step(solver, method, field)
     substeps = round(dt / step_size)
+    key = (method, getattr(field, "__func__", field), torch.is_grad_enabled())
+    compiled = _compiles(solver, key)
+    arguments = (initial_state, args, method, step_size, substeps, n_times - 1)
+    if compiled and initial_state[0].numel() <= WHOLE_SOLVE_MAX_STATE and n_times > 1:
+        return _Fallback(key, _compiled_whole_solve(), _stepwise_solve)(field, *arguments)
+    step = _Fallback(key, _compiled_step(method), STEPS[method]) if compiled else STEPS[method]
+    return _stepwise_solve(field, *arguments, step=step)
+
+
+def _stepwise_solve(
+    field: Field,
+    initial_state: Tensor,
+    args: Sequence[Tensor],
+    method: str,
+    step_size: float,
+    substeps: int,
+    n_intervals: int,
+    step: Callable | None = None,
+) -> Tensor:
+    """:func:`_whole_solve` as a Python loop over ``step`` (default: the method's eager step)."""
+    eager = STEPS[method]
+    step = step or eager
     states, y = [initial_state], initial_state
-    for i in range((n_times - 1) * substeps):
+    for i in range(n_intervals * substeps):
         # the first step of a differentiated solve starts from a state without a graph: eager, rather than one more compiled graph
         first = i == 0 and torch.is_grad_enabled() and not initial_state.requires_grad
-        y = (STEPS[method] if first else step)(field, y, step_size, args)
+        y = (eager if first else step)(field, y, step_size, args)
         if (i + 1) % substeps == 0:
             states.append(y)
     return torch.stack(states, dim=1)
 
 
-def _choose_step(solver: str, method: str, field: Field) -> Callable:
-    if solver == "eager":
-        return STEPS[method]
-    key = (method, getattr(field, "__func__", field), torch.is_grad_enabled())
-    if key in _not_compilable:
-        return STEPS[method]
+def _compiles(solver: str, key: tuple) -> bool:
+    """Whether this solve of the field ``key`` runs compiled (counting it for ``auto``)."""
+    if solver == "eager" or key in _not_compilable:
+        return False
     _solves[key] = _solves.get(key, 0) + 1
-    if solver == "auto" and _solves[key] + int(_setting["planned"]) <= COMPILE_AFTER:
-        return STEPS[method]
-    return _FallbackStep(key, _compiled_step(method), STEPS[method])
+    return solver != "auto" or _solves[key] + int(_setting["planned"]) > COMPILE_AFTER
 
 
-class _FallbackStep:
-    """The compiled step; if it cannot be compiled, the eager step, with one line saying why."""
+class _Fallback:
+    """The compiled function; if it cannot be compiled, its eager twin, with one line saying why."""
 
     def __init__(self, key: tuple, compiled: Callable, eager: Callable) -> None:
         self.key, self.compiled, self.eager = key, compiled, eager
 
-    def __call__(self, field: Field, y: Tensor, h: float, args: Sequence[Tensor]) -> Tensor:
+    def __call__(self, field: Field, *arguments) -> Tensor:
         if self.key in _not_compilable:
-            return self.eager(field, y, h, args)
+            return self.eager(field, *arguments)
         try:
-            return self.compiled(field, y, h, args)
-        except Exception as error:  # the eager step below re-raises what is the input's fault
-            result = self.eager(field, y, h, args)
+            return self.compiled(field, *arguments)
+        except Exception as error:  # the eager call below re-raises what is the input's fault
+            result = self.eager(field, *arguments)
             _not_compilable.add(self.key)
             reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
             log.warning(f"otgb: the solve of {_field_name(field)} runs eagerly: it could not be compiled ({reason[:300]})")
