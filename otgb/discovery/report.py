@@ -46,15 +46,16 @@ def verdict(result: Discovery, physics: PhysicsModel) -> str:
             + "), but no candidate term closes the gap"
         )
     names = ", ".join(f"{term_name(c, centre(p), physics)} ({c.feature} on d{c.component}/dt)" for c, p in _terms(result))
+    removes, closes = ("removes", "closes") if len(_terms(result)) == 1 else ("remove", "close")
     if result.after is not None and not result.after.any_significant:
         head = (
-            f"missing effect found, the gap is closed: {names} remove {gap_closed(result.gap):.0%} of f_p's energy distance "
+            f"missing effect found, the gap is closed: {names} {removes} {gap_closed(result.gap):.0%} of f_p's energy distance "
             f"to the {len(result.draws['f_p'])} test trajectories, which no longer tell the augmented physics apart; "
             f"{result.sentence_after}"
         )
     else:
         head = (
-            f"missing effect partly found: {names} close {gap_closed(result.gap):.0%} of f_p's gap (energy distance on "
+            f"missing effect partly found: {names} {closes} {gap_closed(result.gap):.0%} of f_p's gap (energy distance on "
             f"the test part); {result.sentence_after}; no library term fits exactly, these are the best approximation"
         )
     parts = [head, *preferences(result, physics), *flags(result, physics)]
