@@ -4,6 +4,7 @@
     python scripts/speed_benchmark.py fit --out results/speed --config reactdiff -- --data.simulation_budget=1600
     python scripts/speed_benchmark.py judges --out results/speed [--rows 6000 --features 1041]
     python scripts/speed_benchmark.py designs --out results/speed [--config pendulum]
+    python scripts/speed_benchmark.py discover --out results/speed --measured FILE -- --data.simulation_budget=32000
     python scripts/speed_benchmark.py table --out results/speed --doc docs/results.md
 
 ``steps`` trains each config with a real Lightning Trainer for ``--steps`` training steps, once
@@ -34,6 +35,10 @@ and the compile time, for torchdiffeq, the eager Runge-Kutta loop, one compiled 
 (otgb's path), a compiled block of ``--block`` steps per call, and the whole solve as one
 compiled ``scan`` (torch's prototype loop operator); with the largest difference to the eager
 trajectories. It writes ``designs.json``.
+
+``discover`` runs ``otgb discover --config <config> --data.measured_path FILE`` (no hidden effect
+configured) for each solver in turn, and writes ``discover.json`` with each run's wall time and the
+terms it named with their coefficients.
 
 Each writes its results as it goes; a rerun skips what is done. ``table`` writes the figures of
 both files into ``--doc`` between the markers ``<!-- speed: scripts/speed_benchmark.py -->`` and
@@ -159,6 +164,37 @@ def run_fit(args: argparse.Namespace) -> None:
         walls = [v["wall_s"] for k, v in results.items() if k.startswith(f"{args.config}/{solver}/")]
         runs = ", ".join(f"{w:.0f} s" for w in walls)
         print(f"{args.config} {solver:12s} whole fit {statistics.median(walls) / 60:6.2f} min (runs: {runs})")
+    print(f"speed_benchmark: wrote {path}")
+
+
+def run_discover(args: argparse.Namespace) -> None:
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "discover.json"
+    results = json.loads(path.read_text()) if path.exists() else {}
+    for round_ in range(args.rounds):
+        for solver in args.solvers:
+            key = f"{args.config}/{solver}/{round_}"
+            if key in results:
+                continue
+            folder = out / "discover" / key  # the run writes runs/<config>/version_N in its working folder
+            folder.mkdir(parents=True, exist_ok=True)
+            command = [
+                sys.executable, "-m", "otgb.cli", "discover", "--config", str(ROOT / "configs" / f"{args.config}.yaml"),
+                "--data.hidden_effect=[]", f"--data.measured_path={Path(args.measured).resolve()}", f"--solver={solver}",
+                "--trainer.enable_progress_bar=false", *args.overrides,
+            ]  # fmt: skip
+            start = time.perf_counter()
+            with open(folder / "discover.log", "w") as log:
+                subprocess.run(command, check=True, cwd=folder, stdout=log, stderr=subprocess.STDOUT)
+            wall = time.perf_counter() - start
+            report = json.loads(next(folder.rglob("report.json")).read_text())
+            terms = {f"{t['feature']} on d{t['component']}/dt": t["coefficient"] for t in report["terms"]}
+            results[key] = {"wall_s": wall, "terms": terms, "command": " ".join(command[1:])}
+            path.write_text(json.dumps(results, indent=1))
+    for key, value in results.items():
+        terms = ", ".join(f"{name} {c:.5g}" for name, c in value["terms"].items()) or "nothing"
+        print(f"discover {key:28s} {value['wall_s'] / 60:6.2f} min  {terms}")
     print(f"speed_benchmark: wrote {path}")
 
 
@@ -371,9 +407,6 @@ def main() -> None:
     fit = commands.add_parser("fit", help="whole `otgb fit` commands, per solver")
     fit.add_argument("--config", default="reactdiff")
     fit.add_argument("overrides", nargs="*", help="otgb overrides, after --")
-    for sub in (steps, fit):
-        sub.add_argument("--solvers", nargs="+", default=["torchdiffeq", "compiled"], help="the reference first")
-        sub.add_argument("--rounds", type=int, default=2, help="alternations of the solvers")
     judges = commands.add_parser("judges", help="the paper's C2ST judge: otgb's convolution against torch.nn.Conv1d")
     judges.add_argument("--rows", type=int, default=6000)
     judges.add_argument("--features", type=int, default=1041)
@@ -384,12 +417,20 @@ def main() -> None:
     designs.add_argument("--config", default="pendulum")
     designs.add_argument("--block", type=int, default=7, help="steps per compiled block (divides the solve's steps)")
     designs.add_argument("--repeats", type=int, default=20)
+    discover = commands.add_parser("discover", help="whole `otgb discover` runs on a measured file, per solver")
+    discover.add_argument("--config", default="pendulum")
+    discover.add_argument("--measured", required=True, help="the measured file")
+    discover.add_argument("overrides", nargs="*", help="otgb overrides, after --")
+    for sub in (steps, fit, discover):
+        sub.add_argument("--solvers", nargs="+", default=["torchdiffeq", "compiled"], help="the reference first")
+        sub.add_argument("--rounds", type=int, default=2, help="alternations of the solvers")
     table = commands.add_parser("table", help="write the figures of --out into --doc")
     table.add_argument("--doc", required=True)
-    for sub in (steps, fit, judges, designs, table):
+    for sub in (steps, fit, judges, designs, discover, table):
         sub.add_argument("--out", required=True)
     args = parser.parse_args()
-    {"steps": run_steps, "fit": run_fit, "judges": run_judges, "designs": run_designs, "table": write_table}[args.command](args)
+    commands = {"steps": run_steps, "fit": run_fit, "judges": run_judges, "designs": run_designs, "discover": run_discover}
+    {**commands, "table": write_table}[args.command](args)
 
 
 if __name__ == "__main__":
