@@ -101,7 +101,8 @@ def time_steps(config: str, solver: str, steps: int, workdir: Path) -> list[floa
 
 
 def summary(times: list[float], warmup: int) -> dict[str, float]:
-    return {"median_ms": 1000 * statistics.median(times[warmup:]), "warmup_s": sum(times[:warmup]), "steps": len(times)}
+    median_ms = 1000 * statistics.median(times[warmup:])
+    return {"median_ms": median_ms, "warmup_s": sum(times[:warmup]), "steps": len(times), "threads": torch.get_num_threads()}
 
 
 def run_steps(args: argparse.Namespace) -> None:
@@ -248,7 +249,7 @@ def solve_designs(field, x0: torch.Tensor, args: tuple, n_steps: int, h: float, 
     return {
         "torchdiffeq": lambda: odeint(lambda _, y: field(y, *args()), x0, times, method="rk4").movedim(0, 1),
         "eager loop": looped(rk4),
-        "compiled step (otgb)": looped(torch.compile(rk4, dynamic=True, fullgraph=True)),
+        "compiled step": looped(torch.compile(rk4, dynamic=True, fullgraph=True)),
         f"compiled block of {block} steps": blocked,
         "compiled scan": lambda: compiled_scan(x0, *args()),
     }
@@ -277,7 +278,7 @@ def run_designs(args: argparse.Namespace) -> None:
     reference = designs["eager loop"]().detach()
     for name, solve in designs.items():
         key = f"{args.config}/{name}"
-        if key in results:
+        if key in results or (args.only and not any(word in name for word in args.only)):
             continue
         start = time.perf_counter()
         solve().square().sum().backward()
@@ -340,7 +341,7 @@ def run_judges(args: argparse.Namespace) -> None:
                 estimator.fit(features[fold], labels[fold])
                 results[key] = {"s_per_epoch": (time.perf_counter() - start) / estimator.n_iter_}
                 path.write_text(json.dumps(results, indent=1))
-    if "paper/otgb/c2st" not in results:
+    if args.whole and "paper/otgb/c2st" not in results:
         start = time.perf_counter()
         p, q = (torch.as_tensor(features[labels == c]) for c in (0, 1))
         score = c2st(p, q, classifier="paper", precision=args.precision)
@@ -349,8 +350,9 @@ def run_judges(args: argparse.Namespace) -> None:
     for name in judges:
         each = [v["s_per_epoch"] for k, v in results.items() if k.startswith(f"paper/{name}/") and "s_per_epoch" in v]
         print(f"paper judge, {name:15s} {statistics.median(each):6.3f} s per epoch (runs: {', '.join(f'{e:.3f}' for e in each)})")
-    whole = results["paper/otgb/c2st"]
-    print(f"paper judge, whole 5-fold C2ST on otgb's path: {whole['wall_s'] / 60:.1f} min (C2ST {whole['c2st']:.3f})")
+    if "paper/otgb/c2st" in results:
+        whole = results["paper/otgb/c2st"]
+        print(f"paper judge, whole 5-fold C2ST on otgb's path: {whole['wall_s'] / 60:.1f} min (C2ST {whole['c2st']:.3f})")
     print(f"speed_benchmark: wrote {path}")
 
 
@@ -363,8 +365,8 @@ def write_table(args: argparse.Namespace) -> None:
     steps = json.loads((out / "steps.json").read_text()) if (out / "steps.json").exists() else {}
     configs = list(dict.fromkeys(key.split("/")[0] for key in steps))
     if configs:
-        header = "| config | solver | ms per training step | speed-up | first run's warm-up (s) | runs |"
-        lines += [header, "|---|---|---|---|---|---|"]
+        header = "| config | solver | ms per training step | speed-up | first run's warm-up (s) | runs | torch threads |"
+        lines += [header, "|---|---|---|---|---|---|---|"]
     for config in configs:
         solvers = list(dict.fromkeys(key.split("/")[1] for key in steps if key.startswith(f"{config}/")))
         reference = _median(steps, f"{config}/{solvers[0]}/", "median_ms")
@@ -372,7 +374,8 @@ def write_table(args: argparse.Namespace) -> None:
             prefix = f"{config}/{solver}/"
             step, warmup = _median(steps, prefix, "median_ms"), _median(steps, prefix, "warmup_s")
             runs = sum(key.startswith(prefix) for key in steps)
-            lines.append(f"| {config} | {solver} | {step:.1f} | {reference / step:.2f}x | {warmup:.1f} | {runs} |")
+            threads = ", ".join(sorted({str(v["threads"]) for k, v in steps.items() if k.startswith(prefix)}))
+            lines.append(f"| {config} | {solver} | {step:.1f} | {reference / step:.2f}x | {warmup:.1f} | {runs} | {threads} |")
     fits = json.loads((out / "fit.json").read_text()) if (out / "fit.json").exists() else {}
     if fits:
         lines += ["", "| whole `otgb fit` | solver | minutes | runs |", "|---|---|---|---|"]
@@ -380,6 +383,7 @@ def write_table(args: argparse.Namespace) -> None:
             config, solver = prefix.split("/")[:2]
             walls = [v["wall_s"] / 60 for k, v in fits.items() if k.startswith(prefix)]
             lines.append(f"| {config} | {solver} | {statistics.median(walls):.2f} | {len(walls)} |")
+    lines += designs_table(out) + judges_table(out) + discover_table(out)
     lines += ["", SECTION_END]
     text = doc.read_text() if doc.exists() else ""
     if SECTION_START in text and SECTION_END in text:
@@ -389,6 +393,56 @@ def write_table(args: argparse.Namespace) -> None:
         before, after = text + "\n", "\n"
     doc.write_text(before + "\n".join(lines) + after)
     print(f"speed_benchmark: wrote {doc}")
+
+
+def _read(path: Path) -> dict:
+    return json.loads(path.read_text()) if path.exists() else {}
+
+
+def designs_table(out: Path) -> list[str]:
+    designs = _read(out / "designs.json")
+    if not designs:
+        return []
+    lines = [
+        "",
+        "| grey-box solve + backward | design | ms | of eager | first call (s) | max difference to eager |",
+        "|---|---|---|---|---|---|",
+    ]
+    for key, value in designs.items():
+        config, design = key.split("/", 1)
+        eager = designs[f"{config}/eager loop"]["median_ms"]
+        lines.append(
+            f"| {config} | {design} | {value['median_ms']:.1f} | {eager / value['median_ms']:.2f}x | {value['first_s']:.1f} "
+            f"| {value['max_difference']:.1e} |"
+        )
+    return lines
+
+
+def judges_table(out: Path) -> list[str]:
+    judges = _read(out / "judges.json")
+    if not judges:
+        return []
+    lines = ["", "| paper C2ST judge | convolution | s per epoch (one fold) | runs |", "|---|---|---|---|"]
+    names = dict.fromkeys(key.split("/")[1] for key in judges if not key.endswith("/c2st"))
+    for name in names:
+        each = [v["s_per_epoch"] for k, v in judges.items() if k.startswith(f"paper/{name}/") and "s_per_epoch" in v]
+        lines.append(f"| 6000 x 1041 rows | {name} | {statistics.median(each):.3f} | {len(each)} |")
+    if "paper/otgb/c2st" in judges:
+        whole = judges["paper/otgb/c2st"]
+        lines.append(f"| whole 5-fold C2ST | otgb | {whole['wall_s'] / 60:.1f} min in all (C2ST {whole['c2st']:.3f}) | 1 |")
+    return lines
+
+
+def discover_table(out: Path) -> list[str]:
+    runs = _read(out / "discover.json")
+    if not runs:
+        return []
+    lines = ["", "| whole `otgb discover` | solver | minutes | named |", "|---|---|---|---|"]
+    for key, value in runs.items():
+        config, solver, _ = key.split("/")
+        named = "; ".join(f"`{name}` {c:.5g}" for name, c in value["terms"].items()) or "nothing"
+        lines.append(f"| {config} | {solver} | {value['wall_s'] / 60:.2f} | {named} |")
+    return lines
 
 
 def _median(results: dict, prefix: str, field: str) -> float:
@@ -413,10 +467,12 @@ def main() -> None:
     judges.add_argument("--epochs", type=int, default=5, help="epochs per timed fit")
     judges.add_argument("--rounds", type=int, default=2)
     judges.add_argument("--precision", default="auto", help="the judge's arithmetic (otgb.metrics.classifiers)")
+    judges.add_argument("--whole", action=argparse.BooleanOptionalAction, default=True, help="also one whole 5-fold C2ST")
     designs = commands.add_parser("designs", help="ways of compiling a solve, on a config's grey-box")
     designs.add_argument("--config", default="pendulum")
     designs.add_argument("--block", type=int, default=7, help="steps per compiled block (divides the solve's steps)")
     designs.add_argument("--repeats", type=int, default=20)
+    designs.add_argument("--only", nargs="*", help="run only the designs whose name has one of these words (e.g. eager scan)")
     discover = commands.add_parser("discover", help="whole `otgb discover` runs on a measured file, per solver")
     discover.add_argument("--config", default="pendulum")
     discover.add_argument("--measured", required=True, help="the measured file")
