@@ -53,6 +53,7 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -140,63 +141,66 @@ def report(results: dict, config: str, solvers: list[str]) -> str:
     return "\n".join(lines)
 
 
+def alternate_commands(args: argparse.Namespace, name: str, run: Callable[[str, str], dict]) -> dict:
+    """``run(solver, key)`` for each solver of ``args``, alternating ``args.rounds`` times; results kept in ``<out>/<name>``
+    as they come (a rerun skips the keys it has)."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / name
+    results = json.loads(path.read_text()) if path.exists() else {}
+    for round_ in range(args.rounds):
+        for solver in args.solvers:
+            key = f"{args.config}/{solver}/{round_}"
+            if key not in results:
+                results[key] = run(solver, key)
+                path.write_text(json.dumps(results, indent=1))
+    print(f"speed_benchmark: wrote {path}")
+    return results
+
+
+def timed_command(command: list[str], **options) -> dict:
+    start = time.perf_counter()
+    subprocess.run(command, check=True, **options)
+    return {"wall_s": time.perf_counter() - start, "command": " ".join(command[1:])}
+
+
 def run_fit(args: argparse.Namespace) -> None:
     from otgb.command import logger_override
 
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / "fit.json"
-    results = json.loads(path.read_text()) if path.exists() else {}
-    for round_ in range(args.rounds):
-        for solver in args.solvers:
-            key = f"{args.config}/{solver}/{round_}"
-            if key in results:
-                continue
-            command = [
-                sys.executable, "-m", "otgb.cli", "fit", "--config", str(ROOT / "configs" / f"{args.config}.yaml"),
-                f"--solver={solver}", logger_override(str(out / "runs" / key), "run"), "--trainer.enable_progress_bar=false",
-                f"--data.cache_dir={out / 'cache'}", *args.overrides,
-            ]  # fmt: skip
-            start = time.perf_counter()
-            subprocess.run(command, check=True)
-            results[key] = {"wall_s": time.perf_counter() - start, "command": " ".join(command[1:])}
-            path.write_text(json.dumps(results, indent=1))
+
+    def fit(solver: str, key: str) -> dict:
+        return timed_command([
+            sys.executable, "-m", "otgb.cli", "fit", "--config", str(ROOT / "configs" / f"{args.config}.yaml"),
+            f"--solver={solver}", logger_override(str(out / "runs" / key), "run"), "--trainer.enable_progress_bar=false",
+            f"--data.cache_dir={out / 'cache'}", *args.overrides,
+        ])  # fmt: skip
+
+    results = alternate_commands(args, "fit.json", fit)
     for solver in args.solvers:
         walls = [v["wall_s"] for k, v in results.items() if k.startswith(f"{args.config}/{solver}/")]
         runs = ", ".join(f"{w:.0f} s" for w in walls)
         print(f"{args.config} {solver:12s} whole fit {statistics.median(walls) / 60:6.2f} min (runs: {runs})")
-    print(f"speed_benchmark: wrote {path}")
 
 
 def run_discover(args: argparse.Namespace) -> None:
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / "discover.json"
-    results = json.loads(path.read_text()) if path.exists() else {}
-    for round_ in range(args.rounds):
-        for solver in args.solvers:
-            key = f"{args.config}/{solver}/{round_}"
-            if key in results:
-                continue
-            folder = out / "discover" / key  # the run writes runs/<config>/version_N in its working folder
-            folder.mkdir(parents=True, exist_ok=True)
-            command = [
-                sys.executable, "-m", "otgb.cli", "discover", "--config", str(ROOT / "configs" / f"{args.config}.yaml"),
-                "--data.hidden_effect=[]", f"--data.measured_path={Path(args.measured).resolve()}", f"--solver={solver}",
-                "--trainer.enable_progress_bar=false", *args.overrides,
-            ]  # fmt: skip
-            start = time.perf_counter()
-            with open(folder / "discover.log", "w") as log:
-                subprocess.run(command, check=True, cwd=folder, stdout=log, stderr=subprocess.STDOUT)
-            wall = time.perf_counter() - start
-            report = json.loads(next(folder.rglob("report.json")).read_text())
-            terms = {f"{t['feature']} on d{t['component']}/dt": t["coefficient"] for t in report["terms"]}
-            results[key] = {"wall_s": wall, "terms": terms, "command": " ".join(command[1:])}
-            path.write_text(json.dumps(results, indent=1))
-    for key, value in results.items():
+    def discover(solver: str, key: str) -> dict:
+        folder = Path(args.out) / "discover" / key  # the run writes runs/<config>/version_N in its working folder
+        folder.mkdir(parents=True, exist_ok=True)
+        command = [
+            sys.executable, "-m", "otgb.cli", "discover", "--config", str(ROOT / "configs" / f"{args.config}.yaml"),
+            "--data.hidden_effect=[]", f"--data.measured_path={Path(args.measured).resolve()}", f"--solver={solver}",
+            "--trainer.enable_progress_bar=false", *args.overrides,
+        ]  # fmt: skip
+        with open(folder / "discover.log", "w") as log:
+            result = timed_command(command, cwd=folder, stdout=log, stderr=subprocess.STDOUT)
+        report = json.loads(next(folder.rglob("report.json")).read_text())
+        terms = {f"{t['feature']} on d{t['component']}/dt": t["coefficient"] for t in report["terms"]}
+        return {"wall_s": result["wall_s"], "terms": terms, "command": result["command"]}
+
+    for key, value in alternate_commands(args, "discover.json", discover).items():
         terms = ", ".join(f"{name} {c:.5g}" for name, c in value["terms"].items()) or "nothing"
         print(f"discover {key:28s} {value['wall_s'] / 60:6.2f} min  {terms}")
-    print(f"speed_benchmark: wrote {path}")
 
 
 def solve_designs(field, x0: torch.Tensor, args: tuple, n_steps: int, h: float, block: int) -> dict:
