@@ -21,7 +21,7 @@ sets before training and the validation after it are not in these figures (``fit
 
 ``fit`` runs ``otgb fit --config <config> --solver S`` for each solver as a whole command (import,
 data, compile, training, validation, test-free), alternating ``--rounds`` times, and writes
-``fit.json`` with each run's wall time and final validation metrics.
+``fit.json`` with each run's wall time.
 
 ``judges`` times the paper's C2ST judge (``classifier="paper"``) on rows of the Adv-diff-m-m test
 draws' size: seconds per training epoch of one fold with otgb's convolution and with the library's
@@ -32,8 +32,8 @@ the two samples 2 % apart in mean and 5 % in scale: close enough that the judge 
 ``designs`` measures the ways a solve can be compiled, on the grey-box map of ``--config`` (its
 initial network, a batch of the config's size): the median time of one solve and its backward,
 and the compile time, for torchdiffeq, the eager Runge-Kutta loop, one compiled step per call
-(otgb's path), a compiled block of ``--block`` steps per call, and the whole solve as one
-compiled ``scan`` (torch's prototype loop operator); with the largest difference to the eager
+(otgb's path for fields on grids), a compiled block of ``--block`` steps per call, and the whole solve as one
+compiled ``scan`` (torch's prototype loop operator; otgb's path for small states); with the largest difference to the eager
 trajectories. It writes ``designs.json``.
 
 ``discover`` runs ``otgb discover --config <config> --data.measured_path FILE`` (no hidden effect
@@ -108,9 +108,7 @@ def summary(times: list[float], warmup: int) -> dict[str, float]:
 
 def run_steps(args: argparse.Namespace) -> None:
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / "steps.json"
-    results = json.loads(path.read_text()) if path.exists() else {}
+    path, results = results_file(args, "steps.json")
     for config in args.configs:
         for round_ in range(args.rounds):
             for solver in args.solvers:
@@ -141,13 +139,17 @@ def report(results: dict, config: str, solvers: list[str]) -> str:
     return "\n".join(lines)
 
 
+def results_file(args: argparse.Namespace, name: str) -> tuple[Path, dict]:
+    """``<out>/<name>`` (``out`` created) and what it holds so far."""
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    path = Path(args.out) / name
+    return path, _read(path)
+
+
 def alternate_commands(args: argparse.Namespace, name: str, run: Callable[[str, str], dict]) -> dict:
     """``run(solver, key)`` for each solver of ``args``, alternating ``args.rounds`` times; results kept in ``<out>/<name>``
     as they come (a rerun skips the keys it has)."""
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / name
-    results = json.loads(path.read_text()) if path.exists() else {}
+    path, results = results_file(args, name)
     for round_ in range(args.rounds):
         for solver in args.solvers:
             key = f"{args.config}/{solver}/{round_}"
@@ -203,28 +205,22 @@ def run_discover(args: argparse.Namespace) -> None:
         print(f"discover {key:28s} {value['wall_s'] / 60:6.2f} min  {terms}")
 
 
-def solve_designs(field, x0: torch.Tensor, args: tuple, n_steps: int, h: float, block: int) -> dict:
-    """Solve functions (no argument, returning (B, n_steps + 1, *state)) for each design of ``designs``."""
+def solve_designs(field, x0: torch.Tensor, args: Callable, substeps: int, n_intervals: int, h: float, block: int) -> dict:
+    """Solve functions (no argument, returning (B, n_intervals + 1, *state)) for each design of ``designs``; the
+    compiled step and the compiled loop are otgb's own (:mod:`otgb.physics.solvers`)."""
     from torchdiffeq import odeint
 
-    from otgb.physics.solvers import STEPS
+    from otgb.physics import solvers
 
-    rk4 = STEPS["rk4"]
+    n_steps = n_intervals * substeps
 
     def looped(step):
-        def solve():
-            states, y = [x0], x0
-            for _ in range(n_steps):
-                y = step(field, y, h, args())
-                states.append(y)
-            return torch.stack(states, 1)
-
-        return solve
+        return lambda: solvers._stepwise_solve(field, x0, args(), "rk4", h, substeps, n_intervals, step=step)
 
     def steps_in_block(field, y, h, args):
         states = []
         for _ in range(block):
-            y = rk4(field, y, h, args)
+            y = solvers.STEPS["rk4"](field, y, h, args)
             states.append(y)
         return torch.stack(states, 1)
 
@@ -236,49 +232,36 @@ def solve_designs(field, x0: torch.Tensor, args: tuple, n_steps: int, h: float, 
             part = compiled_block(field, y, h, args())
             states.append(part)
             y = part[:, -1]
-        return torch.cat(states, 1)
+        return torch.cat(states, 1)[:, ::substeps]
 
-    def scanned_solve(x0, *arguments):
-        from torch._higher_order_ops.scan import scan
-
-        def body(y, _):
-            y = rk4(field, y, h, arguments)
-            return y, y.clone()
-
-        return torch.cat([x0[:, None], scan(body, x0, torch.zeros(n_steps, 1))[1].transpose(0, 1)], 1)
-
-    compiled_scan = torch.compile(scanned_solve, dynamic=False, fullgraph=True)
-    times = torch.arange(n_steps + 1, dtype=torch.float32) * h
-
+    times, step = torch.arange(n_intervals + 1, dtype=torch.float32) * h * substeps, {"step_size": h}
+    compiled_loop = solvers._compiled_whole_solve()
     return {
-        "torchdiffeq": lambda: odeint(lambda _, y: field(y, *args()), x0, times, method="rk4").movedim(0, 1),
-        "eager loop": looped(rk4),
-        "compiled step": looped(torch.compile(rk4, dynamic=True, fullgraph=True)),
+        "torchdiffeq": lambda: odeint(lambda _, y: field(y, *args()), x0, times, method="rk4", options=step).movedim(0, 1),
+        "eager loop": looped(solvers.STEPS["rk4"]),
+        "compiled step": looped(solvers._compiled_step("rk4")),
         f"compiled block of {block} steps": blocked,
-        "compiled scan": lambda: compiled_scan(x0, *args()),
+        "compiled scan": lambda: compiled_loop(field, x0, args(), "rk4", h, substeps, n_intervals),
     }
 
 
 def run_designs(args: argparse.Namespace) -> None:
     from otgb.runs import load_run
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / "designs.json"
-    results = json.loads(path.read_text()) if path.exists() else {}
+    path, results = results_file(args, "designs.json")
     run = load_run(str(ROOT / "configs" / f"{args.config}.yaml"), "--trainer.logger=false")
     greybox, physics = run.model.transport_map, run.model.physics
     g = torch.Generator().manual_seed(0)
     batch = run.datamodule.batch_size
     x0, theta = physics.sample_initial_state(batch, g), physics.sample_theta(batch, g)
     cond = torch.cat([theta, torch.randn(batch, greybox.z_dim, generator=g)], 1)
-    n_times = physics.n_obs if physics.include_initial else physics.n_obs + 1
-    n_steps = (n_times - 1) * round(physics.dt / physics.step_size)
+    n_intervals = physics.n_obs - 1 if physics.include_initial else physics.n_obs
+    substeps = round(physics.dt / physics.step_size)
     if hasattr(greybox.correction, "condition"):  # as GreyBoxODE.solve: the condition's share once per solve
         field, field_args = greybox.conditioned_field, lambda: (theta, *greybox.correction.condition(cond))
     else:
         field, field_args = greybox.vector_field, lambda: (theta, cond)
-    designs = solve_designs(field, x0, field_args, n_steps, physics.step_size, args.block)
+    designs = solve_designs(field, x0, field_args, substeps, n_intervals, physics.step_size, args.block)
     reference = designs["eager loop"]().detach()
     for name, solve in designs.items():
         key = f"{args.config}/{name}"
@@ -293,11 +276,13 @@ def run_designs(args: argparse.Namespace) -> None:
             solve().square().sum().backward()
             each.append(time.perf_counter() - start)
         difference = float((solve().detach() - reference).abs().max())
-        results[key] = {"median_ms": 1000 * statistics.median(each), "first_s": first, "max_difference": difference}
+        median_ms, threads = 1000 * statistics.median(each), torch.get_num_threads()
+        results[key] = {"median_ms": median_ms, "first_s": first, "max_difference": difference, "threads": threads}
         path.write_text(json.dumps(results, indent=1))
     eager = results[f"{args.config}/eager loop"]["median_ms"]
     threads = torch.get_num_threads()
-    print(f"{args.config}: one grey-box solve + backward, batch {batch}, {n_steps} RK4 steps (torch threads {threads}):")
+    steps = n_intervals * substeps
+    print(f"{args.config}: one grey-box solve + backward, batch {batch}, {steps} RK4 steps (torch threads {threads}):")
     for key, value in results.items():
         if key.startswith(f"{args.config}/"):
             print(
@@ -329,10 +314,7 @@ def judge_rows(rows: int, features: int) -> tuple[np.ndarray, np.ndarray]:
 def run_judges(args: argparse.Namespace) -> None:
     from otgb.metrics.c2st import c2st
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / "judges.json"
-    results = json.loads(path.read_text()) if path.exists() else {}
+    path, results = results_file(args, "judges.json")
     features, labels = judge_rows(args.rows, args.features)
     fold = np.random.default_rng(0).permutation(len(labels))[: len(labels) * 4 // 5]  # one fold's training rows
     judges = {"library-conv1d": LibraryConvJudge, "otgb": PaperConvClassifier}
@@ -343,13 +325,14 @@ def run_judges(args: argparse.Namespace) -> None:
                 estimator = judge(max_epochs=args.epochs, n_iter_no_change=args.epochs, precision=args.precision)
                 start = time.perf_counter()
                 estimator.fit(features[fold], labels[fold])
-                results[key] = {"s_per_epoch": (time.perf_counter() - start) / estimator.n_iter_}
+                results[key] = {"s_per_epoch": (time.perf_counter() - start) / estimator.n_iter_, "rows": list(features.shape)}
                 path.write_text(json.dumps(results, indent=1))
     if args.whole and "paper/otgb/c2st" not in results:
         start = time.perf_counter()
         p, q = (torch.as_tensor(features[labels == c]) for c in (0, 1))
         score = c2st(p, q, classifier="paper", precision=args.precision)
-        results["paper/otgb/c2st"] = {"wall_s": time.perf_counter() - start, "c2st": float(score["c2st"])}
+        wall = time.perf_counter() - start
+        results["paper/otgb/c2st"] = {"wall_s": wall, "c2st": float(score["c2st"]), "rows": list(features.shape)}
         path.write_text(json.dumps(results, indent=1))
     for name in judges:
         each = [v["s_per_epoch"] for k, v in results.items() if k.startswith(f"paper/{name}/") and "s_per_epoch" in v]
@@ -409,15 +392,15 @@ def designs_table(out: Path) -> list[str]:
         return []
     lines = [
         "",
-        "| grey-box solve + backward | design | ms | of eager | first call (s) | max difference to eager |",
-        "|---|---|---|---|---|---|",
+        "| grey-box solve + backward | design | ms | of eager | first call (s) | max difference to eager | torch threads |",
+        "|---|---|---|---|---|---|---|",
     ]
     for key, value in designs.items():
         config, design = key.split("/", 1)
         eager = designs[f"{config}/eager loop"]["median_ms"]
         lines.append(
             f"| {config} | {design} | {value['median_ms']:.1f} | {eager / value['median_ms']:.2f}x | {value['first_s']:.1f} "
-            f"| {value['max_difference']:.1e} |"
+            f"| {value['max_difference']:.1e} | {value['threads']} |"
         )
     return lines
 
@@ -429,11 +412,15 @@ def judges_table(out: Path) -> list[str]:
     lines = ["", "| paper C2ST judge | convolution | s per epoch (one fold) | runs |", "|---|---|---|---|"]
     names = dict.fromkeys(key.split("/")[1] for key in judges if not key.endswith("/c2st"))
     for name in names:
-        each = [v["s_per_epoch"] for k, v in judges.items() if k.startswith(f"paper/{name}/") and "s_per_epoch" in v]
-        lines.append(f"| 6000 x 1041 rows | {name} | {statistics.median(each):.3f} | {len(each)} |")
+        runs = [v for k, v in judges.items() if k.startswith(f"paper/{name}/") and "s_per_epoch" in v]
+        rows = " x ".join(map(str, runs[0]["rows"]))
+        lines.append(f"| {rows} rows | {name} | {statistics.median(v['s_per_epoch'] for v in runs):.3f} | {len(runs)} |")
     if "paper/otgb/c2st" in judges:
         whole = judges["paper/otgb/c2st"]
-        lines.append(f"| whole 5-fold C2ST | otgb | {whole['wall_s'] / 60:.1f} min in all (C2ST {whole['c2st']:.3f}) | 1 |")
+        rows = " x ".join(map(str, whole["rows"]))
+        lines.append(
+            f"| {rows} rows, whole 5-fold C2ST | otgb | {whole['wall_s'] / 60:.1f} min in all (C2ST {whole['c2st']:.3f}) | 1 |"
+        )
     return lines
 
 

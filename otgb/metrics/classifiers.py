@@ -329,8 +329,8 @@ def few_channel_conv(x: Tensor, conv: nn.Conv1d) -> Tensor:
     """``conv(x)`` for a kernel-3, stride-1, padding-1 Conv1d, as one product over the three shifted copies of ``x``.
 
     The same arithmetic as the library convolution; with 1-3 channels the library's kernels
-    (oneDNN on a CPU) spend most of their time on layout, and this product runs several times
-    faster forward and backward (``scripts/speed_benchmark.py judges``).
+    (oneDNN on a CPU) spend most of their time on layout, and this product runs faster forward
+    and backward (``scripts/speed_benchmark.py judges`` measures by how much).
     """
     length = x.shape[-1]
     padded = nn.functional.pad(x, (1, 1))

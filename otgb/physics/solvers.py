@@ -14,9 +14,9 @@ reuse one graph. Two designs, chosen by the size of the state (measured with
   the pendulum): the whole solve is one compiled loop (torch's ``scan``), forward and backward,
   so no Python or autograd bookkeeping runs between steps; for such states that bookkeeping is
   most of the time.
-- a field (a PDE on a grid): one whole Runge-Kutta step (its stages and the field they call) is
-  one compiled graph, called once per step. Its convolutions are most of the time, and a
-  compiled loop over them measured slower than the step and took minutes to compile.
+- a field (a PDE on a grid, the advection-diffusion rod included): one whole Runge-Kutta step
+  (its stages and the field they call) is one compiled graph, called once per step. Its
+  convolutions are most of the time, and the compiled loop ran no faster than the step there.
 
 The path is one process-wide setting (``otgb fit --solver NAME``, :func:`set_solver`):
 
@@ -38,6 +38,7 @@ torchdiffeq's only.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -50,8 +51,8 @@ from torchdiffeq import odeint
 from otgb.errors import InputError
 
 SOLVERS = ("auto", "compiled", "eager", "torchdiffeq")
-COMPILE_AFTER = 500  # solves of one field (per grad mode) that `auto` runs eagerly before compiling its step
-WHOLE_SOLVE_MAX_STATE = 64  # numbers per trajectory's state up to which the whole solve is one compiled loop
+COMPILE_AFTER = 500  # solves of one field (per grad mode) that `auto` runs eagerly before compiling its solve
+WHOLE_SOLVE_MAX_STATE = 8  # numbers per trajectory's state up to which the whole solve is one compiled loop
 
 Field = Callable[..., Tensor]
 log = logging.getLogger("otgb.solvers")
@@ -127,7 +128,6 @@ STEPS: dict[str, Callable[[Field, Tensor, float, Sequence[Tensor]], Tensor]] = {
     "heun3": _heun3,
     "rk4": _rk4,
 }
-_compiled: dict[str, Callable] = {}
 
 
 def _compile(function: Callable) -> Callable:
@@ -137,10 +137,9 @@ def _compile(function: Callable) -> Callable:
     return torch.compile(function, dynamic=True, fullgraph=True)
 
 
+@functools.cache
 def _compiled_step(method: str) -> Callable:
-    if method not in _compiled:
-        _compiled[method] = _compile(STEPS[method])
-    return _compiled[method]
+    return _compile(STEPS[method])
 
 
 def _whole_solve(
@@ -158,10 +157,9 @@ def _whole_solve(
     return torch.cat([initial_state[:, None], states.movedim(0, 1)], dim=1)
 
 
+@functools.cache
 def _compiled_whole_solve() -> Callable:
-    if "whole solve" not in _compiled:
-        _compiled["whole solve"] = _compile(_whole_solve)
-    return _compiled["whole solve"]
+    return _compile(_whole_solve)
 
 
 # --- the solve ---------------------------------------------------------------------------
