@@ -264,7 +264,7 @@ def test_two_terms_the_measurements_cannot_tell_apart_are_ambiguous_with_their_n
 
     kept = refit([spring, friction], [-1.5, -0.8])
     alone = {"feature": "sin(angle)", "component": "velocity", "coefficient": -1.5, "gap_closed": 0.5}
-    kept, comparisons, added = weigh(pendulum, kept, [alone], 1, refit, lambda c: -1.0)
+    kept, comparisons, added = weigh(pendulum, kept, [alone], 1, refit, lambda c: -1.0, _last_interval(pendulum, train))
     assert added == [], "sin(angle) adds nothing to angle"
     assert [c.feature for c in kept.candidates] == ["angle", "velocity"]
     by = {(c.replaced.feature, c.by.feature): c for c in comparisons}
@@ -275,29 +275,53 @@ def test_two_terms_the_measurements_cannot_tell_apart_are_ambiguous_with_their_n
     assert not by["velocity", "sign(velocity)"].ambiguous and by["velocity", "sign(velocity)"].standard_errors > 2
 
 
-def test_evidence_adds_the_second_effect_that_forward_selection_missed():
-    """Friction and drag at once, with friction alone kept (as when f_phi learned both as one linear friction):
-    adding drag fits the validation measurements better by two standard errors; at this size (500 training trajectories,
-    256 simulated per fit) friction comes out within 10 % and drag within 15 %."""
+def _friction_kept_where_drag_is_missing():
+    """Friction and drag at once (500 training, 200 validation trajectories), with friction alone kept (as when f_phi
+    learned both as one linear friction); drag and a spring offered as additions. Returns the physics, the kept fit,
+    the cross-check's rows, the refit and the training measurements."""
     pendulum = Pendulum()
     hidden = [LibraryTerm("velocity", "velocity", Constant(-0.8)), LibraryTerm("velocity*|velocity|", "velocity", Constant(-0.4))]
-    dgp = pendulum.with_hidden_effect(hidden)
-    train, val = _draws(dgp, 500, 1), _draws(dgp, 200, 2)
+    train, val = _draws(pendulum.with_hidden_effect(hidden), 500, 1), _draws(pendulum.with_hidden_effect(hidden), 200, 2)
     terms = {c.feature: c for c in build_library(pendulum, ["velocity"])}
 
     def refit(candidates, init):
         return fit(pendulum, candidates, init, "constant", train, val, 30, 256, 0, True)
 
-    kept = refit([terms["velocity"]], [-1.1])
     rows = [
         {"feature": f, "component": "velocity", "coefficient": -0.5, "gap_closed": 0.9} for f in ("velocity*|velocity|", "angle")
     ]
-    kept, comparisons, added = weigh(pendulum, kept, rows, 2, refit, lambda c: -0.5)
+    return pendulum, refit([terms["velocity"]], [-1.1]), rows, refit, train
+
+
+def _last_interval(pendulum, measured):
+    """The last coefficient's sandwich interval on ``measured``."""
+    return lambda fitted: sandwich_intervals(pendulum, fitted, measured, 256, 0).centre[-1]
+
+
+def test_evidence_adds_the_second_effect_that_forward_selection_missed():
+    """Adding drag fits the validation measurements better by two standard errors and its interval excludes zero; at
+    this size (500 training trajectories, 256 simulated per fit) friction comes out within 10 % and drag within 15 %."""
+    pendulum, kept, rows, refit, train = _friction_kept_where_drag_is_missing()
+    kept, comparisons, added = weigh(pendulum, kept, rows, 2, refit, lambda c: -0.5, _last_interval(pendulum, train))
     fitted = dict(zip((c.feature for c in kept.candidates), (p.value for p in kept.priors)))
     assert set(fitted) == {"velocity", "velocity*|velocity|"}, fitted
     assert abs(fitted["velocity"] + 0.8) < 0.08 and abs(fitted["velocity*|velocity|"] + 0.4) < 0.06, fitted
     assert [a["feature"] for a in added] == ["velocity*|velocity|"] and added[0]["difference"] > 2 * added[0]["standard_error"]
+    low, high = added[0]["interval"]
+    assert low < added[0]["coefficient"] < high < 0
     assert comparisons, "the larger model is weighed against its swaps too"
+
+
+def test_an_addition_whose_coefficient_may_be_zero_is_not_taken():
+    """The same drag addition, its interval computed on 8 training trajectories: drag still fits the validation
+    measurements better, but its coefficient's interval holds zero, so the kept model stays friction alone."""
+    pendulum, friction, rows, refit, train = _friction_kept_where_drag_is_missing()
+    interval = _last_interval(pendulum, train[:8])
+    drag = next(c for c in build_library(pendulum, ["velocity"]) if c.feature == "velocity*|velocity|")
+    larger = refit([*friction.candidates, drag], [-0.8, 0.0])
+    assert beats(larger.heldout, friction.heldout) and interval(larger)[0] < 0 < interval(larger)[1]
+    kept, _, added = weigh(pendulum, friction, rows, 2, refit, lambda c: -0.5, interval)
+    assert added == [] and [c.feature for c in kept.candidates] == ["velocity"]
 
 
 # --- the workflow on a grey-box whose correction is the hidden term -------------------

@@ -19,9 +19,12 @@ Then each strong candidate not yet kept is *added* to the kept model (its coeffi
 zero, so the richer fit starts where the kept model is): forward selection follows f_phi's ranking,
 and a network that learned friction and drag together as one mostly linear friction ranks drag
 low. An addition is taken when it fits the validation measurements better by more than two
-standard errors; among the additions within two standard errors of the best one, the measurements
-cannot choose, and the one that closed most of f_p's gap alone (the cross-check's order) is taken.
-The swaps are then weighed again around the larger model.
+standard errors *and* the 95 % interval of its own coefficient (fitted on the training
+measurements) excludes zero: several additions are tried and the best is kept, so a term that only
+helps by chance can clear two standard errors, but its coefficient then sits at zero. Among the
+additions within two standard errors of the best one, the measurements cannot choose, and the one
+that closed most of f_p's gap alone (the cross-check's order) is taken. The swaps are then weighed
+again around the larger model.
 """
 
 from __future__ import annotations
@@ -66,6 +69,7 @@ class Comparison:
 
 
 Refit = Callable[[list[Candidate], list[float]], FittedTerms]  # constant coefficients fitted from a start
+Interval = Callable[[FittedTerms], "tuple[float, float] | None"]  # the last coefficient's 95 % interval, None if none
 
 
 def alternatives(physics: PhysicsModel, kept: list[Candidate], cross_check: list[dict], per_term: int) -> list[tuple]:
@@ -91,23 +95,31 @@ def _is_friction(term: Candidate, physics: PhysicsModel) -> bool:
     return v in physics.velocity_names and term.feature in (v, f"{v}*|{v}|", f"{v}^3")
 
 
-def weigh(physics: PhysicsModel, kept: FittedTerms, cross_check: list[dict], per_term: int, refit: Refit, start: Callable):
+def weigh(
+    physics: PhysicsModel, kept: FittedTerms, cross_check: list[dict], per_term: int, refit: Refit, start: Callable,
+    interval: Interval,
+):  # fmt: skip
     """The kept model (a better alternative swapped in, up to ``MAX_SWAPS`` times; a strong candidate added, up to
     ``MAX_ADDITIONS`` times), its :class:`Comparison` s, and the additions (feature, component, difference, its
-    standard error: the kept model's held-out discrepancy minus the larger model's).
+    standard error: the kept model's held-out discrepancy minus the larger model's; the added coefficient's interval).
 
     ``refit(candidates, init)`` fits constant coefficients and scores them on the validation part;
-    ``start(candidate)`` gives a coefficient's starting value where the cross-check has none.
+    ``start(candidate)`` gives a coefficient's starting value where the cross-check has none;
+    ``interval(fitted)`` gives the 95 % interval of the last coefficient of a fit.
     """
     kept, compared = _swap(physics, kept, cross_check, per_term, refit, start)
     added = []
     for _ in range(MAX_ADDITIONS):
-        larger = _addition(kept, cross_check, per_term, refit)
-        if larger is None:
+        addition = _addition(kept, cross_check, per_term, refit, interval)
+        if addition is None:
             break
+        larger, (low, high) = addition
         gap, error = difference(larger.heldout, kept.heldout)
         term = larger.candidates[-1]
-        added.append({"feature": term.feature, "component": term.component, "difference": gap, "standard_error": error})
+        added.append({
+            "feature": term.feature, "component": term.component, "difference": gap, "standard_error": error,
+            "coefficient": larger.priors[-1].value, "interval": [low, high],
+        })  # fmt: skip
         kept, compared = _swap(physics, larger, cross_check, per_term, refit, start)
     return kept, compared, added
 
@@ -141,22 +153,32 @@ def _compare(physics, kept: FittedTerms, cross_check: list[dict], per_term: int,
     return compared
 
 
-def _addition(kept: FittedTerms, cross_check: list[dict], per_term: int, refit: Refit) -> FittedTerms | None:
-    """The kept model with one more strong candidate, if one fits the validation measurements better by two standard
-    errors; of the additions within two standard errors of the best, the first in the cross-check's order."""
+def _addition(kept: FittedTerms, cross_check: list[dict], per_term: int, refit: Refit, interval: Interval):
+    """The kept model with one more strong candidate and that coefficient's interval, if the candidate fits the
+    validation measurements better by two standard errors and its interval excludes zero; of the additions within
+    two standard errors of the best, the first in the cross-check's order. None if no candidate qualifies."""
     options = [
         Candidate(r["feature"], r["component"]) for r in cross_check
         if math.isfinite(r["gap_closed"]) and r["gap_closed"] > 0
     ]  # fmt: skip
     options = [c for c in dict.fromkeys(options) if c not in kept.candidates][: per_term * 2]
     larger = [refit([*kept.candidates, c], [*(p.value for p in kept.priors), 0.0]) for c in options]
-    better = [fitted for fitted in larger if beats(fitted.heldout, kept.heldout)]
+    better = []
     for fitted in larger:
         gap, error = difference(fitted.heldout, kept.heldout)
-        progress(f"evidence: adding {fitted.candidates[-1].feature}: {gap / error if error > 0 else 0.0:+.1f} standard errors")
+        line = f"evidence: adding {fitted.candidates[-1].feature}: {gap / error if error > 0 else 0.0:+.1f} standard errors"
+        if beats(fitted.heldout, kept.heldout):
+            bounds = interval(fitted)
+            if bounds is None:
+                line += "; not taken: its coefficient has no interval (the fit is not at a minimum)"
+            elif bounds[0] <= 0 <= bounds[1]:
+                line += f"; not taken: its coefficient's 95 % interval [{bounds[0]:.3g}, {bounds[1]:.3g}] holds zero"
+            else:
+                better.append((fitted, bounds))
+        progress(line)
     if not better:
         return None
-    best = min(better, key=lambda f: f.heldout_energy)
-    chosen = next(f for f in better if not beats(best.heldout, f.heldout))  # better keeps the cross-check's order
-    progress(f"evidence: {chosen.candidates[-1].feature} added: it fits the validation measurements better")
+    best = min(better, key=lambda pair: pair[0].heldout_energy)[0]
+    chosen = next(pair for pair in better if not beats(best.heldout, pair[0].heldout))  # better keeps the cross-check's order
+    progress(f"evidence: {chosen[0].candidates[-1].feature} added: it fits the validation measurements better")
     return chosen

@@ -407,7 +407,8 @@ def _evidence_section(report: dict[str, Any]) -> list[str]:
         errors = a["difference"] / a["standard_error"] if a["standard_error"] > 0 else float("inf")
         lines.append(
             f"\nAdded by the evidence: {code(a['feature'])} on d{a['component']}/dt lowers the held-out energy by "
-            f"{a['difference']:.3g} ± {a['standard_error']:.2g} ({errors:.1f} standard errors)."
+            f"{a['difference']:.3g} ± {a['standard_error']:.2g} ({errors:.1f} standard errors); its coefficient "
+            f"{a['coefficient']:.4g}, 95 % interval [{a['interval'][0]:.4g}, {a['interval'][1]:.4g}] (training part)."
         )
     for a in report["ambiguous"]:
         others = ", ".join(f"{code(x['alternative'])} ({x['standard_errors']:+.1f} SE)" for x in a["alternatives"])

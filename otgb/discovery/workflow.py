@@ -309,13 +309,18 @@ def evidence_step(
     kept: FittedTerms, cross_check: list[dict], designs: dict, fitting: Fitting, per_term: int
 ) -> tuple[FittedTerms, list[Comparison], list[dict]]:  # fmt: skip
     """The kept terms against every single-term swap among the strong candidates (and Coulomb friction), on the
-    validation measurements (:mod:`otgb.discovery.evidence`); a swap or an added strong candidate that fits better by
-    two standard errors is taken. Returns the kept fit, its comparisons and the additions."""
+    validation measurements (:mod:`otgb.discovery.evidence`); a swap that fits better by two standard errors is
+    taken, and an added strong candidate that does so with a coefficient whose 95 % interval excludes zero. Returns the
+    kept fit, its comparisons and the additions."""
 
     def start(candidate: Candidate) -> float:
         return _initial([candidate], designs)[0]
 
-    kept, comparisons, added = weigh(fitting.physics, kept, cross_check, per_term, fitting, start)
+    def interval(fitted: FittedTerms) -> tuple[float, float] | None:
+        intervals = sandwich_intervals(fitting.physics, fitted, fitting.train, fitting.batch, fitting.seed)
+        return None if intervals is None else intervals.centre[-1]
+
+    kept, comparisons, added = weigh(fitting.physics, kept, cross_check, per_term, fitting, start, interval)
     for c in comparisons:
         progress(f"evidence: {c.replaced.feature} against {c.by.feature}: {c.standard_errors:+.1f} standard errors")
     return kept, comparisons, added
