@@ -7,7 +7,7 @@ import torch
 from scipy.spatial.distance import cdist
 
 from otgb.data import generate_joint
-from otgb.metrics.energy import EnergyDistance, batched_energy, energy_distance, energy_per_time
+from otgb.metrics.energy import EnergyDistance, batched_energy, energy_distance, energy_per_time, row_distance_sums
 from otgb.metrics.joint import JointEvaluator, split_half_scores
 from otgb.physics import Pendulum, Uniform, ViscousFriction
 
@@ -17,6 +17,27 @@ def test_energy_distance_matches_the_u_statistic_by_hand(generator):
     n, m = len(p), len(q)
     by_hand = 2 * cdist(p, q).mean() - cdist(p, p).sum() / (n * (n - 1)) - cdist(q, q).sum() / (m * (m - 1))
     assert float(batched_energy(p[None], q[None])[0]) == pytest.approx(by_hand, rel=1e-7)
+
+
+def test_one_feature_by_sorting_equals_the_u_statistic_by_hand_with_its_gradient(generator):
+    """One feature per row takes the sorting path: its value (paired and not), its gradient and the per-row distance
+    sums equal scipy's pairwise distances, with values far from zero (cancellation)."""
+    p = (100 + 3 * torch.randn(2, 30, 1, generator=generator, dtype=torch.float64)).requires_grad_()
+    q = 100.5 + torch.randn(2, 30, 1, generator=generator, dtype=torch.float64)
+    n = p.shape[1]
+    for g in range(2):
+        a, b = p[g].detach().numpy(), q[g].numpy()
+        cross = cdist(a, b)
+        unpaired = 2 * cross.mean() - cdist(a, a).sum() / (n * (n - 1)) - cdist(b, b).sum() / (n * (n - 1))
+        paired = unpaired + 2 * cross.mean() / (n - 1) - 2 * cross.trace() / (n * (n - 1))
+        assert float(batched_energy(p, q)[g]) == pytest.approx(unpaired, rel=1e-9)
+        assert float(batched_energy(p, q, paired=True)[g]) == pytest.approx(paired, rel=1e-9)
+        assert row_distance_sums(p[g, :, 0], q[g, :, 0]).detach().numpy() == pytest.approx(cross.sum(0), rel=1e-12)
+    (gradient,) = torch.autograd.grad(batched_energy(p, q).sum(), p)
+    # the matrix path (the value twice: every distance times sqrt(2)), about 0: its matrix product loses digits at 100
+    x, y = (p.detach() - 100).requires_grad_(), q - 100
+    (by_matrix,) = torch.autograd.grad(batched_energy(torch.cat([x, x], -1), torch.cat([y, y], -1)).sum() / 2**0.5, x)
+    assert torch.allclose(gradient, by_matrix, rtol=1e-9, atol=1e-12)
 
 
 def test_energy_distance_is_unbiased_and_sees_a_shift(generator):

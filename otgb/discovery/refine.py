@@ -30,7 +30,7 @@ from torch import Tensor
 
 from otgb.discovery.library import Candidate
 from otgb.discovery.log import diverged
-from otgb.metrics.energy import MAX_BLOCK_ENTRIES, batched_energy
+from otgb.metrics.energy import MAX_BLOCK_ENTRIES, batched_energy, row_distance_sums
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 from otgb.physics.priors import Constant, Normal, Prior, Uniform
@@ -208,6 +208,8 @@ def row_terms(a: Tensor, b: Tensor) -> Tensor:
     a's trajectories, whole and per cell, summed: (m,)."""
     rows = torch.cdist(a.flatten(1)[None], b.flatten(1)[None])[0].mean(0)
     cells_a, cells_b = _cells(a), _cells(b)
+    if cells_a.shape[-1] == 1:  # one value per cell: by sorting
+        return 2 * (rows + row_distance_sums(cells_a[..., 0], cells_b[..., 0]).sum(0) / len(a))
     step = max(1, MAX_BLOCK_ENTRIES // (len(a) * len(b)))
     for g in range(0, len(cells_a), step):
         rows = rows + torch.cdist(cells_a[g : g + step], cells_b[g : g + step]).mean(1).sum(0)
