@@ -121,7 +121,7 @@ def _inputs(greybox: GreyBoxODE, n: int) -> tuple[torch.Tensor, torch.Tensor, to
     return physics.sample_initial_state(n, g), physics.sample_theta(n, g), torch.randn(n, greybox.z_dim, generator=g)
 
 
-def test_auto_solves_eagerly_until_a_field_has_been_solved_often(monkeypatch):
+def test_auto_solves_eagerly_until_a_models_field_has_been_solved_often(monkeypatch):
     monkeypatch.setattr(solvers, "COMPILE_AFTER", 3)
     compiled_solves = []
 
@@ -129,12 +129,14 @@ def test_auto_solves_eagerly_until_a_field_has_been_solved_often(monkeypatch):
         return lambda *args: compiled_solves.append(1) or solvers._whole_solve(*args)
 
     monkeypatch.setattr(solvers, "_compiled_whole_solve", recording_solve)
-    counts = []
+    counts, pendulum = [], Pendulum()
     with torch.no_grad():
         for _ in range(4):
-            _simulate(Pendulum(), "auto")
+            _simulate(pendulum, "auto")
             counts.append(len(compiled_solves))
-    assert counts == [0, 0, 0, 1], "the 4th solve of the field is its first compiled one"
+        _simulate(Pendulum(), "auto")
+    assert counts == [0, 0, 0, 1], "the 4th solve of the model's field is its first compiled one"
+    assert len(compiled_solves) == 1, "another model (as each of discovery's fits makes) counts its own solves"
 
 
 def test_a_small_state_is_solved_as_one_compiled_loop_and_a_field_step_by_step(monkeypatch):
