@@ -6,7 +6,7 @@ trajectory, friction -c omega with c one of two values) moves it only along its 
 separable form keeps z to that: the state goes through ``rank`` learned basis corrections
 g_k(u), the condition c = (theta, z) only through their coefficients a_k(c). Its draws stay in
 the family "f_p plus a rank-k term with random coefficients", which is what the judge of the
-one-to-many C2ST tests (docs/results.md, "The one-to-many C2ST gap").
+one-to-many C2ST tests (CHANGELOG.md, "The one-to-many C2ST gap").
 """
 
 from __future__ import annotations
