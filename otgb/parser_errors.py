@@ -76,8 +76,9 @@ def concise(message: str, parser: ArgumentParser) -> tuple[str, bool]:
     if bad_class and option:
         path, name = bad_class.group(1), option.group(1)
         return f"{place}{path} has no option '{name}'{_did_you_mean(closest(name, init_options(path)))}", True
-    if bad_class:
-        path = bad_class.group(1)
+    missing = re.search(r"module '([\w.]+)' has no attribute '(\w+)'", message)  # a class given for a callable
+    if bad_class or missing:
+        path = bad_class.group(1) if bad_class else f"{missing.group(1)}.{missing.group(2)}"
         return f"{place}no class '{path}'{_did_you_mean(closest(path, class_names(path)))}", True
     expected = re.search(r"Expected a <class '(\w+)'>\. Got value: (.*)", message)
     if expected:

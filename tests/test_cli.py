@@ -181,6 +181,10 @@ def test_bad_input_is_one_line_status_2_and_no_run_directory(tmp_path):
             ["--data.physics=otgb.physics.Pendulm"],
             "--data.physics: no class 'otgb.physics.Pendulm' (did you mean otgb.physics.Pend",
         ),
+        (
+            ["--model.transport_map.class_path=otgb.models.GreyBoxOD"],  # a class given for a callable
+            "--model.transport_map: no class 'otgb.models.GreyBoxOD' (did you mean otgb.models.GreyBoxODE",
+        ),
         (["--model.objective.gama=1"], "--model.objective: otgb.ot.WeakTransport has no option 'gama' (did you mean gamma?)"),
         (["--data.simulation_budget=abc"], "--data.simulation_budget: expected int, got abc"),
         (["--config", "bad.yaml"], "unknown key 'data.simulation_budgit' (did you mean data.simulation_budget?)"),
