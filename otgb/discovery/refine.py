@@ -30,7 +30,7 @@ from torch import Tensor
 
 from otgb.discovery.library import Candidate
 from otgb.discovery.log import diverged
-from otgb.metrics.energy import MAX_BLOCK_ENTRIES, batched_energy, row_distance_sums
+from otgb.metrics.energy import batched_energy, cross_row_means, within_means
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 from otgb.physics.priors import Constant, Normal, Prior, Uniform
@@ -187,7 +187,7 @@ def discrepancy(a: Tensor, b: Tensor) -> Tensor:
     shrinks over time, as an effect that varies between trajectories makes it), which the
     distance between whole trajectories detects with far less power.
     """
-    return batched_discrepancy(a[None], b[None])[0]
+    return discrepancy_and_rows(a, Target.of(b))[0]
 
 
 def batched_discrepancy(a: Tensor, b: Tensor) -> Tensor:
@@ -203,17 +203,35 @@ def _cells(y: Tensor) -> Tensor:
     return y.reshape(len(y), y.shape[1] * y.shape[2], -1).transpose(0, 1)
 
 
+@dataclass
+class Target:
+    """Measured trajectories y (m, T, *obs) and their within-sample mean distances, whole (a number) and per cell
+    (T * C,): every :func:`discrepancy` to them shares these, so they are computed once."""
+
+    y: Tensor
+    whole: Tensor
+    cells: Tensor
+
+    @classmethod
+    def of(cls, y: Tensor) -> Target:
+        return cls(y, within_means(y.flatten(1)[None])[0], within_means(_cells(y)))
+
+
+def discrepancy_and_rows(a: Tensor, target: Target) -> tuple[Tensor, Tensor]:
+    """:func:`discrepancy` of a to the target and, per target trajectory, its share of the cross terms
+    (:func:`row_terms`), from one set of distances."""
+    whole = cross_row_means(a.flatten(1)[None], target.y.flatten(1)[None])[0]  # (m,)
+    cells = cross_row_means(_cells(a), _cells(target.y))  # (T * C, m)
+    value = 2 * whole.mean() - within_means(a.flatten(1)[None])[0] - target.whole
+    value = value + (2 * cells.mean(-1) - within_means(_cells(a)) - target.cells).sum()
+    return value, 2 * (whole + cells.sum(0))
+
+
 def row_terms(a: Tensor, b: Tensor) -> Tensor:
     """Per trajectory of b, its share of :func:`discrepancy`'s cross terms: twice its mean distance to
     a's trajectories, whole and per cell, summed: (m,)."""
-    rows = torch.cdist(a.flatten(1)[None], b.flatten(1)[None])[0].mean(0)
-    cells_a, cells_b = _cells(a), _cells(b)
-    if cells_a.shape[-1] == 1:  # one value per cell: by sorting
-        return 2 * (rows + row_distance_sums(cells_a[..., 0], cells_b[..., 0]).sum(0) / len(a))
-    step = max(1, MAX_BLOCK_ENTRIES // (len(a) * len(b)))
-    for g in range(0, len(cells_a), step):
-        rows = rows + torch.cdist(cells_a[g : g + step], cells_b[g : g + step]).mean(1).sum(0)
-    return 2 * rows
+    whole = cross_row_means(a.flatten(1)[None], b.flatten(1)[None])[0]
+    return 2 * (whole + cross_row_means(_cells(a), _cells(b)).sum(0))
 
 
 def fit(
@@ -241,14 +259,14 @@ def fit(
     model = Augmented(base, [LibraryTerm(c.feature, c.component, Constant(v)) for c, v in zip(candidates, init)])
     n = batch
     sample = FitSample.draw(base, measured, family, len(candidates), batch, seed)
-    targets, x0, theta, noise = sample.targets, sample.x0, sample.theta, sample.noise
+    target, x0, theta, noise = Target.of(sample.targets), sample.x0, sample.theta, sample.noise
     optimiser = torch.optim.LBFGS(prior.parameters(), lr=1, max_iter=steps, max_eval=2 * steps, line_search_fn="strong_wolfe")
     losses: list[float] = []
 
     def closure() -> Tensor:
         optimiser.zero_grad()
         simulated, _ = simulate_finite(model, x0, torch.cat([theta, prior.draw(noise)], dim=1))
-        loss = discrepancy(simulated, targets) if len(simulated) == n else torch.tensor(float("nan"))
+        loss = discrepancy_and_rows(simulated, target)[0] if len(simulated) == n else torch.tensor(float("nan"))
         if not torch.isfinite(loss):  # trajectories diverged, or grew so large that their distances overflow
             return torch.tensor(DIVERGED_LOSS)
         loss.backward()
@@ -304,6 +322,7 @@ def discrepancies(
     model = Augmented(base, [LibraryTerm(c.feature, c.component, Constant(0.0)) for c in candidates])
     inputs, noise = torch.Generator().manual_seed(seed + 1), torch.Generator().manual_seed(seed + 2)
     n, values, rows = len(measured), [], torch.zeros(len(measured), dtype=torch.float64)
+    target = Target.of(measured.double())
     for _ in range(repeats):
         x0, theta = base.sample_initial_state(n, inputs), base.sample_theta(n, inputs)
         coefficients = (
@@ -314,19 +333,20 @@ def discrepancies(
             first = int(bad.nonzero()[0])
             diverged("score", term_names(candidates), int(bad.sum()), n, theta[first].tolist())
             return Scores.diverged(repeats)
-        values.append(float(discrepancy(simulated.double(), measured.double())))
-        rows += row_terms(simulated.double(), measured.double()) / repeats
+        value, row = discrepancy_and_rows(simulated.double(), target)
+        values.append(float(value))
+        rows += row / repeats
     return Scores(values, rows)
 
 
 @torch.no_grad()
 def sample_scores(draw: Callable[[int], Tensor], measured: Tensor, repeats: int) -> Scores:
     """:class:`Scores` to ``measured`` of ``repeats`` samples ``draw(r)`` of any model (a grey-box, f_p)."""
-    values, rows = [], torch.zeros(len(measured), dtype=torch.float64)
+    values, rows, target = [], torch.zeros(len(measured), dtype=torch.float64), Target.of(measured.double())
     for r in range(repeats):
-        simulated = draw(r).double()
-        values.append(float(discrepancy(simulated, measured.double())))
-        rows += row_terms(simulated, measured.double()) / repeats
+        value, row = discrepancy_and_rows(draw(r).double(), target)
+        values.append(float(value))
+        rows += row / repeats
     return Scores(values, rows)
 
 

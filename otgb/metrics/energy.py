@@ -36,23 +36,45 @@ def batched_energy(p: Tensor, q: Tensor, paired: bool = False) -> Tensor:
     ``paired``: row i of p and row i of q are dependent (the same inputs), so the cross mean
     skips i = j as the within-sample means do; otherwise a near-perfect paired sample would
     score below zero by about 2 E||X - X'|| / n. One feature (F = 1: a pendulum's angle at one
-    time step) is computed by sorting (:func:`pair_distance_sums`), in O(n log n) instead of n^2.
+    time step) is computed by sorting, in O(n log n) instead of n^2.
     """
     n, m = p.shape[1], q.shape[1]
     if n < 2 or m < 2 or (paired and n != m):
         raise ValueError(f"the energy distance needs at least 2 points per sample (equally many if paired), got {n} and {m}")
-    if p.shape[2] == 1:
-        return _sorted_energy(p[..., 0], q[..., 0], paired)
-    step = max(1, MAX_BLOCK_ENTRIES // (n * m + n * n + m * m))
-    parts = []
-    for g in range(0, len(p), step):
-        a, b = p[g : g + step], q[g : g + step]
-        within_a = torch.cdist(a, a).sum((1, 2)) / (n * (n - 1))  # the zero diagonal is skipped by the divisor
-        within_b = torch.cdist(b, b).sum((1, 2)) / (m * (m - 1))
-        cross = torch.cdist(a, b)
-        cross = (cross.sum((1, 2)) - cross.diagonal(dim1=1, dim2=2).sum(1)) / (n * (n - 1)) if paired else cross.mean((1, 2))
-        parts.append(2 * cross - within_a - within_b)
-    return torch.cat(parts)
+    cross = cross_row_means(p, q).sum(-1) * n  # the sum over all pairs
+    if paired:
+        cross = (cross - (p - q).norm(dim=-1).sum(-1)) / (n * (n - 1))
+    else:
+        cross = cross / (n * m)
+    return 2 * cross - within_means(p) - within_means(q)
+
+
+def within_means(x: Tensor) -> Tensor:
+    """Mean distance between the distinct rows of each batch entry: x (G, n, F) -> (G,)."""
+    n = x.shape[1]
+    if x.shape[2] == 1:
+        values, dtype = _centred(x[..., 0], x[..., 0])[0], x.dtype
+        return (2 * pair_distance_sums(values) / (n * (n - 1))).to(dtype)
+    step = max(1, MAX_BLOCK_ENTRIES // (n * n))
+    sums = [torch.cdist(x[g : g + step], x[g : g + step]).sum((1, 2)) for g in range(0, len(x), step)]
+    return torch.cat(sums) / (n * (n - 1))  # the zero diagonal is skipped by the divisor
+
+
+def cross_row_means(a: Tensor, b: Tensor) -> Tensor:
+    """Each row of b's mean distance to the rows of a, per batch entry: a (G, n, F), b (G, m, F) -> (G, m)."""
+    n, m = a.shape[1], b.shape[1]
+    if a.shape[2] == 1:
+        centred_a, centred_b = _centred(a[..., 0], b[..., 0])
+        return (row_distance_sums(centred_a, centred_b) / n).to(a.dtype)
+    step = max(1, MAX_BLOCK_ENTRIES // (n * m))
+    return torch.cat([torch.cdist(a[g : g + step], b[g : g + step]).mean(1) for g in range(0, len(a), step)])
+
+
+def _centred(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
+    """a and b (G, n), (G, m) in float64 about their pooled mean: the sorted sums below cancel large terms."""
+    a, b = a.double(), b.double()
+    shift = torch.cat([a, b], -1).mean(-1, keepdim=True)
+    return a - shift, b - shift
 
 
 def pair_distance_sums(x: Tensor) -> Tensor:
@@ -71,20 +93,6 @@ def row_distance_sums(a: Tensor, b: Tensor) -> Tensor:
     below_sum = cumulative.gather(-1, below)
     above_sum = cumulative[..., -1:] - below_sum
     return b * below - below_sum + above_sum - b * (a.shape[-1] - below)
-
-
-def _sorted_energy(a: Tensor, b: Tensor, paired: bool) -> Tensor:
-    """:func:`batched_energy` of one feature, a (G, n), b (G, m), in float64 about the pooled mean (the weighted
-    sums of :func:`pair_distance_sums` cancel large terms)."""
-    dtype = a.dtype
-    a, b = a.double(), b.double()
-    shift = torch.cat([a, b], -1).mean(-1, keepdim=True)
-    a, b = a - shift, b - shift
-    n, m = a.shape[-1], b.shape[-1]
-    within_a, within_b = pair_distance_sums(a), pair_distance_sums(b)
-    cross = pair_distance_sums(torch.cat([a, b], -1)) - within_a - within_b  # the pooled pairs less the within pairs
-    cross = (cross - (a - b).abs().sum(-1)) / (n * (n - 1)) if paired else cross / (n * m)
-    return (2 * cross - 2 * within_a / (n * (n - 1)) - 2 * within_b / (m * (m - 1))).to(dtype)
 
 
 def energy_distance(p: Tensor, q: Tensor, paired: bool = False) -> Tensor:
