@@ -111,7 +111,7 @@ def coverage_table() -> str:
             low, high = wilson(covered, len(rows))
             lines.append(
                 f"| {case} | {len(rows)} | {rows[0]['truth'][part]:.4g} | {part} | {covered} | "
-                f"{covered / len(rows):.2f} [{low:.2f}, {high:.2f}] | {sum(widths) / max(len(widths), 1):.4g} | {seconds:.0f} s |"
+                f"{covered / len(rows):.2f} [{low:.2f}, {high:.2f}] | {sum(widths) / max(len(widths), 1):.4g} | {seconds:.2g} s |"
             )
     return "\n".join(lines)
 
