@@ -14,15 +14,16 @@ import yaml
 from torch import nn
 
 from otgb.data import generate_measured
-from otgb.discovery.evidence import weigh
+from otgb.discovery.evidence import Comparison, choose_swap, weigh
 from otgb.discovery.intervals import sandwich_intervals
-from otgb.discovery.library import build_library, physical_name
+from otgb.discovery.library import Candidate, build_library, physical_name
 from otgb.discovery.locate import describe, locate
 from otgb.discovery.log import DivergenceLog
 from otgb.discovery.refine import (
     FAMILIES,
     FAMILY_REPEATS,
     CoefficientPrior,
+    FittedTerms,
     Scores,
     beats,
     discrepancies,
@@ -273,6 +274,27 @@ def test_two_terms_the_measurements_cannot_tell_apart_are_ambiguous_with_their_n
     assert ambiguous.ambiguous and abs(ambiguous.standard_errors) <= 2 and ambiguous.standard_error > 0
     assert abs(ambiguous.coefficient + 2.0) < 0.2, "the swapped term takes the spring's coefficient"
     assert not by["velocity", "sign(velocity)"].ambiguous and by["velocity", "sign(velocity)"].standard_errors > 2
+
+
+def test_a_wrong_signed_friction_gives_way_to_a_right_signed_one_the_data_cannot_tell_apart():
+    """Friction plus anti-drag (+0.45 velocity*|velocity|, energy fed in) kept; the measurements cannot tell anti-drag
+    from Coulomb friction (+0.3 SE) nor from a spring (-1.3 SE): Coulomb friction, a friction with the right sign,
+    takes its place, not the better-fitting spring; a clear preference of the data (-2.5 SE) still wins."""
+    pendulum = Pendulum()
+    features = ("velocity", "velocity*|velocity|", "sign(velocity)", "angle")
+    friction, drag, coulomb, spring = (Candidate(f, "velocity") for f in features)
+
+    def fitted(*terms):
+        return FittedTerms("constant", [c for c, _ in terms], [Constant(v) for _, v in terms], Scores([0.1]), [])
+
+    kept = fitted((friction, -1.58), (drag, 0.45))
+    to_coulomb = (Comparison(drag, coulomb, -0.31, 0.0009, 0.003), fitted((friction, -1.1), (coulomb, -0.31)))
+    to_spring = (Comparison(drag, spring, -0.2, -0.0039, 0.003), fitted((friction, -1.5), (spring, -0.2)))
+    assert choose_swap(pendulum, kept, [to_spring, to_coulomb]) is to_coulomb
+    plausible = fitted((friction, -1.58), (drag, -0.45))
+    assert choose_swap(pendulum, plausible, [to_spring, to_coulomb]) is None, "a right-signed term stays"
+    clear = (Comparison(drag, spring, -0.2, -0.0075, 0.003), to_spring[1])
+    assert choose_swap(pendulum, kept, [clear, to_coulomb]) is clear
 
 
 def _friction_kept_where_drag_is_missing():

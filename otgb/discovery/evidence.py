@@ -13,7 +13,11 @@ An alternative within two standard errors is *ambiguous*: the measurements canno
 the named term. Of those that fit better by more than two standard errors, the one that lowers the
 held-out discrepancy most replaces the named term (and the comparisons are made again around the
 new model), so every kept term is the one the measurements prefer among its alternatives, by the
-number of standard errors the report gives.
+number of standard errors the report gives. Where the measurements cannot choose, physics does: a
+kept term whose sign contradicts its name (anti-drag, negative damping, anti-diffusion) is replaced
+by an ambiguous alternative of the same kind whose sign is right (a saturating friction fitted as
+friction plus anti-drag becomes friction plus Coulomb friction, when the data cannot tell the two
+apart; a spring is no replacement for a friction).
 
 Then each strong candidate not yet kept is *added* to the kept model (its coefficient started at
 zero, so the richer fit starts where the kept model is): forward selection follows f_phi's ranking,
@@ -33,7 +37,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from otgb.discovery.library import Candidate
+from otgb.discovery.library import Candidate, implausible, signed_kind
 from otgb.discovery.log import progress
 from otgb.discovery.refine import FittedTerms, beats, difference
 from otgb.physics.base import PhysicsModel
@@ -125,19 +129,41 @@ def weigh(
 
 
 def _swap(physics, kept: FittedTerms, cross_check: list[dict], per_term: int, refit: Refit, start: Callable):
-    """The kept model after up to ``MAX_SWAPS`` swaps for a better alternative, and its :class:`Comparison` s."""
+    """The kept model after up to ``MAX_SWAPS`` swaps (:func:`choose_swap`), and its :class:`Comparison` s."""
     compared = _compare(physics, kept, cross_check, per_term, refit, start)
     for _ in range(MAX_SWAPS):
-        better = [(c, s) for c, s in compared if c.standard_errors < -AMBIGUOUS_WITHIN]
-        if not better:
+        chosen = choose_swap(physics, kept, compared)
+        if chosen is None:
             break
-        comparison, kept = min(better, key=lambda pair: pair[0].difference)  # the largest improvement
-        progress(
-            f"evidence: {comparison.by.feature} fits the validation measurements better than {comparison.replaced.feature} "
-            f"by {-comparison.standard_errors:.1f} standard errors; swapped in"
-        )
+        comparison, kept = chosen
+        by, replaced = comparison.by.feature, comparison.replaced.feature
+        errors = comparison.standard_errors
+        if errors < -AMBIGUOUS_WITHIN:
+            progress(f"evidence: {by} fits the validation measurements better than {replaced} by {-errors:.1f} standard errors")
+        else:
+            progress(f"evidence: {replaced} has the wrong sign for its physics; the measurements cannot tell it from {by}")
+        progress(f"evidence: {by} swapped in for {replaced} ({errors:+.1f} standard errors)")
         compared = _compare(physics, kept, cross_check, per_term, refit, start)
     return kept, [c for c, _ in compared]
+
+
+def choose_swap(physics: PhysicsModel, kept: FittedTerms, compared: list[tuple]) -> tuple | None:
+    """Of (:class:`Comparison`, the swapped model's fit) pairs, the swap to make: an alternative that fits the
+    validation measurements better by more than two standard errors (the largest improvement); else, for a kept
+    term whose sign contradicts its physics (:func:`otgb.discovery.library.implausible`), an alternative of the same
+    kind (a friction for a friction) with the right sign that the measurements cannot tell from it (the best fitting
+    one); None if neither."""
+    better = [pair for pair in compared if pair[0].standard_errors < -AMBIGUOUS_WITHIN]
+    if better:
+        return min(better, key=lambda pair: pair[0].difference)
+    value = dict(zip(kept.candidates, (p.value for p in kept.priors)))
+    plausible = [
+        pair for pair in compared
+        if (c := pair[0]).ambiguous and implausible(c.replaced.feature, c.replaced.component, value[c.replaced], physics)
+        and signed_kind(c.by.feature, c.by.component, physics) == signed_kind(c.replaced.feature, c.replaced.component, physics)
+        and not implausible(c.by.feature, c.by.component, c.coefficient, physics)
+    ]  # fmt: skip
+    return min(plausible, key=lambda pair: pair[0].difference, default=None)
 
 
 def _compare(physics, kept: FittedTerms, cross_check: list[dict], per_term: int, refit: Refit, start: Callable) -> list[tuple]:

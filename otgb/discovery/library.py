@@ -91,11 +91,22 @@ def implausible(feature: str, component: str, coefficient: float, model: Physics
     sharpens every gradient (anti-diffusion, an ill-posed PDE). Either can be real (a driven system), so it
     is a flag for the reader, not a rejection.
     """
+    kind = signed_kind(feature, component, model)
+    if kind == "friction" and coefficient > 0:
+        return "feeds energy into the motion (a friction with the wrong sign)"
+    if kind == "diffusion" and coefficient < 0:
+        return "sharpens every gradient (a diffusion with the wrong sign; the PDE is ill-posed)"
+    return None
+
+
+def signed_kind(feature: str, component: str, model: PhysicsModel) -> str | None:
+    """``friction`` (a velocity's own ``v``, ``v*|v|``, ``v^3``, ``sign(v)``) or ``diffusion`` (a field's own
+    ``lap``, ``d_ss``): the terms whose physical sign :func:`implausible` checks; None for any other term."""
     v = component
     if v in model.velocity_names and feature in (v, f"{v}*|{v}|", f"{v}^3", f"sign({v})"):
-        return "feeds energy into the motion (a friction with the wrong sign)" if coefficient > 0 else None
+        return "friction"
     if getattr(model, "spatial_dims", 0) and feature in (f"lap({component})", f"d_ss({component})"):
-        return "sharpens every gradient (a diffusion with the wrong sign; the PDE is ill-posed)" if coefficient < 0 else None
+        return "diffusion"
     return None
 
 
