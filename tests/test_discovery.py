@@ -31,10 +31,10 @@ from otgb.discovery.refine import (
     row_terms,
 )
 from otgb.discovery.regression import design_matrix, regress
-from otgb.discovery.report import write_report
+from otgb.discovery.report import named_divergences, write_report
 from otgb.discovery.search import best_subsets, subset_values
 from otgb.discovery.variation import choose_family
-from otgb.discovery.workflow import DiscoverySettings, Measurements, locate_step, run, simulate_candidate
+from otgb.discovery.workflow import Discovery, DiscoverySettings, Measurements, locate_step, run, simulate_candidate
 from otgb.errors import InputError
 from otgb.models import GreyBoxODE, MLPCritic
 from otgb.physics import (
@@ -233,6 +233,21 @@ def test_a_candidate_that_diverges_is_dropped_and_listed_not_a_crash():
     assert not scores.finite and len(kept) < 100 and torch.isfinite(kept).all()
     assert [r["what"] for r in log.records] == ["score", "gap"]
     assert log.records[1]["diverged"] == 100 - len(kept) and log.records[1]["terms"] == ["velocity^3 on dvelocity/dt"]
+
+
+def test_the_named_models_own_divergences_are_said_apart_from_the_candidates():
+    """Records of f_p plus exactly the named terms are the named model's; the verdict's sentence counts them."""
+    friction, drag = Candidate("velocity", "velocity"), Candidate("velocity*|velocity|", "velocity")
+    named = FittedTerms("constant", [friction, drag], [Constant(-1.6), Constant(0.45)], Scores([0.1]), [])
+    v, drag_term = "velocity on dvelocity/dt", "velocity*|velocity| on dvelocity/dt"
+    records = [
+        {"what": "fit (constant)", "terms": [drag_term], "diverged": 1024, "of": 1024},
+        {"what": "score", "terms": [v, drag_term], "diverged": 1, "of": 420},
+        {"what": "gap-augmented", "terms": [drag_term, v], "diverged": 2, "of": 90},
+    ]
+    result = Discovery(before=None, sentence_before="", fitted=named, diverged=records)
+    assert named_divergences(result) == records[1:]
+    assert named_divergences(Discovery(before=None, sentence_before="", diverged=records)) == [], "nothing named"
 
 
 def test_intervals_contain_the_estimate_and_cover_the_truth_on_fresh_files():

@@ -24,12 +24,13 @@ def progress(message: str) -> None:
 
 
 def diverged(what: str, terms: list[str], bad: int, total: int, first_inputs: list[float] | None = None) -> None:
-    """Say that ``bad`` of ``total`` simulated trajectories of a model made of f_p + ``terms`` diverged in ``what``;
-    the model is dropped from that step (WARNING, collected by :class:`DivergenceLog`)."""
+    """Say that ``bad`` of ``total`` simulated trajectories of a model made of f_p + ``terms`` diverged in ``what``
+    (WARNING, collected by :class:`DivergenceLog`): a fit or score counts the model as infinitely worse there, a
+    verification leaves those trajectories out."""
     details = {"what": what, "terms": terms, "diverged": bad, "of": total, "first_inputs": first_inputs}
     where = f" (first inputs theta={first_inputs})" if first_inputs is not None else ""
     logger.warning(
-        f"{what}: f_p + {terms or 'nothing'} diverged in {bad} of {total} trajectories{where}; dropped",
+        f"{what}: f_p + {terms or 'nothing'} diverged in {bad} of {total} trajectories{where}",
         extra={"divergence": details},
     )
 

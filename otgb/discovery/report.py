@@ -13,6 +13,7 @@ import yaml
 from otgb.analysis.components import to_json
 from otgb.analysis.figures import close, components_figure, disagreement_figure, distribution_figure, save
 from otgb.discovery.library import implausible
+from otgb.discovery.refine import term_names
 from otgb.discovery.variation import FIRST_SPREAD, SPREAD_DOUBLINGS
 from otgb.discovery.workflow import Discovery, term_name
 from otgb.physics.augmented import Augmented
@@ -59,6 +60,12 @@ def verdict(result: Discovery, physics: PhysicsModel) -> str:
             f"the test part); {result.sentence_after}; no library term fits exactly, these are the best approximation"
         )
     parts = [head, *preferences(result, physics), *flags(result, physics)]
+    if named := named_divergences(result):
+        worst = max(named, key=lambda d: d["diverged"] / d["of"])
+        parts.append(
+            f"the named model's solve diverged in {len(named)} step(s), at worst on {worst['diverged']} of {worst['of']} "
+            f"simulated trajectories ({worst['what']}): some inputs blow up with these coefficients"
+        )
     if result.undertrained:
         parts.append("the OT grey-box is undertrained, the terms come from the library search")
     return "; ".join(parts)
@@ -86,6 +93,14 @@ def preferences(result: Discovery, physics: PhysicsModel) -> list[str]:
         else:
             sentences.append(f"{candidate.feature} preferred over {other} by {closest.standard_errors:.1f} standard errors")
     return sentences
+
+
+def named_divergences(result: Discovery) -> list[dict]:
+    """The divergence records (:mod:`otgb.discovery.log`) of the named model itself: f_p plus exactly its terms."""
+    if not result.found or result.fitted is None:
+        return []
+    named = set(term_names(result.fitted.candidates))
+    return [d for d in result.diverged if set(d["terms"]) == named]
 
 
 def flags(result: Discovery, physics: PhysicsModel) -> list[str]:
@@ -356,10 +371,16 @@ def _naming_section(report: dict[str, Any]) -> list[str]:
             "Raise `data.simulation_budget` (or give a longer-trained `--ckpt_path`)."
         )
     if report["diverged"]:
-        lines += ["", "### Models dropped because their solve diverged", ""]
-        lines += ["| step | f_p plus | diverged trajectories | first inputs |", "|---|---|---|---|"]
+        named = {f"{t['feature']} on d{t['component']}/dt" for t in report["terms"]}
+        lines += ["", "### Solves that diverged", ""]
+        lines.append(
+            "A fit or a score whose solve diverged counts its model as infinitely worse in that step; a verification leaves "
+            "the diverged trajectories out. **named**: the model this report names."
+        )
+        lines += ["", "| step | f_p plus | diverged trajectories | first inputs |", "|---|---|---|---|"]
         for d in report["diverged"]:
-            terms = ", ".join(f"`{t}`" for t in d["terms"]) or "nothing"
+            terms = ", ".join(code(t) for t in d["terms"]) or "nothing"
+            terms += " (**named**)" if named and set(d["terms"]) == named else ""
             lines.append(f"| {d['what']} | {terms} | {d['diverged']} of {d['of']} | {d['first_inputs'] or '-'} |")
     lines += _evidence_section(report)
     lines += [

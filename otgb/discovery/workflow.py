@@ -141,7 +141,7 @@ class Discovery:
     draws: dict[str, Tensor] = field(default_factory=dict)  # the gap table's samples, as many as the test part
     search: list[SearchStep] = field(default_factory=list)  # the library search's path, when it ran
     route: str = "f_phi regression"  # which route named the kept terms
-    diverged: list[dict] = field(default_factory=list)  # models dropped because their solve diverged (otgb.discovery.log)
+    diverged: list[dict] = field(default_factory=list)  # solves that diverged, per step and model (otgb.discovery.log)
     undertrained: dict[str, float] | None = None  # the grey-box's and f_p's held-out energy when it is no better
 
     @property
