@@ -52,9 +52,9 @@ def batched_energy(p: Tensor, q: Tensor, paired: bool = False) -> Tensor:
 def within_means(x: Tensor) -> Tensor:
     """Mean distance between the distinct rows of each batch entry: x (G, n, F) -> (G,)."""
     n = x.shape[1]
-    if x.shape[2] == 1:
-        values, dtype = _centred(x[..., 0], x[..., 0])[0], x.dtype
-        return (2 * pair_distance_sums(values) / (n * (n - 1))).to(dtype)
+    if x.shape[2] == 1:  # in float64 about the mean: the sorted sum cancels large terms
+        values = x[..., 0].double()
+        return (2 * pair_distance_sums(values - values.mean(-1, keepdim=True)) / (n * (n - 1))).to(x.dtype)
     step = max(1, MAX_BLOCK_ENTRIES // (n * n))
     sums = [torch.cdist(x[g : g + step], x[g : g + step]).sum((1, 2)) for g in range(0, len(x), step)]
     return torch.cat(sums) / (n * (n - 1))  # the zero diagonal is skipped by the divisor
@@ -71,7 +71,7 @@ def cross_row_means(a: Tensor, b: Tensor) -> Tensor:
 
 
 def _centred(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
-    """a and b (G, n), (G, m) in float64 about their pooled mean: the sorted sums below cancel large terms."""
+    """a and b (G, n), (G, m) in float64 about their pooled mean: the sorted sums cancel large terms."""
     a, b = a.double(), b.double()
     shift = torch.cat([a, b], -1).mean(-1, keepdim=True)
     return a - shift, b - shift
