@@ -21,13 +21,11 @@ reuse one graph. Two designs, chosen by the size of the state (measured with
 The path is one process-wide setting (``otgb fit --solver NAME``, :func:`set_solver`):
 
 - ``auto`` (default): compiled once the vector field of one model (per grad mode) has been, or
-  is planned to be, solved :data:`COMPILE_AFTER` times; the eager loop before. A compile costs
-  20-40 s per model on 2 cores (less from torch's on-disk compile cache) and pays for itself
-  only over about a thousand solves (a 500-step pendulum fit: 47.7 s eager, 68.6 s compiled
-  with an empty compile cache, 47.2 s with a warm one; 1500 steps: 122.5 s against 100.6 s),
-  so short runs (tests, smoke runs) and discovery's many small fits, each of a new model,
-  never compile, and a long training run, which announces its steps (:func:`plan_solves`),
-  compiles at once.
+  is planned to be, solved :data:`COMPILE_AFTER` times; the eager loop before. A compile is
+  paid once per model (less from torch's on-disk compile cache) and pays for itself only over
+  about a thousand solves on 2 cores, so short runs (tests, smoke runs) and discovery's many
+  small fits, each of a new model, never compile, and a long training run, which announces
+  its steps (:func:`plan_solves`), compiles at once.
   The switch is a count, not a clock: the same config and seed give the same numbers run
   after run (a resumed run may switch at another step: the paths agree to float32 rounding).
 - ``compiled``: the compiled step from the first solve.
