@@ -34,7 +34,7 @@ from otgb.discovery.regression import design_matrix, regress
 from otgb.discovery.report import named_divergences, write_report
 from otgb.discovery.search import best_subsets, subset_values
 from otgb.discovery.variation import choose_family
-from otgb.discovery.workflow import Discovery, DiscoverySettings, Measurements, locate_step, run, simulate_candidate
+from otgb.discovery.workflow import Discovery, DiscoverySettings, Measurements, locate_step, replaces, run, simulate_candidate
 from otgb.errors import InputError
 from otgb.models import GreyBoxODE, MLPCritic
 from otgb.physics import (
@@ -438,6 +438,18 @@ def test_search_names_the_effect_a_mean_only_correction_missed(tmp_path):
     searched = {a["feature"] for step in report["search"] for alternative in step["alternatives"] for a in alternative}
     assert all(set(entry["alternatives"]) <= searched for entry in report["ambiguous"])  # not f_phi's (a constant's)
     assert "Library search" in (tmp_path / "report.md").read_text() and report["terms"][0]["name"] == "viscous friction"
+
+
+def test_the_search_replaces_a_longer_model_the_data_cannot_tell_from_it():
+    def fitted(features: list[str], draws: list[float]) -> FittedTerms:
+        candidates = [Candidate(f, "velocity") for f in features]
+        return FittedTerms("constant", candidates, [Constant(0.0)] * len(features), Scores(draws), [])
+
+    long = fitted(["1", "velocity", "angle", "velocity^2"], [0.060, 0.062, 0.058, 0.061])
+    short = fitted(["velocity", "sin(angle)"], [0.061, 0.060, 0.059, 0.062])  # within noise of the long one
+    much_worse = fitted(["velocity"], [0.090, 0.092, 0.088, 0.091])
+    assert replaces(short, long) and not replaces(long, short)
+    assert not replaces(much_worse, long) and replaces(long, much_worse)  # more terms, but better by far
 
 
 def test_best_subsets_tries_every_subset_where_forward_selection_fails():

@@ -275,6 +275,13 @@ def _natural_scale(candidate: Candidate, design: Any) -> float:
     return float(np.sqrt((design.y**2).mean()) / max(design.scale[index], 1e-12))
 
 
+MAX_FORWARD_TERMS = 6  # models on f_phi's route at most (its prune refits O(k^2) models)
+
+
+def _on(candidate: Candidate) -> str:
+    return f"{candidate.feature} on d{candidate.component}/dt"
+
+
 def add_step(selections: list[Selection], designs: dict, fitting: Fitting):
     """Forward selection on held-out measurements, then the prior family.
 
@@ -283,7 +290,10 @@ def add_step(selections: list[Selection], designs: dict, fitting: Fitting):
     fitted by distribution matching) are scored on the validation measurements. The path
     stops after two models in a row that do not beat the leader (the last model that beat the
     leader before it) by two standard errors: f_phi's regression may select many small terms, each
-    lowering the held-out score a little (reaction-diffusion). The sparsest model that the best
+    lowering the held-out score a little (reaction-diffusion). It stops at ``MAX_FORWARD_TERMS``
+    terms: a correction whose named terms need more to match the measurements learned an average
+    rather than a shape, and the library search (which tries every subset) takes over where the
+    model still disagrees. The sparsest model that the best
     does not beat by more than two standard errors is kept, then pruned backwards (:func:`prune`);
     the terms left out are reported as dropped. Returns the kept terms' constant fit and the dropped terms.
     """
@@ -291,10 +301,10 @@ def add_step(selections: list[Selection], designs: dict, fitting: Fitting):
     path = [c for _, c in ordered]
     fits: list[FittedTerms] = []
     leader = 0  # the last model that beat the leader before it
-    for k in range(1, len(path) + 1):
+    for k in range(1, min(len(path), MAX_FORWARD_TERMS) + 1):
         init = _initial(path[:k], designs)
         fits.append(fitting(path[:k], init))
-        progress(f"{k} term(s) {[c.feature for c in path[:k]]}: held-out energy {fits[-1].heldout_energy:.4g}")
+        progress(f"{k} term(s) {[_on(c) for c in path[:k]]}: held-out energy {fits[-1].heldout_energy:.4g}")
         if beats(fits[-1].heldout, fits[leader].heldout):
             leader = k - 1
         elif k - 1 - leader >= 2:
@@ -354,7 +364,7 @@ def prune(current: FittedTerms, fitting: Fitting) -> FittedTerms:
         if beats(current.heldout, reduced.heldout):
             return current
         progress(
-            f"dropped {[c.feature for c in current.candidates if c not in reduced.candidates]}: not needed by the held-out data"
+            f"dropped {[_on(c) for c in current.candidates if c not in reduced.candidates]}: not needed by the held-out data"
         )
         current = reduced
     return current
@@ -461,12 +471,20 @@ def search_step(kept: FittedTerms | None, result: Discovery, designs: dict, fitt
     current = {} if kept is None else {c: p.value for c, p in zip(kept.candidates, kept.priors)}
     init = [current.get(c, 0.0) for c in candidates]
     found, result.search = search(candidates, init, fitting, progress)
-    if found is None or (kept is not None and not beats(found.heldout, kept.heldout)):
+    if found is None or (kept is not None and not replaces(found, kept)):
         progress("search: nothing better than " + ("f_phi's terms" if kept else "f_p alone"))
         return kept
     result.dropped, result.route = [], "library search"
     progress(f"search: kept {[c.feature for c in found.candidates]}, coefficients {found.priors}")
     return found
+
+
+def replaces(found: FittedTerms, kept: FittedTerms) -> bool:
+    """Whether the search's model replaces f_phi's: it fits the validation part better by two standard errors, or
+    it has fewer terms and f_phi's model does not fit better by two (the sparser of two models the data cannot tell
+    apart, the rule of every other step)."""
+    sparser = len(found.candidates) < len(kept.candidates)
+    return beats(found.heldout, kept.heldout) or (sparser and not beats(kept.heldout, found.heldout))
 
 
 UNDERTRAINED_REPEATS = 5  # simulation draws per held-out score of the grey-box and of f_p
