@@ -9,7 +9,9 @@
     model.t_max: {int: [1, 4]}
     model.ema_decay: {uniform: [0.99, 0.999]}
 
-Each trial is a real ``otgb fit`` run (``<study dir>/trial_NNNN/version_N``: logs, checkpoints,
+The first trial runs the config's own settings (for the searched keys whose values lie in the
+space), so the study's best is never worse than where it started, at the study's budget. Each
+trial is a real ``otgb fit`` run (``<study dir>/trial_NNNN/version_N``: logs, checkpoints,
 ``config.yaml``) scored by the run's own selection metric (``checkpoint.monitor``: ``val/abs_err``
 against a configured process, ``val/energy`` against a file of measurements), the best value over
 its validations; trials whose validation curve is worse than the median of earlier trials at the
@@ -133,6 +135,16 @@ def _check_range(where: str, kind: str, values: Any) -> None:
         raise InputError(f"{where}: the range {values} is empty or invalid; expected {need}")
 
 
+def in_range(value: Any, spec: dict[str, list]) -> bool:
+    """Whether a config's own ``value`` lies in a key's range (a starting point the sampler may take)."""
+    kind, values = next(iter(spec.items()))
+    if kind == "choice":
+        return value in values
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or (kind == "int" and not isinstance(value, int)):
+        return False
+    return values[0] <= value <= values[1]
+
+
 def suggest(trial: optuna.Trial, key: str, spec: dict[str, list]) -> Any:
     kind, values = next(iter(spec.items()))
     if kind == "choice":
@@ -169,6 +181,8 @@ class Study:
         base = load_run(configs, *overrides)  # bad configs and overrides fail here, before anything is written
         self.monitor = base.datamodule.selection_metric if _monitor(base.config) == "auto" else _monitor(base.config)
         self.space = read_space(settings.space, list(base.config.keys()))
+        own = {key: base.config.get(key) for key in self.space}
+        self.baseline = {key: value for key, value in own.items() if in_range(value, self.space[key])}
         self.name = settings.study or "-".join(Path(c).stem for c in configs)
         self.directory = Path("runs") / f"tune-{self.name}"
         self.study = self._open()
@@ -223,7 +237,10 @@ class Study:
     def objective(self, trial: optuna.Trial) -> float:
         # Seeded by the trial's number, unique across workers and runs: a resumed or second worker draws other values
         # than the first (one seeded sampler per process would repeat its draws), and one worker's study is reproducible.
-        self.study.sampler = SAMPLERS[self.settings.sampler](seed=self.settings.seed + trial.number)
+        sampler = SAMPLERS[self.settings.sampler](seed=self.settings.seed + trial.number)
+        if trial.number == 0 and self.baseline:  # the config's own settings first: numbers are unique across workers
+            sampler = optuna.samplers.PartialFixedSampler(self.baseline, sampler)
+        self.study.sampler = sampler
         values = {key: suggest(trial, key, spec) for key, spec in self.space.items()}
         settings = [
             f"--{key}={yaml.safe_dump(value, default_flow_style=True).strip().removesuffix('...').strip()}"
@@ -304,6 +321,8 @@ class Study:
             params = [f"{t.params[k]:.4g}" if isinstance(t.params.get(k), float) else str(t.params.get(k, "-")) for k in keys]
             wall = f"{t.user_attrs['wall_s'] / 60:.1f} min" if "wall_s" in t.user_attrs else "-"
             note = t.user_attrs.get("failed_because", "")
+            if self.baseline and all(t.params.get(k) == v for k, v in self.baseline.items()):
+                note = f"the config's own settings{'; ' + note if note else ''}"
             if t.state == optuna.trial.TrialState.PRUNED and t.intermediate_values:
                 step = max(t.intermediate_values)
                 note = f"pruned at step {step} ({self.monitor} {t.intermediate_values[step]:.4g})"

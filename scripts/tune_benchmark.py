@@ -1,9 +1,9 @@
 """`otgb tune` measured: a study on Pendulum-1-m at a reduced budget, its best settings refitted at the full budget
 against the hand-tuned config over seeds, and one worker against two on the same study size.
 
-    python scripts/tune_benchmark.py study --out results/tune            # 12 trials at 16 000 simulations (resumable)
+    python scripts/tune_benchmark.py study --out results/tune --simulations 40000   # 12 trials (resumable)
     python scripts/tune_benchmark.py refit --out results/tune --seeds 0 1 2   # best.yaml and pendulum.yaml, full budget
-    python scripts/tune_benchmark.py workers --out bench/workers --trials 4   # 1 worker against 2, 16 000 sims a trial
+    python scripts/tune_benchmark.py workers --out bench/workers --trials 4 --simulations 16000   # 1 worker against 2
     python scripts/tune_benchmark.py table --out results/tune --doc docs/tune.md   # summary.md, and the docs' table
 
 Every step resumes: the study is an Optuna study on disk, and a refit whose test report exists is skipped. Result
@@ -32,7 +32,11 @@ ROOT = Path(__file__).parents[1]
 CONFIG = ROOT / "configs" / "pendulum.yaml"
 SPACE = ROOT / "configs" / "tune" / "pendulum.yaml"
 FULL_BUDGET = 100_000  # configs/pendulum.yaml's budget: best.yaml holds the study's reduced one
-STUDY_BUDGET = ["--data.simulation_budget=16000", "--trainer.val_check_interval=125", "--trainer.enable_progress_bar=false"]
+
+
+def reduced(simulations: int) -> list[str]:
+    """The overrides of a trial at a reduced budget."""
+    return [f"--data.simulation_budget={simulations}", "--trainer.val_check_interval=125", "--trainer.enable_progress_bar=false"]
 
 
 def otgb(args: list[str], cwd: Path, log: Path) -> float:
@@ -45,9 +49,9 @@ def otgb(args: list[str], cwd: Path, log: Path) -> float:
     return time.time() - started
 
 
-def study(out: Path, trials: int) -> None:
+def study(out: Path, trials: int, simulations: int) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    args = ["tune", "--config", str(CONFIG), f"--tune.space={SPACE}", f"--tune.trials={trials}", *STUDY_BUDGET]
+    args = ["tune", "--config", str(CONFIG), f"--tune.space={SPACE}", f"--tune.trials={trials}", *reduced(simulations)]
     seconds = otgb(args, out, out / "study.log")
     study_dir = out / "runs" / "tune-pendulum"
     for name in ("trials.md", "best.yaml", "history.png", "importances.png"):
@@ -55,7 +59,8 @@ def study(out: Path, trials: int) -> None:
             shutil.copy(study_dir / name, out / name)
     timing = out / "study.json"
     spent = json.loads(timing.read_text())["seconds"] if timing.exists() else 0.0
-    timing.write_text(json.dumps({"seconds": spent + seconds, "trials": trials, "machine": machine()}))
+    record = {"seconds": spent + seconds, "trials": trials, "simulations": simulations, "machine": machine()}
+    timing.write_text(json.dumps(record))
 
 
 def refit(out: Path, seeds: list[int]) -> None:
@@ -87,12 +92,8 @@ def refit(out: Path, seeds: list[int]) -> None:
 
 def workers(out: Path, trials: int, simulations: int) -> None:
     """The same study size run by one worker and by two, each from an empty folder, one after the other."""
-    budget = [
-        f"--data.simulation_budget={simulations}",
-        "--trainer.val_check_interval=125",
-        "--trainer.enable_progress_bar=false",
-    ]
-    args = ["tune", "--config", str(CONFIG), f"--tune.space={SPACE}", f"--tune.trials={trials}", "--tune.pruner=none", *budget]
+    args = ["tune", "--config", str(CONFIG), f"--tune.space={SPACE}", f"--tune.trials={trials}", "--tune.pruner=none"]
+    args += reduced(simulations)
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     walls = {}
     for count in (1, 2):
@@ -127,7 +128,8 @@ def table(out: Path, doc: Path | None = None) -> None:
     if (out / "study.json").exists():
         timing = json.loads((out / "study.json").read_text())
         minutes = timing["seconds"] / 60
-        lines += [f"Study: {timing['trials']} trials at 16 000 simulations each, {minutes:.0f} min ({timing['machine']}).", ""]
+        each = f"{timing.get('simulations', 16_000):,}".replace(",", " ")
+        lines += [f"Study: {timing['trials']} trials at {each} simulations each, {minutes:.0f} min ({timing['machine']}).", ""]
     if (out / "refits.json").exists():
         results = json.loads((out / "refits.json").read_text())
         trial = results.get("study_best")
@@ -165,13 +167,13 @@ def main() -> None:
     parser.add_argument("step", choices=["study", "refit", "workers", "table"])
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--trials", type=int, default=12)
-    parser.add_argument("--simulations", type=int, default=16_000, help="workers: simulations per trial")
+    parser.add_argument("--simulations", type=int, default=40_000, help="study and workers: simulations per trial")
     parser.add_argument("--seeds", type=int, nargs="*", default=[0, 1, 2])
     parser.add_argument("--doc", type=Path, help="table: also write the results between this page's markers")
     args = parser.parse_args()
     out = args.out.resolve()
     steps = {
-        "study": lambda: study(out, args.trials),
+        "study": lambda: study(out, args.trials, args.simulations),
         "refit": lambda: refit(out, args.seeds),
         "workers": lambda: workers(out, args.trials, args.simulations),
         "table": lambda: table(out, args.doc),

@@ -78,6 +78,9 @@ def test_a_study_runs_real_fits_writes_its_results_and_a_config_fit_takes(tmp_pa
         assert (trial / "version_0" / "config.yaml").is_file() and (trial / "version_0" / "checkpoints" / "last.ckpt").is_file()
     table = (study / "trials.md").read_text()
     assert table.count("| complete |") == 3 and "val/abs_err, lower is better" in table
+    first = next(line for line in table.splitlines() if line.startswith("| 0 |"))
+    assert "| 0.001 | 32 |" in first and "the config's own settings" in first, "trial 0 runs where the config starts"
+    assert table.count("the config's own settings") == 1
     best = yaml.safe_load((study / "best.yaml").read_text())
     lr = best["model"]["map_optimizer"]["init_args"]["lr"]
     assert f"{lr:.4g}" in last, "best.yaml holds the best trial's settings"
