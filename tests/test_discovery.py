@@ -30,7 +30,7 @@ from otgb.discovery.refine import (
     fit,
     row_terms,
 )
-from otgb.discovery.regression import design_matrix, regress
+from otgb.discovery.regression import SelectedTerm, Selection, design_matrix, regress
 from otgb.discovery.report import named_divergences, write_report
 from otgb.discovery.search import best_subsets, subset_values
 from otgb.discovery.variation import choose_family
@@ -438,6 +438,27 @@ def test_search_names_the_effect_a_mean_only_correction_missed(tmp_path):
     searched = {a["feature"] for step in report["search"] for alternative in step["alternatives"] for a in alternative}
     assert all(set(entry["alternatives"]) <= searched for entry in report["ambiguous"])  # not f_phi's (a constant's)
     assert "Library search" in (tmp_path / "report.md").read_text() and report["terms"][0]["name"] == "viscous friction"
+
+
+def test_a_forward_route_still_improving_at_six_terms_is_cut_short_and_hands_over_to_the_search(monkeypatch):
+    import otgb.discovery.workflow as workflow
+
+    features = ["1", "angle", "velocity", "angle^2", "angle*velocity", "velocity^2", "angle^3", "velocity^3"]
+    terms = [SelectedTerm(Candidate(f, "velocity"), 0.1, (0.0, 0.2), 1.0, 0.1, {}, [], 8.0 - i) for i, f in enumerate(features)]
+    selection = Selection("velocity", terms, 1.0, 1.0, [], {}, 1.0)
+    tried = []
+
+    def fitting(candidates, init, *args, **kwargs):  # each longer model fits clearly better: the route never settles
+        tried.append(len(candidates))
+        draws = [1.0 / len(candidates) + 0.001 * r for r in range(4)]
+        return FittedTerms("constant", candidates, [Constant(0.0)] * len(candidates), Scores(draws), [])
+
+    monkeypatch.setattr(workflow, "_initial", lambda candidates, designs: [0.0] * len(candidates))
+    monkeypatch.setattr(workflow, "prune", lambda current, fitting: current)
+    kept, dropped, truncated = workflow.add_step([selection], {}, fitting)
+    assert tried == [1, 2, 3, 4, 5, 6] and truncated and len(kept.candidates) == workflow.MAX_FORWARD_TERMS
+    assert [d["feature"] for d in dropped] == ["angle^3", "velocity^3"]
+    assert "cut short" in workflow.search_reason(Pendulum(), kept, truncated, torch.zeros(0), DiscoverySettings(**FAST))
 
 
 def test_the_search_replaces_a_longer_model_the_data_cannot_tell_from_it():

@@ -167,6 +167,7 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
         "regression": [_selection_dict(s) for s in result.selections],
         "cross_check": result.cross_check,
         "route": result.route if result.found else None,
+        "search_reason": result.search_reason,
         "search": [
             {
                 "terms": [{"feature": c.feature, "component": c.component} for c in step.candidates],
@@ -481,13 +482,10 @@ def _search_section(report: dict) -> list[str]:
     """The library search's path (when f_phi's route left the gap open), and which route named the terms."""
     if not report["search"]:
         return []
-    lines = [
-        "",
-        "### Library search: every local candidate fitted together, then the best subset of each size",
-        "",
-        "| terms | residual of g (relative RMS) | held-out energy |",
-        "|---|---|---|",
-    ]
+    lines = ["", "### Library search: every local candidate fitted together, then the best subset of each size", ""]
+    if report.get("search_reason"):
+        lines += [f"It ran because {report['search_reason']}.", ""]
+    lines += ["| terms | residual of g (relative RMS) | held-out energy |", "|---|---|---|"]
     for step in report["search"]:
         terms = ", ".join(f"{code(t['feature'])} on d{t['component']}/dt" for t in step["terms"])
         lines.append(f"| {terms} | {step['g_residual']:.3f} | {step['heldout_energy']:.4g} |")

@@ -141,6 +141,7 @@ class Discovery:
     draws: dict[str, Tensor] = field(default_factory=dict)  # the gap table's samples, as many as the test part
     search: list[SearchStep] = field(default_factory=list)  # the library search's path, when it ran
     route: str = "f_phi regression"  # which route named the kept terms
+    search_reason: str | None = None  # why the library search ran (None: it did not)
     diverged: list[dict] = field(default_factory=list)  # solves that diverged, per step and model (otgb.discovery.log)
     undertrained: dict[str, float] | None = None  # the grey-box's and f_p's held-out energy when it is no better
 
@@ -292,16 +293,20 @@ def add_step(selections: list[Selection], designs: dict, fitting: Fitting):
     leader before it) by two standard errors: f_phi's regression may select many small terms, each
     lowering the held-out score a little (reaction-diffusion). It stops at ``MAX_FORWARD_TERMS``
     terms: a correction whose named terms need more to match the measurements learned an average
-    rather than a shape, and the library search (which tries every subset) takes over where the
-    model still disagrees. The sparsest model that the best
+    rather than a shape; the route is then *truncated* and the library search (which tries every
+    subset) runs. The sparsest model that the best
     does not beat by more than two standard errors is kept, then pruned backwards (:func:`prune`);
-    the terms left out are reported as dropped. Returns the kept terms' constant fit and the dropped terms.
+    the terms left out are reported as dropped. Returns the kept terms' constant fit, the dropped
+    terms, and whether the route was truncated.
     """
     ordered = sorted(((t.size, t.candidate) for s in selections for t in s.terms), key=lambda pair: -pair[0])
     path = [c for _, c in ordered]
     fits: list[FittedTerms] = []
-    leader = 0  # the last model that beat the leader before it
-    for k in range(1, min(len(path), MAX_FORWARD_TERMS) + 1):
+    leader, truncated = 0, False  # leader: the last model that beat the leader before it
+    for k in range(1, len(path) + 1):
+        if k > MAX_FORWARD_TERMS:
+            truncated = True
+            break
         init = _initial(path[:k], designs)
         fits.append(fitting(path[:k], init))
         progress(f"{k} term(s) {[_on(c) for c in path[:k]]}: held-out energy {fits[-1].heldout_energy:.4g}")
@@ -312,7 +317,7 @@ def add_step(selections: list[Selection], designs: dict, fitting: Fitting):
     best = min(fits, key=lambda f: f.heldout_energy)
     current = prune(next(f for f in fits if not beats(best.heldout, f.heldout)), fitting)
     dropped = [{"feature": c.feature, "component": c.component} for c in path if c not in current.candidates]
-    return current, dropped
+    return current, dropped, truncated
 
 
 def evidence_step(
@@ -432,11 +437,12 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
     result.cross_check = cross_check_step(strong, fitting)
     progress(f"cross-checked {len(strong)} candidates alone")
     result.undertrained = undertrained(module, data.val, settings)
-    kept = None
+    kept, truncated = None, False
     if selected and result.undertrained is None:
-        kept, result.dropped = add_step(result.selections, designs, fitting)
+        kept, result.dropped, truncated = add_step(result.selections, designs, fitting)
         progress(f"kept {[c.feature for c in kept.candidates]}, coefficients {kept.priors}")
-    if kept is None or locate_step(kept.model(physics), data.val, settings, "augmented-check").any_significant:
+    result.search_reason = search_reason(physics, kept, truncated, data.val, settings)
+    if result.search_reason is not None:
         kept = search_step(kept, result, designs, fitting)
     if kept is not None:
         kept, result.evidence, result.added = evidence_step(
@@ -461,12 +467,24 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
     return result
 
 
+def search_reason(
+    physics: PhysicsModel, kept: FittedTerms | None, truncated: bool, val: Tensor, settings: DiscoverySettings
+) -> str | None:
+    """Why the library search runs, or None: f_phi's route named nothing, was truncated (:func:`add_step`), or the
+    physics it augmented still disagrees with the validation measurements."""
+    if kept is None:
+        return "f_phi named nothing"
+    if truncated:
+        return f"f_phi's route reached {MAX_FORWARD_TERMS} terms and was cut short"
+    if locate_step(kept.model(physics), val, settings, "augmented-check").any_significant:
+        return "the physics augmented along f_phi's route still disagrees with the validation measurements"
+    return None
+
+
 def search_step(kept: FittedTerms | None, result: Discovery, designs: dict, fitting: Fitting) -> FittedTerms | None:
-    """The library search (:mod:`otgb.discovery.search`), when f_phi's route named nothing (``kept`` is None) or the
-    physics it augmented still disagrees with the measurements; its model replaces ``kept`` if it beats it on held-out
-    data. Returns the constant fit kept."""
-    why = "f_phi named nothing" if kept is None else "the augmented physics still disagrees with the measurements"
-    progress(f"{why}: searching the local library")
+    """The library search (:mod:`otgb.discovery.search`) for ``result.search_reason``; its model replaces ``kept`` as
+    :func:`replaces` says. Returns the constant fit kept."""
+    progress(f"{result.search_reason}: searching the local library")
     candidates = [c for design in designs.values() for c in design.candidates]
     current = {} if kept is None else {c: p.value for c, p in zip(kept.candidates, kept.priors)}
     init = [current.get(c, 0.0) for c in candidates]
