@@ -126,6 +126,8 @@ def summary(by_source: dict[str, dict[str, dict[str, float | None]]]) -> str:
     values = f"{LABELS[name]}: model {model:.3g}, f_p alone {fp:.3g}, Reference (noise floor) {ref:.3g}"
     if not math.isfinite(fp - ref) or fp <= ref:
         return f"{values}: f_p alone is already at the noise floor.\n\n"
+    if model <= ref:  # below the floor: the sampling noise of small held-out sets, not a model better than the data
+        return f"{values}: the model is at the noise floor (no further from the held-out data than the Reference).\n\n"
     return f"{values}: the model closes {(fp - model) / (fp - ref):.0%} of f_p's distance to the noise floor.\n\n"
 
 

@@ -94,6 +94,13 @@ def test_every_figure_has_axis_labels_a_title_and_a_legend_or_colour_bar(figures
                 assert ax.get_ylabel() or ax.get_xlabel(), f"{kind}: a colour bar without a label"
 
 
+def test_titles_fit_inside_their_figures(figures):
+    for kind, figure in figures.items():
+        figure.canvas.draw()
+        box = figure._suptitle.get_window_extent()
+        assert box.x0 >= 0 and box.x1 <= figure.bbox.width, f"{kind}: the title is cut at the figure's edges"
+
+
 def test_training_figures_say_at_which_step(figures):
     for kind in ("trajectories", "distributions", "fields 1-D", "fields 2-D", "components"):
         assert f"training step {STEP}" in figures[kind]._suptitle.get_text(), kind

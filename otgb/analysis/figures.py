@@ -41,8 +41,15 @@ def close(figure: plt.Figure) -> None:
     plt.close(figure)
 
 
-def at_step(what: str, step: int | None) -> str:
-    return what if step is None else f"{what}, training step {step}"
+TITLE_CHARS_PER_INCH = 12  # characters of a 9-point title per inch of figure width, with a margin
+
+
+def title(figure: plt.Figure, what: str, step: int | None = None) -> None:
+    """The figure's title, ``what`` and the training step, wrapped to the figure's width (never cut at its edges);
+    "training step N" stays on one line."""
+    text = what if step is None else f"{what}, training\u00a0step\u00a0{step}"
+    width = max(40, int(figure.get_figwidth() * TITLE_CHARS_PER_INCH))
+    figure.suptitle(textwrap.fill(text, width).replace("\u00a0", " "), fontsize=9)
 
 
 def theta_label(physics: PhysicsModel, theta: Tensor) -> str:
@@ -93,7 +100,7 @@ def distribution_figure(
         ax.set_ylabel(labels[k], fontsize=7)
     axes.flat[0].legend(fontsize=7)
     what = "distributions over time: median, 25-75 % and 5-95 % bands, 3 sample paths each (unpaired)"
-    figure.suptitle(at_step(what, step), fontsize=9)
+    title(figure, what, step)
     figure.tight_layout()
     return figure
 
@@ -122,7 +129,7 @@ def trajectory_figure(
         ax.set_xlabel("t", fontsize=7)
         ax.set_ylabel(name, fontsize=7)
     axes.flat[0].legend(fontsize=7)
-    figure.suptitle(at_step(f"{name}: measured, generated and f_p for {n} validation inputs", step), fontsize=9)
+    title(figure, f"{name}: measured, generated and f_p for {n} validation inputs", step)
     figure.tight_layout()
     return figure
 
@@ -148,7 +155,7 @@ def space_time_figure(
             ax.set_xlabel("t", fontsize=7)
             ax.set_ylabel("position (fraction of the domain)", fontsize=6)
             figure.colorbar(image, ax=ax, label=channel)
-    figure.suptitle(at_step(f"{channel}: measured, generated and f_p over space and time", step), fontsize=9)
+    title(figure, f"{channel}: measured, generated and f_p over space and time", step)
     figure.tight_layout()
     return figure
 
@@ -175,7 +182,7 @@ def frames_figure(
                 ax.tick_params(labelsize=5)
         label = f"{channel} ({theta_label(physics, theta[i])})"
         figure.colorbar(image, ax=axes[3 * i : 3 * i + 3, :].ravel().tolist(), label=label)
-    figure.suptitle(at_step(f"{channel}: measured, generated and f_p at {len(frames)} frames", step), fontsize=9)
+    title(figure, f"{channel}: measured, generated and f_p at {len(frames)} frames", step)
     return figure
 
 
@@ -207,7 +214,7 @@ def components_figure(result: dict[str, Any], step: int | None = None) -> plt.Fi
     parts.legend(fontsize=7)
     for ax in (traj, func, parts):
         ax.set_xlabel("t", fontsize=8)
-    figure.suptitle(at_step("component analysis of the grey-box along its solve", step), fontsize=9)
+    title(figure, "component analysis of the grey-box along its solve", step)
     figure.tight_layout()
     return figure
 
@@ -217,9 +224,9 @@ def disagreement_figure(maps: list[tuple[Any, str]]) -> plt.Figure:
     gap's shrinking is seen: curves per component (ODE) or a heatmap over (time, component x region) (fields)."""
     figure, axes = plt.subplots(1, len(maps), figsize=(6.5 * len(maps), 3.8), squeeze=False, sharey=True)
     top = max(float(m.statistic.max()) for m, _ in maps) or 1.0
-    for ax, (disagreement, title) in zip(axes[0], maps):
-        _draw_disagreement(ax, disagreement, title, top)
-    figure.suptitle("energy distance between the model's simulations and the measurements (dots: significant)", fontsize=9)
+    for ax, (disagreement, panel_title) in zip(axes[0], maps):
+        _draw_disagreement(ax, disagreement, panel_title, top)
+    title(figure, "energy distance between the model's simulations and the measurements (dots: significant)")
     figure.tight_layout()
     return figure
 
