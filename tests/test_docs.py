@@ -8,6 +8,7 @@ changes, and only that: ``otgb`` is ``python -m otgb.cli`` with this checkout fi
 
 import ast
 import csv
+import importlib.util
 import json
 import os
 import re
@@ -19,6 +20,10 @@ from pathlib import Path
 import yaml
 
 ROOT = Path(__file__).parents[1]
+_SPEC = importlib.util.spec_from_file_location("walkthroughs", ROOT / "scripts" / "walkthroughs.py")
+walkthroughs = importlib.util.module_from_spec(_SPEC)  # the pages' files, commands and how a shell runs them
+_SPEC.loader.exec_module(walkthroughs)
+
 DOC = ROOT / "docs" / "own-physics.md"
 OWN_DATA = ROOT / "docs" / "own-data.md"
 TINY = [  # a seconds-long run of the same config: 6 steps, validation at 3 and 6, small sets
@@ -36,42 +41,13 @@ TINY = [  # a seconds-long run of the same config: 6 steps, validation at 3 and 
 ]
 
 
-def _files(text: str) -> dict[str, str]:
-    """The titled code blocks: file name -> content."""
-    return {name: body + "\n" for name, body in re.findall(r'```\w+ title="([^"]+)"\n(.*?)\n```', text, re.S)}
-
-
-def _blocks(text: str, language: str) -> list[str]:
-    return re.findall(rf"```{language}\n(.*?)\n```", text, re.S)
-
-
-def _commands(text: str) -> list[str]:
-    return [line for block in _blocks(text, "bash") for line in block.splitlines() if line.strip()]
-
-
 def _run(command: str, cwd: Path) -> subprocess.CompletedProcess:
-    """One documented command line, as a shell would run it in ``cwd`` (see the module docstring)."""
-    words = shlex.split(command)
-    if "=" in words[0]:  # the user's folder on the path, for a module of their own
-        assert words.pop(0) == "PYTHONPATH=.", command
-    program, *args = words
-    args = [str(ROOT) + arg.removeprefix("/path/to/otgb") if arg.startswith("/path/to/otgb") else arg for arg in args]
-    expanded = []
-    for arg in args:  # the shell's glob, e.g. --ckpt_path runs/.../best-step=*.ckpt
-        matches = sorted(cwd.glob(arg)) if "*" in arg else [arg]
-        assert len(matches) == 1, f"{arg} matches {matches}"
-        expanded.append(str(matches[0]))
-    if program == "otgb":
-        argv = [sys.executable, "-m", "otgb.cli", *expanded, *TINY]
-    else:
-        assert program == "python", command
-        argv = [sys.executable, *expanded]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), str(cwd)]), "OMP_NUM_THREADS": "1"}
-    return subprocess.run(argv, cwd=cwd, env=env, capture_output=True, text=True)
+    """One documented command line, as a shell would run it in ``cwd``, at the tests' size (see the module docstring)."""
+    return walkthroughs.run(command, cwd, TINY, env={"OMP_NUM_THREADS": "1"})
 
 
 def _written(tmp_path: Path, text: str, **edits: str) -> dict[str, str]:
-    files = _files(text)
+    files = walkthroughs.files(text)
     assert sorted(files) == ["my_oscillator.py", "oscillator.yaml"]
     for name, content in files.items():
         (tmp_path / name).write_text(edits.get(name, content))
@@ -86,7 +62,7 @@ def _rows(run: Path) -> list[dict]:
 def test_the_documented_oscillator_trains_and_tests_from_the_users_folder(tmp_path):
     text = DOC.read_text()
     _written(tmp_path, text)
-    commands = _commands(text)
+    commands = walkthroughs.commands(text)
     assert [shlex.split(c)[1:3] for c in commands] == [
         ["otgb", "fit"],
         ["otgb", "test"],
@@ -118,7 +94,7 @@ def test_the_documented_oscillator_trains_and_tests_from_the_users_folder(tmp_pa
 
     exported = (tmp_path / "measurements.csv").read_text().splitlines()
     assert len(exported) == 1 + 200 * 40
-    assert exported[:3] == _blocks(text, "text")[0].splitlines(), "the CSV begins as the document shows"
+    assert exported[:3] == walkthroughs.blocks(text, "text")[0].splitlines(), "the CSV begins as the document shows"
     marginal = runs / "version_2"
     assert yaml.safe_load((marginal / "config.yaml").read_text())["checkpoint"]["monitor"] == "val/joint_energy"
     assert len([r for r in _rows(marginal) if r.get("val/joint_energy")]) == 2
@@ -131,9 +107,9 @@ def test_the_documented_oscillator_trains_and_tests_from_the_users_folder(tmp_pa
 def test_the_documented_errors_are_what_a_run_prints(tmp_path):
     text = DOC.read_text()
     section = text[text.index("## When a declaration is wrong") :]
-    observed_error, prior_error = _blocks(section, "text")[:2]
-    fit = _commands(text)[0]
-    module = _files(text)["my_oscillator.py"]
+    observed_error, prior_error = walkthroughs.blocks(section, "text")[:2]
+    fit = walkthroughs.commands(text)[0]
+    module = walkthroughs.files(text)["my_oscillator.py"]
 
     wrong_name = module.replace('observed = ("position",)', 'observed = ("x",)')
     assert wrong_name != module and 'With `observed = ("x",)` in `my_oscillator.py`' in section
@@ -151,7 +127,7 @@ def test_the_documented_errors_are_what_a_run_prints(tmp_path):
 
 def test_the_stated_line_counts_are_true():
     text = DOC.read_text()
-    files = _files(text)
+    files = walkthroughs.files(text)
     module = files["my_oscillator.py"]
     code = {i for i, line in enumerate(module.splitlines(), 1) if line.strip() and not line.strip().startswith("#")}
     docstrings = set()
@@ -170,10 +146,10 @@ def test_the_stated_line_counts_are_true():
 def test_own_data_walkthrough_as_written(tmp_path):
     """docs/own-data.md: the stand-in CSV, the config, fit and test, the log line, the report, a bad file."""
     text = OWN_DATA.read_text()
-    files = _files(text)
+    files = walkthroughs.files(text)
     assert sorted(files) == ["my_pendulum.yaml"]
     (tmp_path / "my_pendulum.yaml").write_text(files["my_pendulum.yaml"])
-    commands = _commands(text)
+    commands = walkthroughs.commands(text)
     assert [shlex.split(c)[:2] for c in commands] == [
         ["python", "/path/to/otgb/scripts/export_measured.py"],
         ["otgb", "fit"],
@@ -184,14 +160,17 @@ def test_own_data_walkthrough_as_written(tmp_path):
         done = _run(command, tmp_path)
         assert done.returncode == 0, f"{command}\n{done.stderr[-3000:]}"
         outputs.append(done.stderr)
-    csv_head, log_line, table, recorded_head, error_line = _blocks(text, "text")
+    csv_head, log_line, recorded_head, error_line = walkthroughs.blocks(text, "text")
+    table = text[text.index("<!-- results: scripts/walkthroughs.py test-3 -->") :]
     assert (tmp_path / "measurements.csv").read_text().splitlines()[:3] == csv_head.splitlines()
     assert log_line in outputs[1].splitlines(), "the fit names the mode as the document shows"
     fit = tmp_path / "runs" / "my_pendulum" / "version_0"
     assert next(fit.glob("figures/distributions_step*.png")) and (fit / "checkpoints" / "last.ckpt").is_file()
     report = (tmp_path / "runs" / "my_pendulum" / "version_1" / "metrics.md").read_text()
     labels = lambda t: [line.split(" | ")[0] for line in t.splitlines() if line.startswith("| ")]  # noqa: E731
-    assert labels(table) == labels(report[report.index("| metric |") :].split("\n\n")[0])
+    assert labels(table[table.index("| metric |") :].split("\n\n")[0]) == labels(
+        report[report.index("| metric |") :].split("\n\n")[0]
+    )
 
     exported = tmp_path / "recorded.csv"
     export = [sys.executable, str(ROOT / "scripts" / "export_measured.py"), "--config", str(ROOT / "configs" / "pendulum.yaml")]
@@ -203,6 +182,18 @@ def test_own_data_walkthrough_as_written(tmp_path):
     done = _run("otgb fit --config my_pendulum.yaml --data.measured_path bad.csv", tmp_path)
     assert done.returncode == 2 and done.stderr.strip().splitlines()[-1] == error_line
     assert sorted(p.name for p in (tmp_path / "runs" / "my_pendulum").iterdir()) == before, "nothing written"
+
+
+def test_the_pages_show_the_committed_walkthrough_results():
+    """Every number the tutorials show from their own run is what scripts/walkthroughs.py writes from results/."""
+    for page in ("own-data", "own-physics"):
+        text = (ROOT / "docs" / f"{page}.md").read_text()
+        shown = walkthroughs.sections(page)
+        assert "test-2" in shown or "test-3" in shown, sorted(shown)
+        for name, section in shown.items():
+            start = f"<!-- results: scripts/walkthroughs.py {name} -->"
+            if start in text:
+                assert text.split(start, 1)[1].split(walkthroughs.END, 1)[0].strip() == section.strip(), (page, name)
 
 
 def test_the_docs_site_builds_strict(tmp_path):
@@ -227,7 +218,7 @@ def test_the_first_fit_tutorial_runs_as_written(tmp_path):
     """docs/first-fit.md's commands in a fresh folder (at the tests' tiny size): fit, test, print_config, an override."""
     (tmp_path / "configs").symlink_to(ROOT / "configs")
     text = (ROOT / "docs" / "first-fit.md").read_text()
-    commands = [c for c in _commands(text) if c.startswith("otgb ")]
+    commands = [c for c in walkthroughs.commands(text) if c.startswith("otgb ")]
     assert [c.split()[1] for c in commands] == ["fit", "test", "fit", "fit"], commands
     for command in commands:
         done = _run(command, tmp_path)
