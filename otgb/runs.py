@@ -9,8 +9,12 @@ them, without training, printing or writing anything.
 
 from __future__ import annotations
 
+import json
 import logging
 import platform
+import subprocess
+import sys
+import time
 import warnings
 from collections.abc import Sequence
 from contextlib import contextmanager
@@ -21,7 +25,7 @@ from typing import Any
 import torch
 from lightning import Trainer
 
-from otgb.command import OTGBCLI
+from otgb.command import OTGBCLI, logger_override
 from otgb.data import SimulationDataModule
 from otgb.errors import InputError
 from otgb.parser_errors import ConciseParser
@@ -94,3 +98,37 @@ def machine(gpu: bool = False) -> str:
     if gpu and torch.cuda.is_available():
         return f"{torch.cuda.get_device_name()}, torch {torch.__version__}"
     return f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}"
+
+
+def run_otgb(args: Sequence[str], log: Path, cwd: Path | None = None) -> float:
+    """``otgb <args>`` as a separate process (in ``cwd``), its output appended to ``log``; its wall time in seconds. A
+    failure exits the calling script with one line naming the command and the log."""
+    started = time.perf_counter()
+    Path(log).parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "a") as handle:
+        done = subprocess.run([sys.executable, "-m", "otgb.cli", *args], cwd=cwd, stdout=handle, stderr=subprocess.STDOUT)
+    if done.returncode != 0:
+        raise SystemExit(f"otgb {args[0]} failed (exit {done.returncode}); its output: {log}")
+    return time.perf_counter() - started
+
+
+def fit_and_test(folder: Path, args: Sequence[str], checkpoint: str = "best") -> dict:
+    """``otgb fit <args>`` then ``otgb test <args>`` on its ``best`` (or ``last``) checkpoint, logged under ``folder``
+    (``fit/`` and ``test/``, output without progress bars in ``otgb.log``); the test's metrics.json with the fit's
+    seconds as ``fit_s``.
+
+    Resumable: a folder with a test report is returned as it is, and an interrupted fit continues from its
+    ``last.ckpt`` (the resumed fit writes the next ``version_N``, and ``fit_s`` is the resumed part's time)."""
+    folder = Path(folder)
+    timing = folder / "fit_seconds.json"
+    report = newest(folder / "test", "version_*/metrics.json")
+    if report is not None:
+        return {**json.loads(report.read_text()), **json.loads(timing.read_text())}
+    log, args = folder / "otgb.log", [*args, "--trainer.enable_progress_bar=false"]
+    last = newest(folder / "fit", "version_*/checkpoints/last.ckpt")
+    resume = [f"--ckpt_path={last}"] if last is not None else []
+    seconds = run_otgb(["fit", *args, logger_override(str(folder), "fit"), *resume], log)
+    timing.write_text(json.dumps({"fit_s": seconds, "resumed": bool(resume)}))
+    chosen = newest(folder / "fit", f"version_*/checkpoints/{checkpoint}*.ckpt")
+    run_otgb(["test", *args, logger_override(str(folder), "test"), f"--ckpt_path={chosen}"], log)
+    return {**json.loads(newest(folder / "test", "version_*/metrics.json").read_text()), **json.loads(timing.read_text())}

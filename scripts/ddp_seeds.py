@@ -19,16 +19,12 @@ with mean and std per row; finished runs (a test ``metrics.json``) are skipped w
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
-import subprocess
-import sys
 from pathlib import Path
 
 import yaml
 
-from otgb.command import logger_override
-from otgb.runs import newest
+from otgb.runs import fit_and_test
 
 DDP = ["--trainer.strategy=ddp", "--trainer.devices=2", "--trainer.accelerator=cpu"]
 
@@ -49,28 +45,13 @@ def variants(batch: int, steps: int) -> dict[str, list[str]]:
     }
 
 
-def fit_and_test(out: Path, config: str, seed: int, name: str, overrides: list[str]) -> float:
-    """Fit and test one variant (unless its test report exists); its test ABS ERR."""
+def test_abs_err(out: Path, config: str, seed: int, name: str, overrides: list[str]) -> float:
+    """Fit and test one variant on its last checkpoint (unless its test report exists); its test ABS ERR."""
     folder = out / f"seed{seed}" / name.replace(" ", "_").replace(",", "")
-    if newest(folder, "test/version_*/metrics.json") is None:
-        common = ["--config", config, f"--seed_everything={seed}", "--trainer.enable_progress_bar=false", *overrides]
-        fit = [*common, "--components.enabled=false", f"--trainer.val_check_interval={max_steps(overrides)}"]
-        run(["fit", *fit, logger_override(str(folder), "fit")], folder)
-        last = newest(folder, "fit/version_*/checkpoints/last.ckpt")  # a fit run again after a failure writes the next version
-        run(["test", *common, logger_override(str(folder), "test"), f"--ckpt_path={last}"], folder)
-    return json.loads(newest(folder, "test/version_*/metrics.json").read_text())["model"]["abs_err"]["mean"]
-
-
-def max_steps(overrides: list[str]) -> int:
-    return int(next(arg for arg in overrides if arg.startswith("--trainer.max_steps=")).split("=")[1])
-
-
-def run(args: list[str], folder: Path) -> None:
-    folder.mkdir(parents=True, exist_ok=True)
-    with open(folder / "otgb.log", "a") as log:
-        done = subprocess.run([sys.executable, "-m", "otgb.cli", *args], stdout=log, stderr=subprocess.STDOUT)
-    if done.returncode != 0:
-        sys.exit(f"otgb {args[0]} failed (exit {done.returncode}); its output: {folder / 'otgb.log'}")
+    steps = int(next(arg for arg in overrides if arg.startswith("--trainer.max_steps=")).split("=")[1])
+    common = ["--config", config, f"--seed_everything={seed}", *overrides]
+    common += ["--components.enabled=false", f"--trainer.val_check_interval={steps}"]
+    return fit_and_test(folder, common, checkpoint="last")["model"]["abs_err"]["mean"]
 
 
 def main() -> None:
@@ -87,7 +68,7 @@ def main() -> None:
         raise SystemExit(f"--config {args.config}: no such file")
     batch = yaml.safe_load(Path(args.config).read_text())["data"]["batch_size"]
     runs = {name: o for name, o in variants(batch, args.steps).items() if name in {VARIANTS[v] for v in args.variants}}
-    rows = {name: [fit_and_test(args.out, args.config, seed, name, o) for seed in args.seeds] for name, o in runs.items()}
+    rows = {name: [test_abs_err(args.out, args.config, seed, name, o) for seed in args.seeds] for name, o in runs.items()}
     print(f"{args.config}, {args.steps * batch} simulations per run; test ABS ERR\n")
     print("| run | " + " | ".join(f"seed {s}" for s in args.seeds) + " | mean +- std |")
     print("|---|" + "---|" * (len(args.seeds) + 1))

@@ -24,9 +24,8 @@ from pathlib import Path
 import optuna
 import torch
 
-from otgb.command import logger_override
 from otgb.reports import mean_spread, write_between
-from otgb.runs import machine, newest
+from otgb.runs import fit_and_test, machine, newest, run_otgb
 
 ROOT = Path(__file__).parents[1]
 CONFIG = ROOT / "configs" / "pendulum.yaml"
@@ -39,20 +38,10 @@ def reduced(simulations: int) -> list[str]:
     return [f"--data.simulation_budget={simulations}", "--trainer.val_check_interval=125", "--trainer.enable_progress_bar=false"]
 
 
-def otgb(args: list[str], cwd: Path, log: Path) -> float:
-    """One ``otgb`` command in ``cwd``; its wall time in seconds."""
-    started = time.time()
-    with open(log, "a") as handle:
-        done = subprocess.run([sys.executable, "-m", "otgb.cli", *args], cwd=cwd, stdout=handle, stderr=subprocess.STDOUT)
-    if done.returncode != 0:
-        raise SystemExit(f"tune_benchmark: otgb {' '.join(args[:3])} failed (exit {done.returncode}); see {log}")
-    return time.time() - started
-
-
 def study(out: Path, trials: int, simulations: int) -> None:
     out.mkdir(parents=True, exist_ok=True)
     args = ["tune", "--config", str(CONFIG), f"--tune.space={SPACE}", f"--tune.trials={trials}", *reduced(simulations)]
-    seconds = otgb(args, out, out / "study.log")
+    seconds = run_otgb(args, out / "study.log", cwd=out)
     study_dir = out / "runs" / "tune-pendulum"
     for name in ("trials.md", "best.yaml", "history.png", "importances.png"):
         if (study_dir / name).exists():
@@ -77,15 +66,11 @@ def refit(out: Path, seeds: list[int]) -> None:
             if key in results:
                 continue
             folder = out / "refit" / key
-            folder.mkdir(parents=True, exist_ok=True)
-            common = ["--config", str(config), f"--seed_everything={seed}", *budget, "--trainer.enable_progress_bar=false"]
-            seconds = otgb(["fit", *common, logger_override("runs", "fit")], folder, folder / "otgb.log")
-            best = newest(folder / "runs" / "fit", "version_*/checkpoints/best-*.ckpt")
-            otgb(["test", *common, logger_override("runs", "test"), f"--ckpt_path={best}"], folder, folder / "otgb.log")
-            report = json.loads(newest(folder / "runs" / "test", "version_*/metrics.json").read_text())
+            report = fit_and_test(folder, ["--config", str(config), f"--seed_everything={seed}", *budget])
+            best = newest(folder / "fit", "version_*/checkpoints/best-*.ckpt")
             ckpt = torch.load(best, map_location="cpu", weights_only=False)
             selection = float(next(v for k, v in ckpt["callbacks"].items() if "BestAndLastCheckpoint" in k)["best_model_score"])
-            results[key] = {"abs_err": report["model"]["abs_err"]["mean"], "val_best": selection, "fit_s": seconds}
+            results[key] = {"abs_err": report["model"]["abs_err"]["mean"], "val_best": selection, "fit_s": report["fit_s"]}
             results[key]["machine"] = machine()
             (out / "refits.json").write_text(json.dumps(results, indent=1))
 

@@ -1,0 +1,107 @@
+"""Test error against the simulation budget and the batch, over seeds: does more compute give a better map?
+
+    python scripts/budget_sweep.py run --out results/budget --name pendulum-3125-steps --config configs/pendulum.yaml \\
+        --budgets 100000 300000 1000000 --steps 3125 --seeds 0 1 2
+    python scripts/budget_sweep.py run --out results/budget --name pendulum-batch --config configs/pendulum.yaml \\
+        --budgets 300000 --batches 32 64 128 256 512 --seeds 0 [-- OVERRIDES...]
+    python scripts/budget_sweep.py table --out results/budget --doc docs/results.md
+
+Each (budget, batch, seed) is one real ``otgb fit`` and an ``otgb test`` of its best checkpoint
+(:func:`otgb.runs.fit_and_test`), in ``<out>/runs/<name>/...``. ``--steps S`` spreads each budget over S
+training steps (batch = budget / S); ``--batches`` fixes the batch instead. Everything after ``--`` goes to
+both commands (a learning rate, a schedule). Results go to ``<out>/<name>.json`` as each run ends; a
+rerun skips what is done and resumes an interrupted fit from its ``last.ckpt``. ``table`` writes every
+sweep's table into ``--doc`` between ``<!-- results: scripts/budget_sweep.py -->`` and
+``<!-- end results -->``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from otgb.reports import LABELS, mean_spread, write_between
+from otgb.runs import fit_and_test, machine
+
+START, END = "<!-- results: scripts/budget_sweep.py -->", "<!-- end results -->"
+
+
+def runs(args: argparse.Namespace) -> list[tuple[int, int]]:
+    """The (budget, batch) pairs of the sweep."""
+    if args.steps:
+        return [(budget, budget // args.steps) for budget in args.budgets]
+    return [(budget, batch) for budget in args.budgets for batch in args.batches]
+
+
+def sweep(args: argparse.Namespace) -> None:
+    out = Path(args.out)
+    path = out / f"{args.name}.json"
+    results = json.loads(path.read_text()) if path.exists() else {}
+    for seed in args.seeds:
+        for budget, batch in runs(args):
+            key = f"{budget}/{batch}/seed{seed}"
+            if key in results:
+                continue
+            settings = [f"--data.simulation_budget={budget}", f"--data.batch_size={batch}", *args.overrides]
+            command = ["--config", args.config, f"--seed_everything={seed}", *settings]
+            report = fit_and_test(out / "runs" / args.name / key, command)
+            results[key] = {
+                "budget": budget, "batch": batch, "seed": seed, "overrides": args.overrides, "fit_s": report["fit_s"],
+                **{f"{source}_{args.metric}": report[source][args.metric]["mean"] for source in ("model", "fp")},
+                "machine": machine(),
+            }  # fmt: skip
+            path.write_text(json.dumps(results, indent=1))
+            print(f"{args.name} {key}: {args.metric} {results[key][f'model_{args.metric}']:.4g}", flush=True)
+
+
+def table(out: Path) -> str:
+    lines = []
+    for path in sorted(out.glob("*.json")):
+        results = json.loads(path.read_text())
+        metric = next(k for k in next(iter(results.values())) if k.startswith("model_")).removeprefix("model_")
+        lines += [f"`{path.stem}` ({len(results)} runs):", ""]
+        header = f"| budget | batch | seeds | test {LABELS[metric]}, mean ± std | per seed | f_p alone | fit (min) |"
+        lines += [header, "|---" * 7 + "|"]
+        for budget, batch in sorted({(r["budget"], r["batch"]) for r in results.values()}):
+            group = [r for r in results.values() if (r["budget"], r["batch"]) == (budget, batch)]
+            values = [r[f"model_{metric}"] for r in group]
+            minutes = sum(r["fit_s"] for r in group) / len(group) / 60
+            per_seed = ", ".join(f"{v:.4g}" for v in values)
+            cells = [f"{budget:,}".replace(",", " "), str(batch), str(len(group)), mean_spread(values), per_seed]
+            lines.append("| " + " | ".join([*cells, f"{group[0][f'fp_{metric}']:.4g}", f"{minutes:.1f}"]) + " |")
+        first = next(iter(results.values()))
+        settings = f"; overrides `{' '.join(first['overrides'])}`" if first["overrides"] else ""
+        lines += ["", f"{first['machine']}{settings}.", ""]
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    commands = parser.add_subparsers(dest="command", required=True)
+    run = commands.add_parser("run", help="fit and test every (budget, batch, seed)")
+    run.add_argument("--out", default="results/budget")
+    run.add_argument("--name", required=True, help="the sweep's name: its result file and run folder")
+    run.add_argument("--config", required=True)
+    run.add_argument("--budgets", type=int, nargs="+", required=True)
+    how = run.add_mutually_exclusive_group(required=True)
+    how.add_argument("--steps", type=int, help="training steps per run: batch = budget / steps")
+    how.add_argument("--batches", type=int, nargs="+", help="fixed batch sizes")
+    run.add_argument("--seeds", type=int, nargs="+", default=[0])
+    run.add_argument("--metric", default="abs_err", help="the test metric recorded (abs_err; c2st for one-to-many tasks)")
+    run.add_argument("overrides", nargs="*", help="after --: overrides for fit and test")
+    show = commands.add_parser("table", help="the tables of every sweep in --out")
+    show.add_argument("--out", default="results/budget")
+    show.add_argument("--doc", help="a page to write the tables into, between the markers")
+    args = parser.parse_args()
+    if args.command == "run":
+        sweep(args)
+        return
+    text = table(Path(args.out))
+    print(text)
+    if args.doc:
+        write_between(Path(args.doc), START, END, text)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,49 @@
+"""otgb.runs.fit_and_test (the scripts' fit-then-test, resumable) and scripts/budget_sweep.py, on real seconds-long runs."""
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+from otgb.runs import fit_and_test
+
+ROOT = Path(__file__).parents[1]
+CONFIG = str(ROOT / "configs" / "pendulum.yaml")
+
+
+def _tiny(cache: Path) -> list[str]:
+    small = ["--trainer.val_check_interval=2", "--data.n_measured=24", "--data.n_val=12", "--data.n_test=12"]
+    small += [f"--data.cache_dir={cache}", "--evaluation.reference_repeats=1", "--evaluation.c2st_folds=2"]
+    return [*small, "--evaluation.mmdagg_permutations=200", "--components.enabled=false"]
+
+
+def test_fit_and_test_returns_a_finished_run_as_it_is_and_resumes_a_fit_from_its_last_checkpoint(tmp_path):
+    args = ["--config", CONFIG, "--seed_everything=3", "--data.simulation_budget=64", "--data.batch_size=16", *_tiny(tmp_path)]
+    first = fit_and_test(tmp_path / "run", args)
+    assert math.isfinite(first["model"]["abs_err"]["mean"]) and first["fit_s"] > 0 and not first["resumed"]
+    assert fit_and_test(tmp_path / "run", args) == first, "a run with a test report is not run again"
+    assert len(list((tmp_path / "run" / "fit").glob("version_*"))) == 1
+
+    for report in (tmp_path / "run" / "test").rglob("metrics.json"):
+        report.unlink()  # as if the sweep had stopped between the fit and the test
+    again = fit_and_test(tmp_path / "run", args)
+    assert again["resumed"], "the fit continued from its last.ckpt"
+    assert again["model"]["abs_err"] == first["model"]["abs_err"], "the same best checkpoint, tested again"
+
+
+def test_budget_sweep_spreads_each_budget_over_the_steps_and_writes_its_table_into_a_page(tmp_path):
+    page = tmp_path / "page.md"
+    page.write_text("# Results\n\n<!-- results: scripts/budget_sweep.py -->\nSTALE TABLE\n<!-- end results -->\n\nafter\n")
+    script = [sys.executable, str(ROOT / "scripts" / "budget_sweep.py")]
+    run = [*script, "run", "--out", str(tmp_path / "out"), "--name", "tiny", "--config", CONFIG, "--budgets", "64", "128"]
+    done = subprocess.run([*run, "--steps", "4", "--", *_tiny(tmp_path)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    results = json.loads((tmp_path / "out" / "tiny.json").read_text())
+    assert sorted((r["budget"], r["batch"]) for r in results.values()) == [(64, 16), (128, 32)]
+    subprocess.run([*script, "table", "--out", str(tmp_path / "out"), "--doc", str(page)], check=True, capture_output=True)
+    text = page.read_text()
+    assert "STALE TABLE" not in text and text.endswith("<!-- end results -->\n\nafter\n")
+    rows = [line for line in text.splitlines() if line.startswith("| 64 |") or line.startswith("| 128 |")]
+    assert [row.split(" | ")[1] for row in rows] == ["16", "32"]
+    assert all(f"{r['model_abs_err']:.4g}" in text for r in results.values())
