@@ -99,8 +99,8 @@ class OTGBCLI(LightningCLI):
       (``lightning_logs`` without one), so runs go to ``runs/<stem>/version_N``.
     - ``checkpoint.monitor: auto``: the data module's ``selection_metric``.
 
-    A run that stops on bad input (:class:`InputError`) removes the log directory it made,
-    unless that already holds a checkpoint.
+    A run that stops on bad input (:class:`InputError`) removes the log directories it made,
+    unless they already hold a checkpoint.
     """
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
@@ -109,7 +109,7 @@ class OTGBCLI(LightningCLI):
             super().__init__(*args, **kwargs)
         except InputError:
             for log_dir in self.new_log_dirs:
-                if log_dir.is_dir() and not (log_dir / "checkpoints").exists():
+                if log_dir.is_dir() and not any(log_dir.rglob("checkpoints")):
                     shutil.rmtree(log_dir)
             raise
 
@@ -142,7 +142,7 @@ class OTGBCLI(LightningCLI):
         config = self.config[self.subcommand] if self.subcommand else self.config
         set_solver(checked_solver(config.solver, "--solver"))
         name_loggers_after_config(config.trainer.logger, config.get("config"))
-        self.new_log_dirs = share_logger_version(config.trainer.logger)
+        self.new_log_dirs = [_first_new(log_dir) for log_dir in share_logger_version(config.trainer.logger)]
 
     def instantiate_trainer(self, **kwargs: Any) -> Trainer:
         """The trainer, with :class:`SimulationProgressBar` unless the progress bar is off or the config names one."""
@@ -184,6 +184,13 @@ def logger_override(save_dir: str, name: str) -> str:
         for cls in ("CSVLogger", "TensorBoardLogger")  # CSV first: it wants an empty folder
     ]
     return f"--trainer.logger=[{', '.join(loggers)}]"
+
+
+def _first_new(path: Path) -> Path:
+    """The outermost folder of ``path`` that does not exist yet (``path`` itself when its parent exists)."""
+    while not path.parent.exists():
+        path = path.parent
+    return path
 
 
 def share_logger_version(loggers: object) -> list[Path]:

@@ -39,6 +39,7 @@ from otgb.ot import Objective, WeakTransport, critic_loss
 from otgb.parallel import SigtermAgreement, average_gradients, without_gradient_sync
 from otgb.physics.base import PhysicsModel, SimulationDiverged
 from otgb.physics.solvers import plan_solves
+from otgb.schedules import BatchScaledRate
 
 MapFactory = Callable[[PhysicsModel, int], nn.Module]
 CriticFactory = Callable[[tuple], nn.Module]
@@ -76,6 +77,8 @@ class MapTraining(LightningModule):
             per training step (None: a constant learning rate).
         critic_scheduler: learning-rate schedule factory of the critic's optimiser, stepped
             once per training step (None: a constant learning rate).
+        lr_batch_rule: scales both optimisers' learning rates to the data's batch size before training
+            (:class:`otgb.schedules.BatchScaledRate`; None: the rates as configured).
         max_consecutive_skips: An update whose loss or gradients are NaN/Inf (a solve that blew
             up) is skipped and counted (``train/skipped_steps``); this many in a row stop the run
             with a message naming what diverged, after saving the last good state as last.ckpt.
@@ -99,6 +102,7 @@ class MapTraining(LightningModule):
         critic_optimizer: OptimizerCallable = _adam,
         map_scheduler: LRSchedulerCallable | None = None,
         critic_scheduler: LRSchedulerCallable | None = None,
+        lr_batch_rule: BatchScaledRate | None = None,
         max_consecutive_skips: int = 10,
     ) -> None:
         super().__init__()
@@ -115,6 +119,7 @@ class MapTraining(LightningModule):
                 "critic_optimizer",
                 "map_scheduler",
                 "critic_scheduler",
+                "lr_batch_rule",
             ]
         )
         self.automatic_optimization = False
@@ -134,6 +139,7 @@ class MapTraining(LightningModule):
         self.sigterm = SigtermAgreement()
         self.optimizer_factories = (map_optimizer, critic_optimizer)
         self.scheduler_factories = (map_scheduler, critic_scheduler)
+        self.lr_batch_rule = lr_batch_rule
         self.map_updates = 0
         self.elapsed_before = 0.0
         self.restored_step: int | None = None  # global step of the checkpoint this module was loaded from
@@ -341,6 +347,9 @@ class MapTraining(LightningModule):
     def configure_optimizers(self) -> Any:
         map_factory, critic_factory = self.optimizer_factories
         optimizers = [map_factory(self.transport_map.parameters()), critic_factory(self.critic.parameters())]
+        if self.lr_batch_rule is not None:
+            for optimizer, name in zip(optimizers, ("model.map_optimizer", "model.critic_optimizer")):
+                self.lr_batch_rule.apply(optimizer, self.trainer.datamodule.batch_size, name)
         schedulers = [f(opt) for f, opt in zip(self.scheduler_factories, optimizers) if f is not None]
         for scheduler in schedulers:
             if getattr(scheduler, "total_steps", 0) is None:  # a schedule over the whole run

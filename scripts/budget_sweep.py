@@ -21,8 +21,10 @@ import argparse
 import json
 from pathlib import Path
 
+import torch
+
 from otgb.reports import LABELS, mean_spread, write_between
-from otgb.runs import fit_and_test, machine
+from otgb.runs import fit_and_test, machine, newest
 
 START, END = "<!-- results: scripts/budget_sweep.py -->", "<!-- end results -->"
 
@@ -41,39 +43,49 @@ def sweep(args: argparse.Namespace) -> None:
     for seed in args.seeds:
         for budget, batch in runs(args):
             key = f"{budget}/{batch}/seed{seed}"
-            if key in results:
+            if "map_lr" in results.get(key, {}):
                 continue
             settings = [f"--data.simulation_budget={budget}", f"--data.batch_size={batch}", *args.overrides]
             command = ["--config", args.config, f"--seed_everything={seed}", *settings]
-            report = fit_and_test(out / "runs" / args.name / key, command)
+            folder = out / "runs" / args.name / key
+            report = fit_and_test(folder, command)
             results[key] = {
                 "budget": budget, "batch": batch, "seed": seed, "overrides": args.overrides, "fit_s": report["fit_s"],
                 **{f"{source}_{args.metric}": report[source][args.metric]["mean"] for source in ("model", "fp")},
-                "machine": machine(),
+                **learning_rates(folder), "machine": results.get(key, {}).get("machine", machine()),
             }  # fmt: skip
             path.write_text(json.dumps(results, indent=1))
             print(f"{args.name} {key}: {args.metric} {results[key][f'model_{args.metric}']:.4g}", flush=True)
 
 
+def learning_rates(folder: Path) -> dict[str, float]:
+    """The map's and the critic's learning rates as trained (before their schedules), from the fit's last checkpoint."""
+    ckpt = torch.load(newest(folder / "fit", "version_*/checkpoints/last.ckpt"), map_location="cpu", weights_only=False)
+    (map_lr,), (critic_lr,) = (scheduler["base_lrs"] for scheduler in ckpt["lr_schedulers"])
+    return {"map_lr": map_lr, "critic_lr": critic_lr}
+
+
 def table(out: Path) -> str:
-    lines = []
-    for path in sorted(out.glob("*.json")):
-        results = json.loads(path.read_text())
-        metric = next(k for k in next(iter(results.values())) if k.startswith("model_")).removeprefix("model_")
-        lines += [f"`{path.stem}` ({len(results)} runs):", ""]
-        header = f"| budget | batch | seeds | test {LABELS[metric]}, mean ± std | per seed | f_p alone | fit (min) |"
-        lines += [header, "|---" * 7 + "|"]
+    """One row per sweep, budget and batch, over its seeds; then each sweep's overrides and machine."""
+    sweeps = {path.stem: json.loads(path.read_text()) for path in sorted(out.glob("*.json"))}
+    metric = next(k for k in next(iter(next(iter(sweeps.values())).values())) if k.startswith("model_")).removeprefix("model_")
+    lines = [f"| sweep | budget | batch | map / critic lr | seeds | test {LABELS[metric]}, mean ± std | per seed | f_p alone |"]
+    lines += ["|---" * 8 + "|"]
+    for name, results in sweeps.items():
         for budget, batch in sorted({(r["budget"], r["batch"]) for r in results.values()}):
             group = [r for r in results.values() if (r["budget"], r["batch"]) == (budget, batch)]
             values = [r[f"model_{metric}"] for r in group]
-            minutes = sum(r["fit_s"] for r in group) / len(group) / 60
-            per_seed = ", ".join(f"{v:.4g}" for v in values)
-            cells = [f"{budget:,}".replace(",", " "), str(batch), str(len(group)), mean_spread(values), per_seed]
-            lines.append("| " + " | ".join([*cells, f"{group[0][f'fp_{metric}']:.4g}", f"{minutes:.1f}"]) + " |")
+            rates = f"{group[0]['map_lr']:.3g} / {group[0]['critic_lr']:.3g}"
+            cells = [name, f"{budget:,}".replace(",", " "), str(batch), rates, str(len(group)), mean_spread(values)]
+            cells += [", ".join(f"{v:.4g}" for v in values), f"{group[0][f'fp_{metric}']:.4g}"]
+            lines.append("| " + " | ".join(cells) + " |")
+    lines.append("")
+    for name, results in sweeps.items():
         first = next(iter(results.values()))
-        settings = f"; overrides `{' '.join(first['overrides'])}`" if first["overrides"] else ""
-        lines += ["", f"{first['machine']}{settings}.", ""]
-    return "\n".join(lines).rstrip() + "\n"
+        minutes = sum(r["fit_s"] for r in results.values()) / len(results) / 60
+        settings = f", overrides `{' '.join(first['overrides'])}`" if first["overrides"] else ""
+        lines.append(f"- `{name}`: {first['machine']}{settings}; {minutes:.1f} min per fit on average.")
+    return "\n".join(lines) + "\n"
 
 
 def main() -> None:

@@ -93,6 +93,28 @@ def test_budget_ends_training_and_sets_the_schedule_length(tmp_path):
     assert scheduler["_last_lr"][0] == pytest.approx(0.1 * scheduler["base_lrs"][0])
 
 
+def test_the_batch_rule_scales_both_learning_rates_before_the_schedules_start(tmp_path):
+    rule = ["--model.lr_batch_rule=otgb.schedules.BatchScaledRate", "--model.lr_batch_rule.reference_batch=4"]
+    rule.append("--model.lr_batch_rule.exponent=-0.5")
+    main(["fit", *_args(tmp_path, "--trainer.max_steps=2", "--data.batch_size=16", *rule)])  # 16 / 4: rates halved
+    ckpt = torch.load(tmp_path / "run" / "version_0" / "checkpoints" / "last.ckpt", weights_only=False)
+    configured = yaml.safe_load((ROOT / "otgb" / "configs" / "defaults.yaml").read_text())["model"]
+    for scheduler, optimizer in zip(ckpt["lr_schedulers"], ("map_optimizer", "critic_optimizer")):
+        assert scheduler["base_lrs"][0] == pytest.approx(0.5 * configured[optimizer]["init_args"]["lr"])
+
+
+def test_a_batch_the_rule_cannot_serve_is_one_line_naming_the_rate_and_its_range(tmp_path, capsys):
+    rule = ["--model.lr_batch_rule=otgb.schedules.BatchScaledRate", "--model.lr_batch_rule.reference_batch=64"]
+    rule.append("--model.lr_batch_rule.exponent=-0.5")
+    with pytest.raises(SystemExit) as exit_info:
+        main(["fit", *_args(tmp_path, "--trainer.max_steps=2", "--data.batch_size=4", *rule)])  # 1e-3 * 4 = 4e-3
+    assert exit_info.value.code == 2
+    last = capsys.readouterr().err.splitlines()[-1]
+    assert last.startswith("otgb: error: model.lr_batch_rule: model.map_optimizer's learning rate 0.001 scaled to batch 4")
+    assert "outside the stable range [1e-05, 0.002]" in last
+    assert not (tmp_path / "run").exists(), "nothing written"
+
+
 def test_resume_continues_the_stream_and_matches_an_uninterrupted_run(tmp_path, recwarn):
     main(["fit", *_args(tmp_path / "a", "--trainer.max_steps=6", "--model.t_max=5")])
     stop = '--trainer.callbacks+={"class_path": "conftest.StopAt", "init_args": {"step": 3}}'

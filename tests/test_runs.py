@@ -44,6 +44,7 @@ def test_budget_sweep_spreads_each_budget_over_the_steps_and_writes_its_table_in
     subprocess.run([*script, "table", "--out", str(tmp_path / "out"), "--doc", str(page)], check=True, capture_output=True)
     text = page.read_text()
     assert "STALE TABLE" not in text and text.endswith("<!-- end results -->\n\nafter\n")
-    rows = [line for line in text.splitlines() if line.startswith("| 64 |") or line.startswith("| 128 |")]
-    assert [row.split(" | ")[1] for row in rows] == ["16", "32"]
+    rows = [line.split(" | ") for line in text.splitlines() if line.startswith("| tiny |")]
+    assert [(row[1], row[2]) for row in rows] == [("64", "16"), ("128", "32")]
+    assert {row[3] for row in rows} == {"0.001 / 0.001"}, "the learning rates as trained, from the checkpoints"
     assert all(f"{r['model_abs_err']:.4g}" in text for r in results.values())
