@@ -2,31 +2,25 @@
 
     python scripts/fit_and_report.py --config configs/pendulum.yaml --name bench [-- OVERRIDES...]
 
-Everything after ``--`` goes to ``otgb fit`` unchanged (e.g. ``--data.simulation_budget 100000``).
-Logs go to ``runs/<name>/version_N``; the curve (simulations, wall time, validation error) and
-the test table (``metrics.md`` of the `otgb test` run, whose ``metrics.json`` holds the same) are
-printed and written to ``report.md`` in the fit's run directory.
+Everything after ``--`` goes to both commands unchanged (e.g. ``--data.simulation_budget 100000``).
+Logs go to ``runs/<name>/fit/version_N`` and ``runs/<name>/test/version_N``
+(:func:`otgb.runs.fit_and_test`: run again, it resumes an interrupted fit). The curve (simulations,
+wall time, validation error) and the test table (``metrics.md`` of the `otgb test` run, whose
+``metrics.json`` holds the same) are printed and written to ``runs/<name>/report.md``.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
-import subprocess
-import sys
-import time
 from pathlib import Path
 
-from otgb.command import logger_override
-from otgb.runs import newest
+from otgb.runs import fit_and_test, newest
 
 
-def read_rows(run: Path) -> list[dict[str, str]]:
-    with open(run / "metrics.csv") as f:
-        return list(csv.DictReader(f))
-
-
-def curve(rows: list[dict[str, str]], metric: str) -> list[tuple[int, float, float, float]]:
+def curve(metrics_csv: Path, metric: str) -> list[tuple[int, float, float, float]]:
+    with open(metrics_csv) as f:
+        rows = list(csv.DictReader(f))
     return [
         (int(r["step"]), float(r["val/simulations"]), float(r["val/wall_time_s"]), float(r[metric]))
         for r in rows
@@ -43,36 +37,21 @@ def main() -> None:
     parser.add_argument("overrides", nargs=argparse.REMAINDER)
     args = parser.parse_args()
     overrides = [a for a in args.overrides if a != "--"]
-    common = [
-        "--config",
-        args.config,
-        logger_override(args.save_dir, args.name),
-        "--trainer.enable_progress_bar=false",
-        *overrides,
-    ]
-
-    start = time.perf_counter()
-    subprocess.run(["otgb", "fit", *common], check=True)
-    fit_seconds = time.perf_counter() - start
-    run = newest(Path(args.save_dir) / args.name, "version_*")
-    best = sorted((run / "checkpoints").glob("best-*.ckpt"))
-    if not best:
-        sys.exit(f"no best checkpoint in {run / 'checkpoints'}")
-    subprocess.run(["otgb", "test", *common, f"--ckpt_path={best[-1]}"], check=True)
-    test_run = newest(Path(args.save_dir) / args.name, "version_*")
-
+    folder = Path(args.save_dir) / args.name
+    fitted = fit_and_test(folder, ["--config", args.config, *overrides])
+    best = newest(folder / "fit", "version_*/checkpoints/best-*.ckpt")
     lines = [
         f"# {args.name}: `otgb fit --config {args.config} {' '.join(overrides)}`",
         "",
-        f"fit wall time {fit_seconds:.0f} s (process, including start-up); best checkpoint {best[-1].name}",
+        f"fit wall time {fitted['fit_s']:.0f} s (process, including start-up); best checkpoint {best.name}",
         "",
         f"| step | simulations | wall time (s) | {args.metric} |",
         "|---|---|---|---|",
     ]
-    lines += [f"| {s} | {n:.0f} | {t:.0f} | {m:.4f} |" for s, n, t, m in curve(read_rows(run), args.metric)]
-    lines += ["", (test_run / "metrics.md").read_text()]
+    lines += [f"| {s} | {n:.0f} | {t:.0f} | {m:.4f} |" for s, n, t, m in curve(best.parents[1] / "metrics.csv", args.metric)]
+    lines += ["", newest(folder / "test", "version_*/metrics.md").read_text()]
     report = "\n".join(lines) + "\n"
-    (run / "report.md").write_text(report)
+    (folder / "report.md").write_text(report)
     print(report)
 
 

@@ -48,3 +48,12 @@ def test_budget_sweep_spreads_each_budget_over_the_steps_and_writes_its_table_in
     assert [(row[1], row[2]) for row in rows] == [("64", "16"), ("128", "32")]
     assert {row[3] for row in rows} == {"0.001 / 0.001"}, "the learning rates as trained, from the checkpoints"
     assert all(f"{r['model_abs_err']:.4g}" in text for r in results.values())
+
+
+def test_the_results_page_shows_the_committed_budget_sweeps():
+    """docs/results.md's budget table is what scripts/budget_sweep.py writes from the committed results/budget/."""
+    script = [sys.executable, str(ROOT / "scripts" / "budget_sweep.py"), "table", "--out", str(ROOT / "results" / "budget")]
+    written = subprocess.run(script, capture_output=True, text=True, check=True).stdout
+    page = (ROOT / "docs" / "results.md").read_text()
+    shown = page.split("<!-- results: scripts/budget_sweep.py -->", 1)[1].split("<!-- end results -->", 1)[0]
+    assert "| pendulum-3125-steps |" in shown and shown.strip() == written.strip()
