@@ -107,11 +107,14 @@ class OTGBCLI(LightningCLI):
         self.new_log_dirs: list[Path] = []
         try:
             super().__init__(*args, **kwargs)
-        except InputError:
+        except (InputError, ValueError) as error:
+            found = bad_input_in(error)
+            if found is None:
+                raise
             for log_dir in self.new_log_dirs:
                 if log_dir.is_dir() and not any(log_dir.rglob("checkpoints")):
                     shutil.rmtree(log_dir)
-            raise
+            raise found from None
 
     def setup_parser(self, add_subcommands: bool, main_kwargs: dict[str, Any], subparser_kwargs: dict[str, Any]) -> None:
         defaults = {"default_config_files": [str(DEFAULTS)]}
@@ -184,6 +187,14 @@ def logger_override(save_dir: str, name: str) -> str:
         for cls in ("CSVLogger", "TensorBoardLogger")  # CSV first: it wants an empty folder
     ]
     return f"--trainer.logger=[{', '.join(loggers)}]"
+
+
+def bad_input_in(error: BaseException) -> InputError | None:
+    """The :class:`InputError` that ``error`` is or was raised from: jsonargparse wraps one raised while it builds a
+    component (``--model.objective.gamma=-1``) in a ValueError about union subtypes."""
+    while error is not None and not isinstance(error, InputError):
+        error = error.__cause__ or error.__context__
+    return error
 
 
 def _first_new(path: Path) -> Path:

@@ -57,7 +57,8 @@ class BatchScaledRate:
     def __init__(self, reference_batch: int = 32, exponent: float = -0.3, min_lr: float = 1e-5, max_lr: float = 2e-3) -> None:
         if reference_batch < 1 or not 0 < min_lr < max_lr:
             raise InputError(
-                f"BatchScaledRate: need reference_batch >= 1 and 0 < min_lr < max_lr; got {reference_batch}, {min_lr}, {max_lr}"
+                "model.lr_batch_rule: need reference_batch >= 1 and 0 < min_lr < max_lr; "
+                f"got {reference_batch}, {min_lr}, {max_lr}"
             )
         self.reference_batch, self.exponent, self.min_lr, self.max_lr = reference_batch, exponent, min_lr, max_lr
 

@@ -211,6 +211,11 @@ def test_bad_input_is_one_line_status_2_and_no_run_directory(tmp_path):
         (["--data.simulation_budget=abc"], "--data.simulation_budget: expected int, got abc"),
         (["--config", "bad.yaml"], "unknown key 'data.simulation_budgit' (did you mean data.simulation_budget?)"),
         (["--trainer.accelerator=gpux"], "trainer: You selected an invalid accelerator name"),
+        (["--model.objective.gamma=-1"], "model.objective.gamma=-1.0: expected a value in [0, 1]"),  # raised while built
+        (
+            ["--model.lr_batch_rule=otgb.schedules.BatchScaledRate", "--model.lr_batch_rule.max_lr=0"],
+            "model.lr_batch_rule: need reference_batch >= 1 and 0 < min_lr < max_lr",
+        ),
     ],
 )
 def test_parser_errors_are_a_few_lines_ending_with_the_closest_names(tmp_path, monkeypatch, capsys, args, last):
