@@ -1,10 +1,13 @@
-"""Load a run from Python: config files (and a checkpoint) to the model and the data module, built as ``otgb`` builds
-them, without training, printing or writing anything.
+"""Runs from Python: load one (config files and a checkpoint to the model and the data module, built as ``otgb``
+builds them, without training, printing or writing anything), or fit and test one as separate ``otgb`` processes.
 
-    from otgb.runs import load_run
+    from otgb.runs import fit_and_test, load_run
 
     run = load_run("configs/pendulum.yaml", "--data.n_measured=500", ckpt_path="runs/pendulum/version_0/checkpoints/last.ckpt")
     run.model, run.datamodule, run.trainer
+
+    report = fit_and_test(Path("runs/seed0"), ["--config", "configs/pendulum.yaml", "--seed_everything=0"])
+    report["model"]["abs_err"]["mean"], report["fit_s"]
 """
 
 from __future__ import annotations
@@ -115,7 +118,7 @@ def run_otgb(args: Sequence[str], log: Path, cwd: Path | None = None) -> float:
 def fit_and_test(folder: Path, args: Sequence[str], checkpoint: str = "best") -> dict:
     """``otgb fit <args>`` then ``otgb test <args>`` on its ``best`` (or ``last``) checkpoint, logged under ``folder``
     (``fit/`` and ``test/``, output without progress bars in ``otgb.log``); the test's metrics.json with the fit's
-    seconds as ``fit_s``.
+    seconds as ``fit_s`` and whether it resumed as ``resumed``.
 
     Resumable: a folder with a test report is returned as it is, and an interrupted fit continues from its
     ``last.ckpt`` (the resumed fit writes the next ``version_N``, and ``fit_s`` is the resumed part's time)."""
