@@ -91,7 +91,7 @@ class StepTimes(Callback):
         self._last = now
 
 
-def time_steps(config: str, solver: str, steps: int, workdir: Path) -> list[float]:
+def time_steps(config: str, solver: str, steps: int, workdir: Path, overrides: list[str]) -> list[float]:
     from otgb.command import logger_override
     from otgb.runs import load_run
 
@@ -99,7 +99,7 @@ def time_steps(config: str, solver: str, steps: int, workdir: Path) -> list[floa
     args = [
         str(ROOT / "configs" / f"{config}.yaml"), logger_override(str(workdir / "runs"), f"{config}-{solver}"),
         "--trainer.enable_progress_bar=false", f"--trainer.max_steps={steps}", f"--trainer.val_check_interval={steps}",
-        "--components.enabled=false", f"--data.cache_dir={workdir / 'cache'}", f"--solver={solver}",
+        "--components.enabled=false", f"--data.cache_dir={workdir / 'cache'}", f"--solver={solver}", *overrides,
     ]  # fmt: skip
     run = load_run(args[0], *args[1:])
     run.trainer.callbacks.append(timer)
@@ -113,17 +113,22 @@ def summary(times: list[float], warmup: int) -> dict[str, float]:
 
 
 def run_steps(args: argparse.Namespace) -> None:
+    from otgb.runs import machine
+
     out = Path(args.out)
     path, results = results_file(args, "steps.json")
     for config in args.configs:
+        label = f"{config}-{args.label}" if args.label else config
         for round_ in range(args.rounds):
             for solver in args.solvers:
-                key = f"{config}/{solver}/{round_}"
+                key = f"{label}/{solver}/{round_}"
                 if key in results:
                     continue
-                results[key] = summary(time_steps(config, solver, args.steps, out), args.warmup)
+                times = time_steps(config, solver, args.steps, out, args.overrides)
+                gpu = any("gpu" in override for override in args.overrides)
+                results[key] = summary(times, args.warmup) | {"overrides": args.overrides, "machine": machine(gpu)}
                 path.write_text(json.dumps(results, indent=1))
-        print(report(results, config, args.solvers), flush=True)
+        print(report(results, label, args.solvers), flush=True)
     print(f"speed_benchmark: wrote {path}")
 
 
@@ -352,6 +357,7 @@ def run_judges(args: argparse.Namespace) -> None:
     print(f"speed_benchmark: wrote {path}")
 
 
+LOCAL_MACHINE = "2-core x86_64 VM, torch 2.13.0+cpu"  # the machine of the step timings recorded before they named theirs
 SECTION_START, SECTION_END = "<!-- speed: scripts/speed_benchmark.py -->", "<!-- end speed -->"
 
 
@@ -361,8 +367,8 @@ def write_table(args: argparse.Namespace) -> None:
     steps = json.loads((out / "steps.json").read_text()) if (out / "steps.json").exists() else {}
     configs = list(dict.fromkeys(key.split("/")[0] for key in steps))
     if configs:
-        header = "| config | solver | ms per training step | speed-up | first run's warm-up (s) | runs | torch threads |"
-        lines += [header, "|---|---|---|---|---|---|---|"]
+        header = "| config | solver | ms per training step | speed-up | first run's warm-up (s) | runs | torch threads | machine |"
+        lines += [header, "|---|---|---|---|---|---|---|---|"]
     for config in configs:
         solvers = list(dict.fromkeys(key.split("/")[1] for key in steps if key.startswith(f"{config}/")))
         reference = _median(steps, f"{config}/{solvers[0]}/", "median_ms")
@@ -371,7 +377,10 @@ def write_table(args: argparse.Namespace) -> None:
             step, warmup = _median(steps, prefix, "median_ms"), _median(steps, prefix, "warmup_s")
             runs = sum(key.startswith(prefix) for key in steps)
             threads = ", ".join(sorted({str(v["threads"]) for k, v in steps.items() if k.startswith(prefix)}))
-            lines.append(f"| {config} | {solver} | {step:.1f} | {reference / step:.2f}x | {warmup:.1f} | {runs} | {threads} |")
+            machines = ", ".join(sorted({v.get("machine", LOCAL_MACHINE) for k, v in steps.items() if k.startswith(prefix)}))
+            lines.append(
+                f"| {config} | {solver} | {step:.1f} | {reference / step:.2f}x | {warmup:.1f} | {runs} | {threads} | {machines} |"
+            )
     fits = json.loads((out / "fit.json").read_text()) if (out / "fit.json").exists() else {}
     if fits:
         lines += ["", "| whole `otgb fit` | solver | minutes | runs | compile cache |", "|---|---|---|---|---|"]
@@ -460,6 +469,8 @@ def main() -> None:
     steps.add_argument("--configs", nargs="+", default=["pendulum", "advdiff", "reactdiff"])
     steps.add_argument("--steps", type=int, default=40)
     steps.add_argument("--warmup", type=int, default=5, help="first steps counted as warm-up (compilation)")
+    steps.add_argument("--label", help="appended to each config's name in the results, for runs with overrides (e.g. gpu)")
+    steps.add_argument("overrides", nargs="*", help="otgb overrides, after -- (e.g. --trainer.accelerator=gpu)")
     fit = commands.add_parser("fit", help="whole `otgb fit` commands, per solver")
     fit.add_argument("--config", default="reactdiff")
     fit.add_argument("--label", help="the results' name for this config and these overrides (default: the config)")

@@ -36,3 +36,20 @@ def test_c2st_in_bfloat16_on_the_gpu():
     shifted = same[0], same[1] + 1.0
     assert abs(float(c2st(*same, precision="bf16-mixed")["c2st"]) - 0.5) < 0.1
     assert float(c2st(*shifted, precision="bf16-mixed")["c2st"]) > 0.9
+
+
+@pytest.mark.parametrize("solver", ["eager", "compiled"])
+def test_the_greybox_solve_and_its_gradients_on_the_gpu_equal_torchdiffeq_there_and_on_the_cpu(solver):
+    from test_solvers import _assert_same, _forward_backward, _pendulum_greybox
+
+    greybox = _pendulum_greybox()
+    on_cpu = _forward_backward(greybox, "torchdiffeq", 32)
+    greybox.cuda()
+    reference = _forward_backward(greybox, "torchdiffeq", 32)
+    fast = _forward_backward(greybox, solver, 32)
+    _assert_same(tuple(map(_to_cpu, fast)), tuple(map(_to_cpu, reference)), 1e-4)
+    _assert_same(tuple(map(_to_cpu, reference)), on_cpu, 1e-4)
+
+
+def _to_cpu(value):
+    return [v.cpu() for v in value] if isinstance(value, list) else value.cpu()
