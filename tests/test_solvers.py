@@ -80,9 +80,10 @@ def _forward_backward(greybox: GreyBoxODE, solver: str, n: int) -> tuple[torch.T
     g = torch.Generator().manual_seed(1)
     physics = greybox.physics
     x0, theta, z = physics.sample_initial_state(n, g), physics.sample_theta(n, g), torch.randn(n, greybox.z_dim, generator=g)
+    device = next(greybox.parameters()).device
     greybox.zero_grad()
-    y = greybox(None, x0, theta, z)
-    (y * torch.linspace(-1, 1, y[0].numel()).reshape(y.shape[1:])).sum().backward()
+    y = greybox(None, x0.to(device), theta.to(device), z.to(device))
+    (y * torch.linspace(-1, 1, y[0].numel(), device=device).reshape(y.shape[1:])).sum().backward()
     return y.detach(), [p.grad.clone() for p in greybox.parameters()]
 
 
@@ -235,3 +236,16 @@ def test_the_speed_table_in_the_docs_is_what_the_result_files_give(tmp_path):
     results = ROOT / "results" / "speed"
     subprocess.run([sys.executable, str(script), "table", "--out", str(results), "--doc", str(doc)], check=True)
     assert doc.read_text() == (ROOT / "docs" / "results.md").read_text()
+
+
+def test_compiled_gradients_that_differ_from_the_eager_loop_make_the_field_run_eagerly_with_one_line(monkeypatch, caplog):
+    """As torch 2.11's compiled loop did (right trajectories, parameter gradients near zero): caught on the first solve."""
+    monkeypatch.setattr(solvers, "_compiled_whole_solve", lambda: lambda *args: solvers._whole_solve(*args).detach())
+    greybox = _pendulum_greybox()
+    reference = _forward_backward(greybox, "torchdiffeq", 8)
+    with caplog.at_level(logging.WARNING, logger="otgb.solvers"):
+        first, second = _forward_backward(greybox, "compiled", 8), _forward_backward(greybox, "compiled", 8)
+    _assert_same(first, reference, 1e-4)
+    _assert_same(second, reference, 1e-4)
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 1 and "runs eagerly: its compiled gradients differ from the eager loop's" in lines[0], lines

@@ -64,6 +64,8 @@ log = logging.getLogger("otgb.solvers")
 _setting: dict[str, object] = {"solver": "auto", "planned": 0}
 _solves: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # per field owner (a model): solves per (method, grad mode)
 _not_compilable: set[tuple] = set()
+_gradients_checked: set[tuple] = set()  # fields whose compiled gradients have been compared with the eager loop's
+GRADIENT_TOLERANCE = 1e-3  # of the largest gradient: a compiled solve further from the eager loop's is not used
 
 
 def set_solver(name: str) -> None:
@@ -85,6 +87,7 @@ def reset() -> None:
     _setting.update(solver="auto", planned=0)
     _solves.clear()
     _not_compilable.clear()
+    _gradients_checked.clear()
 
 
 def checked_solver(name: object, where: str = "solver") -> str:
@@ -183,10 +186,17 @@ def integrate(
     key = (method, getattr(field, "__func__", field), torch.is_grad_enabled())
     compiled = _compiles(solver, key, getattr(field, "__self__", field))
     arguments = (initial_state, args, method, step_size, substeps, n_times - 1)
-    if compiled and initial_state[0].numel() <= WHOLE_SOLVE_MAX_STATE and n_times > 1:
-        return _Fallback(key, _compiled_whole_solve(), _stepwise_solve)(field, *arguments)
-    step = _Fallback(key, _compiled_step(method), STEPS[method]) if compiled else STEPS[method]
-    return _stepwise_solve(field, *arguments, step=step)
+    if not compiled:
+        return _stepwise_solve(field, *arguments)
+    if initial_state[0].numel() <= WHOLE_SOLVE_MAX_STATE and n_times > 1:
+        fast = functools.partial(_Fallback(key, _compiled_whole_solve(), _stepwise_solve), field)
+    else:
+        fast = functools.partial(_stepwise_solve, field, step=_Fallback(key, _compiled_step(method), STEPS[method]))
+    if torch.is_grad_enabled() and key not in _gradients_checked:
+        _check_against_eager(key, field, fast, arguments)
+        if key in _not_compilable:
+            return _stepwise_solve(field, *arguments)
+    return fast(*arguments)
 
 
 def _stepwise_solve(
@@ -210,6 +220,58 @@ def _stepwise_solve(
         if (i + 1) % substeps == 0:
             states.append(y)
     return torch.stack(states, dim=1)
+
+
+def _check_against_eager(key: tuple, field: Field, fast: Callable[..., Tensor], arguments: tuple) -> None:
+    """Compare the first differentiated compiled solve of a field with the eager loop's, by its gradients.
+
+    A compiler can trace a solve right and differentiate it wrong: torch 2.11's compiled loop gave
+    the grey-box's parameters gradients near zero on an H100 with the right trajectories, and
+    training went on, far worse. So once per field and process, the gradients of a fixed
+    projection of the states, with respect to the field's parameters and the solve's inputs, are
+    compared; where they differ by more than :data:`GRADIENT_TOLERANCE` of their largest, the field
+    runs eagerly from then on (``key`` joins the fields that do not compile), after one line saying so.
+    The check runs on detached copies of the inputs, so the caller's graph is left as it was.
+    """
+    _gradients_checked.add(key)
+    owner = getattr(field, "__self__", None)
+    parameters = [p for p in owner.parameters() if p.requires_grad] if isinstance(owner, torch.nn.Module) else []
+    initial_state, args = _leaf(arguments[0]), tuple(_leaf(a) for a in arguments[1])
+    inputs = parameters + [t for t in (initial_state, *args) if isinstance(t, Tensor) and t.requires_grad]
+    if not inputs:
+        return
+    copies = (initial_state, args, *arguments[2:])
+    states = fast(*copies)
+    if key in _not_compilable:
+        return
+    weights = torch.linspace(-1, 1, states[0].numel(), device=states.device, dtype=states.dtype).reshape(states.shape[1:])
+    fast_gradients = (
+        torch.autograd.grad((states * weights).sum(), inputs, allow_unused=True) if states.requires_grad else [None] * len(inputs)
+    )
+    eager_gradients = torch.autograd.grad((_stepwise_solve(field, *copies) * weights).sum(), inputs, allow_unused=True)
+    largest = max((float(g.abs().max()) for g in eager_gradients if g is not None), default=0.0)
+    difference = max(_relative_difference(a, b, 1e-2 * largest) for a, b in zip(fast_gradients, eager_gradients))
+    if difference > GRADIENT_TOLERANCE:
+        _not_compilable.add(key)
+        log.warning(
+            f"otgb: the solve of {_field_name(field)} runs eagerly: its compiled gradients differ from the eager "
+            f"loop's by {difference:.2g} of their largest (torch {torch.__version__}, {states.device.type})"
+        )
+
+
+def _leaf(value: object) -> object:
+    """A tensor cut from its graph, still requiring a gradient where it did; anything else as it is."""
+    return value.detach().requires_grad_(value.requires_grad) if isinstance(value, Tensor) else value
+
+
+def _relative_difference(gradient: Tensor | None, reference: Tensor | None, floor: float) -> float:
+    """|gradient - reference| at its largest, over the reference's largest (at least ``floor``); None is zero."""
+    gradient = torch.zeros_like(reference) if gradient is None and reference is not None else gradient
+    reference = torch.zeros_like(gradient) if reference is None and gradient is not None else reference
+    if gradient is None:
+        return 0.0
+    scale = reference.abs().max().clamp_min(max(floor, 1e-12))
+    return float((gradient - reference).abs().max() / scale)
 
 
 def _compiles(solver: str, key: tuple, owner: object) -> bool:
