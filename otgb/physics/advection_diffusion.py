@@ -14,12 +14,11 @@ import math
 from collections.abc import Sequence
 
 import torch
-from jsonargparse import lazy_instance
 from torch import Tensor
 
 from otgb.physics.arguments import invalid
 from otgb.physics.base import FieldModel, Term
-from otgb.physics.priors import Prior, Uniform, check_prior, sample_joint
+from otgb.physics.priors import Prior, Uniform, check_prior, default_prior, sample_joint
 
 
 class AdvectionDiffusion(FieldModel):
@@ -42,8 +41,8 @@ class AdvectionDiffusion(FieldModel):
 
     def __init__(
         self,
-        alpha: Prior = lazy_instance(Uniform, low=0.01, high=0.1),
-        amplitude: Prior = lazy_instance(Uniform, low=0.5, high=1.5),
+        alpha: Prior = default_prior(Uniform, low=0.01, high=0.1),
+        amplitude: Prior = default_prior(Uniform, low=0.5, high=1.5),
         n_grid: int = 20,
         dx: float = 0.1,
         dt: float = 0.02,

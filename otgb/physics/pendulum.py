@@ -10,11 +10,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-from jsonargparse import lazy_instance
 from torch import Tensor
 
 from otgb.physics.base import PhysicsModel, Term
-from otgb.physics.priors import Constant, Prior, Uniform
+from otgb.physics.priors import Constant, Prior, Uniform, default_prior
 
 
 class Pendulum(PhysicsModel):
@@ -39,9 +38,9 @@ class Pendulum(PhysicsModel):
 
     def __init__(
         self,
-        omega: Prior = lazy_instance(Uniform, low=0.785, high=3.14),
-        angle: Prior = lazy_instance(Uniform, low=-1.57, high=1.57),
-        velocity: Prior = lazy_instance(Constant, value=0.0),
+        omega: Prior = default_prior(Uniform, low=0.785, high=3.14),
+        angle: Prior = default_prior(Uniform, low=-1.57, high=1.57),
+        velocity: Prior = default_prior(Constant, value=0.0),
         dt: float = 0.1,
         n_obs: int = 50,
         step_size: float | None = None,

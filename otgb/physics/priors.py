@@ -9,10 +9,14 @@ in a config; its repr shows its arguments (data sets are cached under it).
 from __future__ import annotations
 
 import math
+import sys
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
+from types import FrameType, ModuleType
 
 import torch
+from jsonargparse import lazy_instance
+from jsonargparse import typing as jsonargparse_typing
 from torch import Tensor
 
 from otgb.physics.arguments import RecordsInitArgs, invalid
@@ -118,6 +122,34 @@ class Choice(Prior):
     @property
     def is_constant(self) -> bool:
         return len(set(self.values)) == 1
+
+
+def default_prior(cls: type[Prior], **kwargs: float) -> Prior:
+    """A Prior as a constructor's default, shown by ``--print_config`` as its class_path and init_args.
+
+    It is jsonargparse's ``lazy_instance``, told its caller directly: the library finds its caller
+    through ``inspect.stack()``, which reads the source of every frame above it, and inside the
+    import chain of ``otgb`` that took 0.13 s a call, 0.9 s of every command's start.
+    """
+    real = jsonargparse_typing.inspect
+    jsonargparse_typing.inspect = _CallerOnlyStack(sys._getframe(1), real)
+    try:
+        return lazy_instance(cls, **kwargs)
+    finally:
+        jsonargparse_typing.inspect = real
+
+
+class _CallerOnlyStack:
+    """The ``inspect`` module as jsonargparse's ``lazy_instance`` sees it: a stack of the caller alone."""
+
+    def __init__(self, caller: FrameType, inspect: ModuleType) -> None:
+        self._caller, self._inspect = caller, inspect
+
+    def stack(self) -> list:
+        return [None, self._inspect.FrameInfo(self._caller, "", 0, "", None, None)]
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._inspect, name)
 
 
 def sample_joint(priors: Sequence[Prior], n: int, generator: torch.Generator) -> Tensor:

@@ -21,12 +21,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-from jsonargparse import lazy_instance
 from torch import Tensor
 
 from otgb.physics.arguments import invalid
 from otgb.physics.base import FieldModel, Term
-from otgb.physics.priors import Prior, Uniform
+from otgb.physics.priors import Prior, Uniform, default_prior
 
 
 class ReactionDiffusion(FieldModel):
@@ -49,8 +48,8 @@ class ReactionDiffusion(FieldModel):
 
     def __init__(
         self,
-        a: Prior = lazy_instance(Uniform, low=1e-3, high=2e-3),
-        b: Prior = lazy_instance(Uniform, low=3e-3, high=7e-3),
+        a: Prior = default_prior(Uniform, low=1e-3, high=2e-3),
+        b: Prior = default_prior(Uniform, low=3e-3, high=7e-3),
         u_reaction: bool = False,
         n_grid: int = 32,
         dt: float = 0.1,
