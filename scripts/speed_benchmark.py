@@ -367,8 +367,9 @@ def write_table(args: argparse.Namespace) -> None:
     steps = json.loads((out / "steps.json").read_text()) if (out / "steps.json").exists() else {}
     configs = list(dict.fromkeys(key.split("/")[0] for key in steps))
     if configs:
-        header = "| config | solver | ms per training step | speed-up | first run's warm-up (s) | runs | torch threads | machine |"
-        lines += [header, "|---|---|---|---|---|---|---|---|"]
+        columns = ["config", "solver", "ms per training step", "speed-up", "first run's warm-up (s)", "runs"]
+        columns += ["torch threads", "machine"]
+        lines += ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
     for config in configs:
         solvers = list(dict.fromkeys(key.split("/")[1] for key in steps if key.startswith(f"{config}/")))
         reference = _median(steps, f"{config}/{solvers[0]}/", "median_ms")
