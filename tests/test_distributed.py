@@ -69,6 +69,7 @@ def test_two_process_fit_and_test_of_the_pendulum(tmp_path):
     assert metrics["run"]["global_step"] == 10 and metrics["model"]["abs_err"]["mean"] > 0
 
 
+@pytest.mark.slow  # the pendulum's two-process run above covers DDP in the default suite
 def test_two_process_fit_and_test_of_advection_diffusion(tmp_path):
     steps = ["--data.simulation_budget=256", "--data.batch_size=16", "--model.t_max=2", "--trainer.val_check_interval=4"]
     _otgb_ddp(tmp_path, "fit", *_args(tmp_path, "advdiff.yaml", *steps))
