@@ -4,6 +4,8 @@
         --budgets 100000 300000 1000000 --steps 3125 --seeds 0 1 2
     python scripts/budget_sweep.py run --out results/budget --name pendulum-batch --config configs/pendulum.yaml \\
         --budgets 300000 --batches 32 64 128 256 512 --seeds 0 [-- OVERRIDES...]
+    python scripts/budget_sweep.py study --out results/budget --name pendulum-budget-study \\
+        --storage sqlite:///STUDY_DIR/study.db --study pendulum-budget --space configs/tune/pendulum-budget.yaml
     python scripts/budget_sweep.py table --out results/budget --doc docs/results.md
 
 Each (budget, batch, seed) is one real ``otgb fit`` and an ``otgb test`` of its best checkpoint
@@ -12,16 +14,20 @@ training steps (batch = budget / S); ``--batches`` fixes the batch instead. Ever
 both commands (a learning rate, a schedule). Results go to ``<out>/<name>.json`` as each run ends; a
 rerun skips what is done and resumes an interrupted fit from its ``last.ckpt``. ``table`` writes every
 sweep's table into ``--doc`` between ``<!-- results: scripts/budget_sweep.py -->`` and
-``<!-- end results -->``.
+``<!-- end results -->``, with a line per ``otgb tune`` study that ``study`` recorded (its result files copied
+beside the sweeps, a summary in ``<out>/<name>/study.json``).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 from pathlib import Path
 
+import optuna
 import torch
+import yaml
 
 from otgb.reports import LABELS, mean_spread, write_between
 from otgb.runs import fit_and_test, machine, newest
@@ -65,6 +71,44 @@ def learning_rates(folder: Path) -> dict[str, float]:
     return {"map_lr": map_lr, "critic_lr": critic_lr}
 
 
+def record_study(out: Path, storage: str, study_name: str, space: str) -> None:
+    """An ``otgb tune`` study's summary (study.json) and its files (trials.md, best.yaml, plots) in ``out``."""
+    study = optuna.load_study(study_name=study_name, storage=storage)
+    trials = study.get_trials(deepcopy=False)
+    states = [t.state.name.lower() for t in trials]
+    best = study.best_trial
+    out.mkdir(parents=True, exist_ok=True)
+    folder = Path(storage.removeprefix("sqlite:///")).parent
+    for name in ("trials.md", "best.yaml", "history.png", "importances.png"):
+        shutil.copy(folder / name, out / name)
+    summary = {
+        "study": study_name, "space": space, "monitor": study.user_attrs["monitor"], "trials": len(trials),
+        "states": {s: states.count(s) for s in sorted(set(states))},
+        "best_trial": best.number, "best_value": best.value, "best_params": best.params,
+        "first_value": trials[0].value, "minutes": sum((t.duration.total_seconds() for t in trials if t.duration), 0.0) / 60,
+    }  # fmt: skip
+    data = yaml.safe_load((out / "best.yaml").read_text())["data"]
+    summary.update(simulations=data["simulation_budget"], batch=data["batch_size"])
+    (out / "study.json").write_text(json.dumps(summary, indent=1))
+
+
+def study_lines(out: Path) -> list[str]:
+    """A line per recorded study in ``out``: its size, its best trial and the config's own (trial 0)."""
+    lines = []
+    for path in sorted(out.glob("*/study.json")):
+        s = json.loads(path.read_text())
+        states = ", ".join(f"{n} {state}" for state, n in sorted(s["states"].items()))
+        best = ", ".join(f"`{key}` {value:.4g}" for key, value in s["best_params"].items())
+        size = f"{s['simulations']:,}".replace(",", " ")
+        lines.append(
+            f"- `otgb tune` study `{s['study']}` over `{s['space']}` at {size} simulations, batch {s['batch']}: "
+            f"{s['trials']} trials ({states}), {s['minutes']:.0f} trial-minutes. Best trial {s['best_trial']}, "
+            f"{s['monitor']} {s['best_value']:.4g} ({best}); trial 0, the config's own settings, {s['first_value']:.4g}. "
+            f"Its trials: `{path.parent.name}/trials.md` beside the sweeps."
+        )
+    return lines
+
+
 def table(out: Path) -> str:
     """One row per sweep, budget and batch, over its seeds; then each sweep's overrides and machine."""
     sweeps = {path.stem: json.loads(path.read_text()) for path in sorted(out.glob("*.json"))}
@@ -85,6 +129,7 @@ def table(out: Path) -> str:
         minutes = sum(r["fit_s"] for r in results.values()) / len(results) / 60
         settings = f", overrides `{' '.join(first['overrides'])}`" if first["overrides"] else ""
         lines.append(f"- `{name}`: {first['machine']}{settings}; {minutes:.1f} min per fit on average.")
+    lines += study_lines(out)
     return "\n".join(lines) + "\n"
 
 
@@ -102,12 +147,21 @@ def main() -> None:
     run.add_argument("--seeds", type=int, nargs="+", default=[0])
     run.add_argument("--metric", default="abs_err", help="the test metric recorded (abs_err; c2st for one-to-many tasks)")
     run.add_argument("overrides", nargs="*", help="after --: overrides for fit and test")
+    record = commands.add_parser("study", help="record an otgb tune study's summary and files beside the sweeps")
+    record.add_argument("--out", default="results/budget")
+    record.add_argument("--name", required=True, help="the folder in --out for the study's files")
+    record.add_argument("--storage", required=True, help="the study's sqlite:/// URL (its folder holds trials.md)")
+    record.add_argument("--study", required=True)
+    record.add_argument("--space", required=True, help="the space file the study searched, as the docs name it")
     show = commands.add_parser("table", help="the tables of every sweep in --out")
     show.add_argument("--out", default="results/budget")
     show.add_argument("--doc", help="a page to write the tables into, between the markers")
     args = parser.parse_args()
     if args.command == "run":
         sweep(args)
+        return
+    if args.command == "study":
+        record_study(Path(args.out) / args.name, args.storage, args.study, args.space)
         return
     text = table(Path(args.out))
     print(text)
