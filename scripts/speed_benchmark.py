@@ -91,7 +91,8 @@ class StepTimes(Callback):
         self._last = now
 
 
-def time_steps(config: str, solver: str, steps: int, workdir: Path, overrides: list[str]) -> list[float]:
+def time_steps(config: str, solver: str, steps: int, workdir: Path, overrides: list[str]) -> tuple[list[float], bool]:
+    """The wall time of each training step of ``config``, and whether they ran on a GPU."""
     from otgb.command import logger_override
     from otgb.runs import load_run
 
@@ -104,7 +105,7 @@ def time_steps(config: str, solver: str, steps: int, workdir: Path, overrides: l
     run = load_run(args[0], *args[1:])
     run.trainer.callbacks.append(timer)
     run.trainer.fit(run.model, run.datamodule)
-    return timer.times
+    return timer.times, run.trainer.strategy.root_device.type == "cuda"
 
 
 def summary(times: list[float], warmup: int) -> dict[str, float]:
@@ -124,8 +125,7 @@ def run_steps(args: argparse.Namespace) -> None:
                 key = f"{label}/{solver}/{round_}"
                 if key in results:
                     continue
-                times = time_steps(config, solver, args.steps, out, args.overrides)
-                gpu = any("gpu" in override for override in args.overrides)
+                times, gpu = time_steps(config, solver, args.steps, out, args.overrides)
                 results[key] = summary(times, args.warmup) | {"overrides": args.overrides, "machine": machine(gpu)}
                 path.write_text(json.dumps(results, indent=1))
         print(report(results, label, args.solvers), flush=True)

@@ -1,6 +1,7 @@
 """`otgb tune` through the real command: real fits per trial, a persistent study, SIGTERM and resume, two workers,
 a measured file, and bad input refused in one line."""
 
+import json
 import os
 import signal
 import sqlite3
@@ -88,6 +89,30 @@ def test_a_study_runs_real_fits_writes_its_results_and_a_config_fit_takes(tmp_pa
     assert (tmp_path / "runs" / "tune-pendulum-best" / "version_0" / "checkpoints" / "last.ckpt").is_file()
     code, _, _ = _tune_here(tmp_path, monkeypatch, capsys, "--tune.trials=3", *_tiny(tmp_path))
     assert code == 0 and len(_trials(study)) == 3, "the study is complete: the same command adds nothing"
+    _budget_sweep_records(tmp_path, study)
+
+
+def _budget_sweep_records(tmp_path: Path, study: Path) -> None:
+    """scripts/budget_sweep.py's `study` copies a finished study's files and summary, and `table` lists it."""
+    script = [sys.executable, str(ROOT / "scripts" / "budget_sweep.py")]
+    storage = f"sqlite:///{study / 'study.db'}"
+    record = [*script, "study", "--out", str(tmp_path / "out"), "--name", "s", "--storage", storage, "--study", "pendulum"]
+    subprocess.run([*record, "--space", "space.yaml"], check=True, capture_output=True)
+    summary = json.loads((tmp_path / "out" / "s" / "study.json").read_text())
+    assert summary["trials"] == 3 and summary["states"] == {"complete": 3} and summary["monitor"] == "val/abs_err"
+    assert summary["first_value"] >= summary["best_value"] and {p.name for p in (tmp_path / "out" / "s").iterdir()} == {
+        "study.json",
+        "trials.md",
+        "best.yaml",
+        "history.png",
+        "importances.png",
+    }
+    (tmp_path / "out" / "sweep.json").write_text(json.dumps({"64/16/seed0": {
+        "budget": 64, "batch": 16, "seed": 0, "overrides": [], "fit_s": 1.0, "model_abs_err": 0.5, "fp_abs_err": 0.4,
+        "map_lr": 1e-3, "critic_lr": 1e-3, "machine": "m"}}))  # fmt: skip
+    shown = subprocess.run([*script, "table", "--out", str(tmp_path / "out")], check=True, capture_output=True, text=True)
+    line = shown.stdout.strip().splitlines()[-1]
+    assert line.startswith("- `otgb tune` study `pendulum` over `space.yaml`") and f"{summary['best_value']:.4g}" in line
 
 
 def _worker_in_its_second_trial(tmp_path: Path, steps: int) -> subprocess.Popen:
