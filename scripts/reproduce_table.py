@@ -2,22 +2,29 @@
 
     python scripts/reproduce_table.py --out bench/table                        # every task, seeds 0 1 2
     python scripts/reproduce_table.py --out bench/table --tasks Pendulum-1-m Adv-diff-1-m --seeds 0 1 2
-    python scripts/reproduce_table.py --out bench/table --gather docs/results.md   # only write the table
-    python scripts/reproduce_table.py --out bench/b --tasks Adv-diff-m-m --gather docs/results.md   # only that task's
-    python scripts/reproduce_table.py --out /tmp/quick --quick --gather /tmp/quick/results.md   # minutes
+    python scripts/reproduce_table.py --gather docs/results.md                 # only write the tables
+    python scripts/reproduce_table.py --out /tmp/quick --quick --results /tmp/quick/results --gather /tmp/quick/results.md
     python scripts/reproduce_table.py --out bench/table --tasks React-diff-1-m -- --trainer.accelerator=gpu
 
 Each run is ``otgb fit`` with the task's config and the method's overlays
 (``configs/baselines/*.yaml``) and ``--seed_everything S``, then ``otgb test`` on its best
-checkpoint; its test ``metrics.json`` is what the table gathers. Per task, two rows with nothing
-to learn are scored by the same ``otgb test``: "f_p only" (:class:`otgb.models.IdentityMap`) and
-"complete physics" (:class:`otgb.models.CompletePhysicsMap`: the DGP's simulator at the
-training solver's step); the Reference row is the test's measured-half-against-half floor.
+checkpoint. Per task, three rows are scored by the same ``otgb test`` with nothing trained: "f_p
+only" (:class:`otgb.models.IdentityMap`), "complete physics" (:class:`otgb.models.CompletePhysicsMap`:
+the DGP's simulator at the training solver's step) and, per seed, "otgb discover (augmented
+physics)": ``otgb discover`` on a file of the task's measured set (written by
+``scripts/export_measured.py``), then f_p plus the terms it named, their coefficients drawn from the
+distributions it fitted (``CompletePhysicsMap`` with those terms), against the same test set. The
+Reference row is the test's own floor (measured half against half). One-to-many tasks are judged
+twice: C2ST with the strong judge (``evaluation.c2st_classifier=auto``) and with the paper's.
 
-Interrupted? Run the same command again: finished runs (a test ``metrics.json``) are skipped,
-an unfinished fit resumes from its ``last.ckpt``. The budgets are the task configs' own (sized
-for 2 CPU cores; the paper's are larger, see each config's header); ``--quick`` trains 4 steps
-on small sets, to check the whole path, not to measure anything.
+Every finished run leaves a small JSON in ``--results`` (``results/table/<task>/<row>/seed<S>.json``:
+the test's figures, the fit's wall time, the machine, the command); ``--gather`` writes every table
+from those files alone, so the committed tables are reproducible from committed files.
+
+Interrupted? Run the same command again: finished runs (a result file) are skipped, an unfinished
+fit resumes from its ``last.ckpt``. The budgets are the task configs' own (sized for 2 CPU cores;
+the paper's are larger, see each config's header); ``--quick`` trains 4 steps on small sets, to
+check the whole path, not to measure anything.
 """
 
 from __future__ import annotations
@@ -72,7 +79,10 @@ QUICK = [
     "--evaluation.c2st_folds=2",
     "--components.enabled=false",
 ]
+QUICK_DISCOVER = ["--discover.n_permutations=199", "--discover.n_bootstrap=5", "--discover.fit_steps=30"]
 TABLE_START, TABLE_END = "<!-- table1: scripts/reproduce_table.py -->", "<!-- end table1 -->"
+AUGMENTED = "otgb discover (augmented physics)"
+ROWS = (*METHODS, "f_p only", "complete physics", AUGMENTED)
 
 
 def configs(task: str, method: str) -> list[str]:
@@ -84,168 +94,208 @@ def configs(task: str, method: str) -> list[str]:
     return [arg for path in files for arg in ("--config", str(path))]
 
 
-def otgb(args: list[str], log: Path, on_exit: Callable[[float], None] = lambda seconds: None) -> None:
+def otgb(args: list[str], log: Path, on_exit: Callable[[float], None] = lambda seconds: None, cwd: Path | None = None) -> None:
     """``otgb <args>`` with its output in ``log``; ``on_exit`` gets its wall time in seconds, even if it failed (then exits)."""
     start = time.perf_counter()
     with open(log, "a") as out:
-        done = subprocess.run([sys.executable, "-m", "otgb.cli", *args], stdout=out, stderr=subprocess.STDOUT)
+        done = subprocess.run([sys.executable, "-m", "otgb.cli", *args], stdout=out, stderr=subprocess.STDOUT, cwd=cwd)
     on_exit(time.perf_counter() - start)
     if done.returncode != 0:
         sys.exit(f"otgb {args[0]} failed (exit {done.returncode}); its output: {log}")
 
 
-def add_fit_time(folder: Path, extra: list[str]) -> Callable[[float], None]:
+def add_fit_time(folder: Path) -> Callable[[float], None]:
     """Adds a fit's (or an interrupted fit's) seconds to the run's ``wall_time.json``."""
 
     def add(seconds: float) -> None:
         path = folder / "wall_time.json"
         timing = json.loads(path.read_text()) if path.exists() else {"fit_s": 0.0}
-        path.write_text(json.dumps({**timing, "fit_s": timing["fit_s"] + seconds, "machine": machine(asks_for_gpu(extra))}))
+        path.write_text(json.dumps({"fit_s": timing["fit_s"] + seconds}))
 
     return add
 
 
-def run_method(out: Path, task: str, method: str, seed: int, extra: list[str]) -> None:
-    """Fit (or resume) and test one method on one task with one seed, unless its test is done."""
-    folder = out / task / method / f"seed{seed}"
-    if metrics(folder) is not None:
-        return
-    folder.mkdir(parents=True, exist_ok=True)
-    common = [*configs(task, method), f"--seed_everything={seed}", "--trainer.enable_progress_bar=false", *extra]
-    last = newest(folder / "fit", "version_*/checkpoints/last.ckpt")  # a resumed fit writes the next version
-    resume = [f"--ckpt_path={last}"] if last is not None else []
-    print(f"{task} {method} seed {seed}: {'resuming' if resume else 'fitting'}", flush=True)
-    otgb(["fit", *common, logger_override(str(folder), "fit"), *resume], folder / "otgb.log", add_fit_time(folder, extra))
-    best = newest(folder / "fit", "version_*/checkpoints/best-*.ckpt")  # the resumed fit's only if it beat the earlier best
-    otgb(["test", *common, logger_override(str(folder), "test"), f"--ckpt_path={best}"], folder / "otgb.log")
+class Grid:
+    """One task's runs: the run folders under ``out``, their result files under ``results``."""
 
+    def __init__(self, out: Path, results: Path, task: str, extra: list[str], quick: bool) -> None:
+        self.out, self.results, self.task, self.extra, self.quick = out / task, results / task, task, extra, quick
+        self.one_to_one = TASKS[task][2]
 
-def run_fixed(out: Path, task: str, extra: list[str]) -> None:
-    """The two rows with nothing to learn: f_p only and complete physics, scored by ``otgb test``."""
-    stem = TASKS[task][0]
-    hidden = yaml.safe_load((ROOT / "configs" / f"{stem}.yaml").read_text())["data"]["hidden_effect"]
-    maps = {
-        "f_p only": ["--model.transport_map=otgb.models.IdentityMap"],
-        "complete physics": [
-            "--model.transport_map=otgb.models.CompletePhysicsMap",
-            f"--model.transport_map.init_args.hidden_effect={json.dumps(hidden)}",
-        ],
-    }
-    for name, args in maps.items():
-        folder = out / task / name.replace(" ", "_")
-        if metrics(folder) is not None:
-            continue
+    def result_path(self, row: str, seed: int | None) -> Path:
+        return self.results / row.replace(" ", "_") / (f"seed{seed}.json" if seed is not None else "run.json")
+
+    def method(self, method: str, seed: int) -> None:
+        """Fit (or resume) and test one method with one seed, unless its result file exists."""
+        if self.result_path(method, seed).exists():
+            return
+        folder = self.out / method / f"seed{seed}"
         folder.mkdir(parents=True, exist_ok=True)
-        print(f"{task} {name}", flush=True)
-        args = [*configs(task, "OT-GB"), *args, "--trainer.enable_progress_bar=false", *extra]
-        otgb(["test", *args, logger_override(str(folder), "test")], folder / "otgb.log")
+        common = [*configs(self.task, method), f"--seed_everything={seed}", "--trainer.enable_progress_bar=false", *self.extra]
+        last = newest(folder / "fit", "version_*/checkpoints/last.ckpt")  # a resumed fit writes the next version
+        resume = [f"--ckpt_path={last}"] if last is not None else []
+        print(f"{self.task} {method} seed {seed}: {'resuming' if resume else 'fitting'}", flush=True)
+        otgb(["fit", *common, logger_override(str(folder), "fit"), *resume], folder / "otgb.log", add_fit_time(folder))
+        best = newest(folder / "fit", "version_*/checkpoints/best-*.ckpt")  # the resumed fit's only if it beat the earlier best
+        fit_s = json.loads((folder / "wall_time.json").read_text())["fit_s"]
+        self.test_and_record(method, seed, folder, [*common, f"--ckpt_path={best}"], fit_s)
+
+    def fixed(self) -> None:
+        """The two rows with nothing to learn: f_p only and complete physics, scored by ``otgb test``."""
+        hidden = yaml.safe_load((ROOT / "configs" / f"{TASKS[self.task][0]}.yaml").read_text())["data"]["hidden_effect"]
+        maps = {
+            "f_p only": ["--model.transport_map=otgb.models.IdentityMap"],
+            "complete physics": [
+                "--model.transport_map=otgb.models.CompletePhysicsMap",
+                f"--model.transport_map.init_args.hidden_effect={json.dumps(hidden)}",
+            ],
+        }
+        for name, args in maps.items():
+            if not self.result_path(name, None).exists():
+                print(f"{self.task} {name}", flush=True)
+                common = [*configs(self.task, "OT-GB"), *args, "--trainer.enable_progress_bar=false", *self.extra]
+                self.test_and_record(name, None, self.out / name.replace(" ", "_"), common, None)
+
+    def augmented(self, seed: int) -> None:
+        """``otgb discover`` on a file of the task's measured set, then f_p plus the named terms scored by ``otgb test``."""
+        if self.result_path(AUGMENTED, seed).exists():
+            return
+        folder = (self.out / "augmented_physics" / f"seed{seed}").resolve()
+        folder.mkdir(parents=True, exist_ok=True)
+        config, measured = configs(self.task, "OT-GB"), folder / "measured.npz"
+        seeds = [f"--seed_everything={seed}", f"--data.seed={seed}"]
+        if not measured.exists():
+            export = [sys.executable, str(ROOT / "scripts" / "export_measured.py"), *config, "--out", str(measured), *seeds]
+            export += ["--n", "200"] if self.quick else []  # discover holds out 2 x 15 %, each at least 10
+            subprocess.run([*export, *self.extra], check=True, stdout=subprocess.DEVNULL)
+        report = newest(folder, "runs/*/version_*/report.json")
+        if report is None:
+            print(f"{self.task} {AUGMENTED} seed {seed}: discovering", flush=True)
+            args = ["discover", *config, "--data.hidden_effect=[]", f"--data.measured_path={measured}", *seeds]
+            args += [f"--discover.seed={seed}", "--trainer.enable_progress_bar=false", *self.extra]
+            args += QUICK_DISCOVER if self.quick else []
+            otgb(args, folder / "otgb.log", add_fit_time(folder), cwd=folder)
+            report = newest(folder, "runs/*/version_*/report.json")
+        augmented = report.parent / "augmented.yaml"
+        terms = yaml.safe_load(augmented.read_text())["data"]["physics"]["init_args"]["terms"] if augmented.exists() else []
+        scored = ["--model.transport_map=otgb.models.CompletePhysicsMap", f"--model.transport_map.init_args.seed={seed}"]
+        scored.append(f"--model.transport_map.init_args.hidden_effect={json.dumps(terms)}")
+        common = [*config, *scored, f"--seed_everything={seed}", "--trainer.enable_progress_bar=false", *self.extra]
+        fit_s = json.loads((folder / "wall_time.json").read_text())["fit_s"]
+        self.test_and_record(AUGMENTED, seed, folder, common, fit_s, terms=[t["init_args"] for t in terms])
+
+    def test_and_record(self, row: str, seed: int | None, folder: Path, common: list[str], fit_s: float | None, **more) -> None:
+        """``otgb test`` (one-to-many: with both judges), then the row's result file."""
+        folder.mkdir(parents=True, exist_ok=True)
+        judges = {"": []} if self.one_to_one else {"": [], "paper": ["--evaluation.c2st_classifier=paper"]}
+        figures: dict[str, dict[str, float]] = {"model": {}, "reference": {}}
+        for judge, args in judges.items():
+            name = "test" if not judge else f"test-{judge}"
+            if newest(folder, f"{name}/version_*/metrics.json") is None:
+                otgb(["test", *common, *args, logger_override(str(folder), name)], folder / "otgb.log")
+            report = json.loads(newest(folder, f"{name}/version_*/metrics.json").read_text())
+            for source in figures:
+                for metric in ("nrmse", "abs_err") if self.one_to_one else ("mmd", "c2st"):
+                    if metric == "c2st" or not judge:
+                        figures[source][f"{metric}_{judge}" if judge else metric] = report[source][metric]["mean"]
+        command = [arg.replace(str(ROOT) + "/", "") for arg in common if not arg.startswith("--data.cache_dir")]
+        record = {"task": self.task, "row": row, "seed": seed, **figures, "fit_s": fit_s, "command": command, **more}
+        path = self.result_path(row, seed)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps({**record, "machine": machine(asks_for_gpu(self.extra))}, indent=1) + "\n")
 
 
 def asks_for_gpu(extra: list[str]) -> bool:
     return any(arg.replace(" ", "") in ("--trainer.accelerator=gpu", "--trainer.accelerator=cuda") for arg in extra)
 
 
-def metrics(folder: Path) -> dict | None:
-    """The test report of a run folder (None before its test has finished)."""
-    report = newest(folder, "test/version_*/metrics.json")
-    return json.loads(report.read_text()) if report is not None else None
-
-
 def seeds_cell(values: list[float]) -> str:
     return mean_spread(values, plus="+-", empty="-")
 
 
-def task_table(out: Path, task: str) -> list[str]:
-    """Markdown rows of one task: each method over its seeds, f_p only, complete physics, Reference; the paper beside."""
+def task_table(results: Path, task: str) -> list[str]:
+    """Markdown rows of one task from its result files: each row over its seeds, the paper beside."""
     one_to_one = TASKS[task][2]
-    names = ("nrmse", "abs_err") if one_to_one else ("mmd", "c2st")
-    head = "N-RMSE | ABS ERR" if one_to_one else "MMD | C2ST"
-    machines = sorted({json.loads(p.read_text())["machine"] for p in (out / task).glob("*/seed*/wall_time.json")})
-    lines = [f"**{task}** (`configs/{TASKS[task][0]}.yaml`; fitted on {' and '.join(machines) or '-'})", ""]
-    lines += [f"| row | seeds | {head} | paper | wall time per fit |", "|---|---|---|---|---|---|"]
+    names = ("nrmse", "abs_err") if one_to_one else ("mmd", "c2st", "c2st_paper")
+    head = "N-RMSE | ABS ERR" if one_to_one else "MMD | C2ST (strong judge) | C2ST (paper's judge)"
+    records = {row: [json.loads(p.read_text()) for p in sorted((results / task / row.replace(" ", "_")).glob("*.json"))]
+               for row in ROWS}  # fmt: skip
+    machines = sorted({r["machine"] for rows in records.values() for r in rows})
+    stem = TASKS[task][0]
+    lines = [f"**{task}** (`configs/{stem}.yaml`; measured on {' and '.join(machines) or '-'})", ""]
+    lines += [f"| row | seeds | {head} | paper | wall time per fit |", "|" + "---|" * (len(names) + 4)]
     paper = PAPER.get(task, {})
-    for method in METHODS:
-        runs = [(m, f) for f in sorted((out / task / method).glob("seed*")) if (m := metrics(f)) is not None]
-        values = [[m["model"][name]["mean"] for m, _ in runs] for name in names]
-        walls = [json.loads((f / "wall_time.json").read_text())["fit_s"] for _, f in runs]
-        published = " / ".join(f"{v}" for v in paper[method]) if method in paper else "-"
-        wall = f"{statistics.mean(walls) / 60:.1f} min" if walls else "-"
-        lines.append(f"| {method} | {len(runs)} | {seeds_cell(values[0])} | {seeds_cell(values[1])} | {published} | {wall} |")
-    fixed = {name: metrics(out / task / name.replace(" ", "_")) for name in ("f_p only", "complete physics")}
-    for name, m in fixed.items():
-        cells = " | ".join(seeds_cell([m["model"][k]["mean"]] if m else []) for k in names)
-        lines.append(f"| {name} | - | {cells} | - | - |")
-    reference = next((m["reference"] for m in fixed.values() if m is not None), None)
-    ref_cells = " | ".join(seeds_cell([reference[k]["mean"]] if reference else []) for k in names)
-    published = " / ".join(map(str, paper["Reference"])) if "Reference" in paper else "-"
-    lines.append(f"| Reference | - | {ref_cells} | {published} | - |")
+    for row, runs in [*records.items(), ("Reference", records["f_p only"])]:
+        source = "reference" if row == "Reference" else "model"
+        cells = " | ".join(seeds_cell([r[source][name] for r in runs if name in r[source]]) for name in names)
+        published = " / ".join(f"{v}" for v in paper[row]) if row in paper else "-"
+        walls = [r["fit_s"] for r in runs if r["fit_s"] is not None]
+        wall = f"{statistics.mean(walls) / 60:.1f} min" if walls and source == "model" else "-"
+        seeds = len(runs) if row in (*METHODS, AUGMENTED) else "-"
+        lines.append(f"| {row} | {seeds} | {cells} | {published} | {wall} |")
+    if records[AUGMENTED]:
+        named = [f"seed {r['seed']}: {', '.join(map(describe, r['terms'])) or 'nothing'}" for r in records[AUGMENTED]]
+        lines += ["", f"The terms otgb discover named: {'; '.join(named)}."]
     return lines
 
 
-def gather(out: Path, tasks: list[str], target: Path) -> None:
-    """Write the tables of ``tasks`` between the markers of ``target`` (appended with them if they are missing).
+def describe(term: dict) -> str:
+    """A named term as the table's note gives it: feature, component and the coefficient's fitted distribution."""
+    prior = term["coefficient"]
+    arguments = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in prior["init_args"].items())
+    return f"{term['feature']} on d{term['component']}/dt ({prior['class_path'].rsplit('.', 1)[-1]} {arguments})"
 
-    Only the named tasks' tables are rewritten from the runs under ``out``; another task's table
-    already in ``target`` is kept as it is (its runs may live in another folder or on another machine).
-    """
+
+def gather(results: Path, target: Path) -> None:
+    """Write every task's table from the result files under ``results`` between the markers of ``target``."""
     text = target.read_text() if target.exists() else ""
-    kept = {}
     if TABLE_START in text and TABLE_END in text:
         before, rest = text.split(TABLE_START, 1)
-        section, after = rest.split(TABLE_END, 1)
-        kept = task_blocks(section)
+        after = rest.split(TABLE_END, 1)[1]
     else:
         before, after = text + ("\n" if text else ""), "\n"
-    blocks = {**kept, **{task: "\n".join(task_table(out, task)) for task in tasks}}
-    lines = [TABLE_START, ""] + [line for task in TASKS if task in blocks for line in (blocks[task], "")] + [TABLE_END]
-    target.write_text(before + "\n".join(lines) + after)
+    measured = [task for task in TASKS if (results / task).is_dir()]
+    blocks = ["\n".join(task_table(results, task)) for task in measured]
+    missing = [task for task in TASKS if task not in measured]
+    blocks += [f"Not measured at this version: {', '.join(missing)}."] if missing else []
+    target.write_text(before + "\n\n".join([TABLE_START, *blocks, TABLE_END]) + after)
     print(f"wrote {target}")
-
-
-def task_blocks(section: str) -> dict[str, str]:
-    """The tables of a written section by task: a ``**task**`` heading and the table rows that follow it."""
-    blocks: dict[str, list[str]] = {}
-    current = None
-    for line in section.splitlines():
-        heading = line.split("**")[1] if line.startswith("**") else None
-        if heading in TASKS:
-            current = blocks.setdefault(heading, [line, ""])
-        elif current is not None and line.startswith("|"):
-            current.append(line)
-        elif line.strip():
-            current = None
-    return {task: "\n".join(lines) for task, lines in blocks.items()}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", type=Path, required=True, help="folder of the runs (finished runs are kept)")
+    parser.add_argument("--out", type=Path, help="folder of the runs (finished runs are kept)")
+    parser.add_argument("--results", type=Path, help="folder of the result files (default results/table; --quick: OUT/results)")
     parser.add_argument("--tasks", nargs="*", default=list(TASKS), choices=list(TASKS))
     parser.add_argument("--methods", nargs="*", default=list(METHODS), choices=list(METHODS))
     parser.add_argument("--seeds", nargs="*", type=int, default=[0, 1, 2])
     parser.add_argument("--quick", action="store_true", help="4 training steps on small sets: checks the path, measures nothing")
-    parser.add_argument(
-        "--gather", type=Path, help="write the tables of --tasks from the finished runs into this Markdown file (others kept)"
-    )
+    parser.add_argument("--gather", type=Path, help="write every task's table from the result files into this Markdown file")
     parser.add_argument(
         "--fixed",
         action=argparse.BooleanOptionalAction,
         default=True,
-        help="also score the f_p-only and complete-physics rows (--no-fixed: several methods in parallel)",
+        help="also score the f_p-only, complete-physics and augmented-physics rows (--no-fixed: several methods in parallel)",
     )
     parser.add_argument("overrides", nargs="*", help="otgb overrides for every run, after --, e.g. -- --trainer.accelerator=gpu")
     args = parser.parse_args()
-    out = args.out.resolve()
-    if args.gather is None or args.quick:
+    results = args.results or (args.out / "results" if args.quick and args.out else ROOT / "results" / "table")
+    if args.out is not None:
+        out = args.out.resolve()
         extra = [*(QUICK if args.quick else []), f"--data.cache_dir={out / 'cache'}", *args.overrides]
         for task in args.tasks:
+            grid = Grid(out, results.resolve(), task, extra, args.quick)
             if args.fixed:
-                run_fixed(out, task, extra)
+                grid.fixed()
             for seed in args.seeds:
                 for method in args.methods:
-                    run_method(out, task, method, seed, extra)
+                    grid.method(method, seed)
+                if args.fixed:
+                    grid.augmented(seed)
+    elif args.gather is None:
+        parser.error("nothing to do: give --out (run the grid) and/or --gather (write the tables)")
     if args.gather is not None:
-        gather(out, args.tasks, args.gather)
+        gather(results, args.gather)
 
 
 if __name__ == "__main__":
