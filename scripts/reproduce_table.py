@@ -123,7 +123,7 @@ class Grid:
         self.one_to_one = TASKS[task][2]
 
     def result_path(self, row: str, seed: int | None) -> Path:
-        return self.results / row.replace(" ", "_") / (f"seed{seed}.json" if seed is not None else "run.json")
+        return self.results / folder_of(row) / (f"seed{seed}.json" if seed is not None else "run.json")
 
     def method(self, method: str, seed: int) -> None:
         """Fit (or resume) and test one method with one seed, unless its result file exists."""
@@ -154,13 +154,13 @@ class Grid:
             if not self.result_path(name, None).exists():
                 print(f"{self.task} {name}", flush=True)
                 common = [*configs(self.task, "OT-GB"), *args, "--trainer.enable_progress_bar=false", *self.extra]
-                self.test_and_record(name, None, self.out / name.replace(" ", "_"), common, None)
+                self.test_and_record(name, None, self.out / folder_of(name), common, None)
 
     def augmented(self, seed: int) -> None:
         """``otgb discover`` on a file of the task's measured set, then f_p plus the named terms scored by ``otgb test``."""
         if self.result_path(AUGMENTED, seed).exists():
             return
-        folder = (self.out / "augmented_physics" / f"seed{seed}").resolve()
+        folder = (self.out / folder_of(AUGMENTED) / f"seed{seed}").resolve()
         folder.mkdir(parents=True, exist_ok=True)
         config, measured = configs(self.task, "OT-GB"), folder / "measured.npz"
         seeds = [f"--seed_everything={seed}", f"--data.seed={seed}"]
@@ -205,6 +205,11 @@ class Grid:
         path.write_text(json.dumps({**record, "machine": machine(asks_for_gpu(self.extra))}, indent=1) + "\n")
 
 
+def folder_of(row: str) -> str:
+    """The folder name of a row's runs and result files."""
+    return "augmented_physics" if row == AUGMENTED else row.replace(" ", "_")
+
+
 def asks_for_gpu(extra: list[str]) -> bool:
     return any(arg.replace(" ", "") in ("--trainer.accelerator=gpu", "--trainer.accelerator=cuda") for arg in extra)
 
@@ -218,7 +223,7 @@ def task_table(results: Path, task: str) -> list[str]:
     one_to_one = TASKS[task][2]
     names = ("nrmse", "abs_err") if one_to_one else ("mmd", "c2st", "c2st_paper")
     head = "N-RMSE | ABS ERR" if one_to_one else "MMD | C2ST (strong judge) | C2ST (paper's judge)"
-    records = {row: [json.loads(p.read_text()) for p in sorted((results / task / row.replace(" ", "_")).glob("*.json"))]
+    records = {row: [json.loads(p.read_text()) for p in sorted((results / task / folder_of(row)).glob("*.json"))]
                for row in ROWS}  # fmt: skip
     machines = sorted({r["machine"] for rows in records.values() for r in rows})
     stem = TASKS[task][0]
