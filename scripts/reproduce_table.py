@@ -3,7 +3,7 @@
     python scripts/reproduce_table.py --out bench/table                        # every task, seeds 0 1 2
     python scripts/reproduce_table.py --out bench/table --tasks Pendulum-1-m Adv-diff-1-m --seeds 0 1 2
     python scripts/reproduce_table.py --gather docs/results.md                 # only write the tables
-    python scripts/reproduce_table.py --out /tmp/quick --quick --results /tmp/quick/results --gather /tmp/quick/results.md
+    python scripts/reproduce_table.py --out /tmp/quick --quick --gather /tmp/quick/results.md   # results in /tmp/quick/results
     python scripts/reproduce_table.py --out bench/table --tasks React-diff-1-m -- --trainer.accelerator=gpu
 
 Each run is ``otgb fit`` with the task's config and the method's overlays
@@ -34,15 +34,13 @@ import json
 import statistics
 import subprocess
 import sys
-import time
-from collections.abc import Callable
 from pathlib import Path
 
 import yaml
 
 from otgb.command import logger_override
 from otgb.reports import mean_spread
-from otgb.runs import machine, newest
+from otgb.runs import machine, newest, run_otgb
 
 ROOT = Path(__file__).parents[1]
 BASELINES = ROOT / "configs" / "baselines"
@@ -94,25 +92,12 @@ def configs(task: str, method: str) -> list[str]:
     return [arg for path in files for arg in ("--config", str(path))]
 
 
-def otgb(args: list[str], log: Path, on_exit: Callable[[float], None] = lambda seconds: None, cwd: Path | None = None) -> None:
-    """``otgb <args>`` with its output in ``log``; ``on_exit`` gets its wall time in seconds, even if it failed (then exits)."""
-    start = time.perf_counter()
-    with open(log, "a") as out:
-        done = subprocess.run([sys.executable, "-m", "otgb.cli", *args], stdout=out, stderr=subprocess.STDOUT, cwd=cwd)
-    on_exit(time.perf_counter() - start)
-    if done.returncode != 0:
-        sys.exit(f"otgb {args[0]} failed (exit {done.returncode}); its output: {log}")
-
-
-def add_fit_time(folder: Path) -> Callable[[float], None]:
-    """Adds a fit's (or an interrupted fit's) seconds to the run's ``wall_time.json``."""
-
-    def add(seconds: float) -> None:
-        path = folder / "wall_time.json"
-        timing = json.loads(path.read_text()) if path.exists() else {"fit_s": 0.0}
-        path.write_text(json.dumps({"fit_s": timing["fit_s"] + seconds}))
-
-    return add
+def add_fit_time(folder: Path, seconds: float) -> float:
+    """Adds a fit's (or a resumed fit's) seconds to the run's ``wall_time.json``; the total."""
+    path = folder / "wall_time.json"
+    total = (json.loads(path.read_text())["fit_s"] if path.exists() else 0.0) + seconds
+    path.write_text(json.dumps({"fit_s": total}))
+    return total
 
 
 class Grid:
@@ -135,9 +120,9 @@ class Grid:
         last = newest(folder / "fit", "version_*/checkpoints/last.ckpt")  # a resumed fit writes the next version
         resume = [f"--ckpt_path={last}"] if last is not None else []
         print(f"{self.task} {method} seed {seed}: {'resuming' if resume else 'fitting'}", flush=True)
-        otgb(["fit", *common, logger_override(str(folder), "fit"), *resume], folder / "otgb.log", add_fit_time(folder))
+        seconds = run_otgb(["fit", *common, logger_override(str(folder), "fit"), *resume], folder / "otgb.log")
+        fit_s = add_fit_time(folder, seconds)
         best = newest(folder / "fit", "version_*/checkpoints/best-*.ckpt")  # the resumed fit's only if it beat the earlier best
-        fit_s = json.loads((folder / "wall_time.json").read_text())["fit_s"]
         self.test_and_record(method, seed, folder, [*common, f"--ckpt_path={best}"], fit_s)
 
     def fixed(self) -> None:
@@ -167,14 +152,15 @@ class Grid:
         if not measured.exists():
             export = [sys.executable, str(ROOT / "scripts" / "export_measured.py"), *config, "--out", str(measured), *seeds]
             export += ["--n", "200"] if self.quick else []  # discover holds out 2 x 15 %, each at least 10
-            subprocess.run([*export, *self.extra], check=True, stdout=subprocess.DEVNULL)
+            if subprocess.run([*export, *self.extra], stdout=subprocess.DEVNULL).returncode != 0:  # its error is on stderr
+                sys.exit(f"{self.task}: scripts/export_measured.py could not write {measured}")
         report = newest(folder, "runs/*/version_*/report.json")
         if report is None:
             print(f"{self.task} {AUGMENTED} seed {seed}: discovering", flush=True)
             args = ["discover", *config, "--data.hidden_effect=[]", f"--data.measured_path={measured}", *seeds]
             args += [f"--discover.seed={seed}", "--trainer.enable_progress_bar=false", *self.extra]
             args += QUICK_DISCOVER if self.quick else []
-            otgb(args, folder / "otgb.log", add_fit_time(folder), cwd=folder)
+            add_fit_time(folder, run_otgb(args, folder / "otgb.log", cwd=folder))
             report = newest(folder, "runs/*/version_*/report.json")
         augmented = report.parent / "augmented.yaml"
         terms = yaml.safe_load(augmented.read_text())["data"]["physics"]["init_args"]["terms"] if augmented.exists() else []
@@ -192,12 +178,11 @@ class Grid:
         for judge, args in judges.items():
             name = "test" if not judge else f"test-{judge}"
             if newest(folder, f"{name}/version_*/metrics.json") is None:
-                otgb(["test", *common, *args, logger_override(str(folder), name)], folder / "otgb.log")
+                run_otgb(["test", *common, *args, logger_override(str(folder), name)], folder / "otgb.log")
             report = json.loads(newest(folder, f"{name}/version_*/metrics.json").read_text())
+            metrics = ("c2st",) if judge else ("nrmse", "abs_err") if self.one_to_one else ("mmd", "c2st")
             for source in figures:
-                for metric in ("nrmse", "abs_err") if self.one_to_one else ("mmd", "c2st"):
-                    if metric == "c2st" or not judge:
-                        figures[source][f"{metric}_{judge}" if judge else metric] = report[source][metric]["mean"]
+                figures[source] |= {f"{m}_{judge}" if judge else m: report[source][m]["mean"] for m in metrics}
         command = [arg.replace(str(ROOT) + "/", "") for arg in common if not arg.startswith("--data.cache_dir")]
         record = {"task": self.task, "row": row, "seed": seed, **figures, "fit_s": fit_s, "command": command, **more}
         path = self.result_path(row, seed)
