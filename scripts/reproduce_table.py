@@ -213,7 +213,7 @@ def task_table(results: Path, task: str) -> list[str]:
     machines = sorted({r["machine"] for rows in records.values() for r in rows})
     stem = TASKS[task][0]
     lines = [f"**{task}** (`configs/{stem}.yaml`; measured on {' and '.join(machines) or '-'})", ""]
-    lines += [f"| row | seeds | {head} | paper | wall time per fit |", "|" + "---|" * (len(names) + 4)]
+    lines += [f"| row | seeds | {head} | paper | wall time per fit or discover run |", "|" + "---|" * (len(names) + 4)]
     paper = PAPER.get(task, {})
     floor = records["f_p only"] or next((runs[:1] for runs in records.values() if runs), [])  # every test measures it
     for row, runs in [*records.items(), ("Reference", floor)]:
