@@ -2,6 +2,7 @@
 
 import csv
 import json
+import logging
 import os
 import re
 import subprocess
@@ -438,3 +439,20 @@ def test_load_run_builds_the_model_and_data_of_a_run_quietly(tmp_path, capfd):
     with pytest.raises(InputError, match="no such checkpoint file"):
         load_run(CONFIG, ckpt_path=tmp_path / "missing.ckpt")
     assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["version_0"], "nothing written"
+
+
+def test_a_second_run_reads_f_p_and_the_reference_from_the_cache_and_gives_the_same_numbers(tmp_path, caplog):
+    caplog.set_level(logging.INFO)
+    logging.getLogger("lightning.pytorch.utilities.rank_zero").addHandler(caplog.handler)  # lightning's own does not propagate
+    main(["fit", *_args(tmp_path, "--trainer.max_steps=3")])
+    assert len(list((tmp_path / "cache").glob("baselines-*.pt"))) == 1, "the validation set's f_p and Reference scores"
+    assert "baselines-" not in caplog.text
+    main(["fit", *_args(tmp_path, "--trainer.max_steps=3")])
+    logging.getLogger("lightning.pytorch.utilities.rank_zero").removeHandler(caplog.handler)
+    assert f"the Reference on this set: read from {tmp_path / 'cache'}/baselines-" in caplog.text
+    timing = ("eval_seconds", "wall_time_s")
+    first, second = (_rows(tmp_path / "run" / f"version_{v}") for v in (0, 1))
+    assert _last(second, "val/ref_eval_seconds") == 0.0 < _last(first, "val/ref_eval_seconds"), "read, not scored"
+    strip = lambda rows: [{k: v for k, v in row.items() if not k.endswith(timing)} for row in rows]  # noqa: E731
+    assert strip(first) == strip(second), "the same numbers, the model's included: reading the cache draws nothing"
+    assert _last(second, "val/fp_c2st") > 0.5 and _last(second, "val/fp_mmd") > 0

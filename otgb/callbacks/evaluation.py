@@ -2,17 +2,21 @@
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import time
 from pathlib import Path
 from typing import Any
 
 import torch
 from lightning import Callback, LightningModule, Trainer
+from lightning.pytorch.utilities import rank_zero_info
 from torch import Tensor
 
+from otgb.data.measured import cache_key, cached
 from otgb.errors import InputError
 from otgb.metrics.c2st import CLASSIFIERS
-from otgb.metrics.classifiers import PRECISIONS
+from otgb.metrics.classifiers import PRECISIONS, native_bf16
 from otgb.metrics.joint import JointEvaluator, reference_scores, split_half_scores
 from otgb.metrics.mmdagg import PAPER_EXPONENTS, check_options
 from otgb.reports import write_report
@@ -56,6 +60,10 @@ class Evaluation(Callback):
         mmdagg_permutations: Permutations for each of MMDAgg's two stages.
         reference_repeats: Random splits averaged for the Reference.
         seed: Seed of the evaluation's own randomness (folds, permutations, splits).
+        cache_baselines: Keep the f_p-alone and Reference scores of a set in the data module's ``cache_dir``, so
+            that a later run on the same set with the same settings reads them instead of scoring them again
+            (they do not depend on the map; every part of them is seeded, so a read score equals a recomputed one).
+            The cache is keyed by the set's content, these settings, the device and the scoring code.
     """
 
     def __init__(
@@ -67,6 +75,7 @@ class Evaluation(Callback):
         mmdagg_permutations: int = 500,
         reference_repeats: int = 5,
         seed: int = 0,
+        cache_baselines: bool = True,
     ) -> None:
         if tests_every < 0 or reference_repeats < 1 or c2st_folds < 2:
             raise InputError(
@@ -83,6 +92,7 @@ class Evaluation(Callback):
         except ValueError as error:
             raise InputError(f"evaluation.mmdagg_permutations: {error}") from None
         self.tests_every, self.reference_repeats, self.seed = tests_every, reference_repeats, seed
+        self.cache_baselines, self.cache_dir = cache_baselines, None
         self.options = dict(
             c2st_folds=c2st_folds,
             c2st_classifier=c2st_classifier,
@@ -123,6 +133,7 @@ class Evaluation(Callback):
         # f_p and the Reference are scored on the whole set on every rank: no cross-process sync
         self.baselines = {prefix: make(prefix, paired, False) for prefix, (_, paired) in self.plan.items()}
         self.reference_on_same_inputs = datamodule.source.reference_on_same_inputs
+        self.cache_dir = getattr(datamodule, "cache_dir", None) if self.cache_baselines else None
         if not self.reference_on_same_inputs:  # halves of the measurements have different inputs: unpaired
             self.references = {prefix: make(prefix, False, False) for prefix in self.plan}
 
@@ -213,7 +224,23 @@ class Evaluation(Callback):
         return results
 
     def _baselines(self, data: dict[str, Tensor]) -> dict[str, Tensor]:
-        """f_p alone and the Reference on a whole set, all metrics: ``fp_<name>``, ``ref_<name>``."""
+        """f_p alone and the Reference on a whole set, all metrics: ``fp_<name>``, ``ref_<name>``; read from the
+        cache when an earlier run scored the same set with the same settings (``cache_baselines``)."""
+        if self.cache_dir is None:
+            return self._score_baselines(data)
+        device = next(iter(self.baselines.values())).device
+        hardware = torch.cuda.get_device_name(device) if device.type == "cuda" else f"cpu bf16={native_bf16(device)}"
+        settings = (self.options, self.plan, self.reference_repeats, self.reference_on_same_inputs, hardware)
+        key = cache_key(settings, torch.__version__, _scoring_code(), _content(data))
+        started, scored = time.perf_counter(), []
+        results = cached(self.cache_dir, "baselines", key, lambda: scored.append(1) or self._score_baselines(data))
+        if not scored:
+            rank_zero_info(f"otgb: f_p alone and the Reference on this set: read from {self.cache_dir}/baselines-{key}.pt")
+            spent = torch.tensor(time.perf_counter() - started)
+            results |= {"fp_eval_seconds": spent, "ref_eval_seconds": torch.zeros(())}
+        return results
+
+    def _score_baselines(self, data: dict[str, Tensor]) -> dict[str, Tensor]:
         results = {}
         start = time.perf_counter()
         fp_draws = data["x"].unsqueeze(1).expand_as(data["y"])
@@ -228,7 +255,7 @@ class Evaluation(Callback):
                 reference = split_half_scores(self.references[prefix], data, True, self.reference_repeats, self.seed)
             results.update({f"ref_{prefix}{k}": v for k, v in reference.items()})
         results["ref_eval_seconds"] = torch.tensor(time.perf_counter() - start)
-        return results
+        return {name: value.cpu() for name, value in results.items()}
 
     def _log(self, pl_module: LightningModule, stage: str, results: dict[str, Tensor]) -> dict[str, Tensor]:
         """Log the scalar results as ``<stage>/<name>`` and return them (vectors stay out of the loggers).
@@ -239,3 +266,21 @@ class Evaluation(Callback):
         scalars = {k: v.float() for k, v in results.items() if v.dim() == 0}
         pl_module.log_dict({f"{stage}/{k}": v for k, v in scalars.items()}, sync_dist=True)
         return scalars
+
+
+def _content(data: dict[str, Tensor]) -> str:
+    """A digest of a set's tensors (names, shapes, types and values)."""
+    digest = hashlib.sha256()
+    for name in sorted(data):
+        tensor = data[name].detach().cpu().contiguous()
+        digest.update(f"{name}{tuple(tensor.shape)}{tensor.dtype}".encode())
+        digest.update(tensor.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()
+
+
+@functools.cache
+def _scoring_code() -> str:
+    """A digest of the code that scores the baselines (this module and otgb.metrics): a cached score is never one of
+    other code."""
+    files = [Path(__file__), *sorted(Path(__file__).parents[1].joinpath("metrics").glob("*.py"))]
+    return hashlib.sha256(b"".join(path.read_bytes() for path in files)).hexdigest()
