@@ -28,7 +28,7 @@ import torch
 from otgb.data import generate_measured
 from otgb.physics import AdvectionDiffusion, Constant, LibraryTerm, Pendulum, ReactionDiffusion, Uniform
 from otgb.reports import write_between
-from otgb.runs import machine
+from otgb.runs import machine, newest
 
 ROOT = Path(__file__).parents[1]
 PENDULUM = ["--data.simulation_budget=32000", "--trainer.val_check_interval=250"]
@@ -144,10 +144,8 @@ def discover(case: str, seed: int, noise: float, folder: Path) -> None:
 
 
 def latest_report(folder: Path) -> dict | None:
-    if not folder.exists():
-        return None
-    reports = sorted(folder.glob("runs/*/version_*/report.json"), key=lambda p: p.stat().st_mtime)
-    return json.loads(reports[-1].read_text()) if reports else None
+    report = newest(folder, "runs/*/version_*/report.json")
+    return json.loads(report.read_text()) if report else None
 
 
 def round_two(folder: Path) -> None:

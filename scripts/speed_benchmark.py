@@ -67,6 +67,7 @@ import torch
 from lightning import Callback
 
 from otgb.metrics.classifiers import PaperConvClassifier, PaperConvNet
+from otgb.reports import write_between
 
 ROOT = Path(__file__).parents[1]
 
@@ -363,8 +364,8 @@ SECTION_START, SECTION_END = "<!-- speed: scripts/speed_benchmark.py -->", "<!--
 
 def write_table(args: argparse.Namespace) -> None:
     out, doc = Path(args.out), Path(args.doc)
-    lines = [SECTION_START, ""]
-    steps = json.loads((out / "steps.json").read_text()) if (out / "steps.json").exists() else {}
+    lines = [""]
+    steps = _read(out / "steps.json")
     configs = list(dict.fromkeys(key.split("/")[0] for key in steps))
     if configs:
         columns = ["config", "solver", "ms per training step", "speed-up", "first run's warm-up (s)", "runs"]
@@ -382,7 +383,7 @@ def write_table(args: argparse.Namespace) -> None:
             lines.append(
                 f"| {config} | {solver} | {step:.1f} | {reference / step:.2f}x | {warmup:.1f} | {runs} | {threads} | {machines} |"
             )
-    fits = json.loads((out / "fit.json").read_text()) if (out / "fit.json").exists() else {}
+    fits = _read(out / "fit.json")
     if fits:
         lines += ["", "| whole `otgb fit` | solver | minutes | runs | compile cache |", "|---|---|---|---|---|"]
         for prefix in dict.fromkeys(key.rsplit("/", 1)[0] + "/" for key in fits):
@@ -392,14 +393,7 @@ def write_table(args: argparse.Namespace) -> None:
             cache = {"empty" if v.get("cold_cache") else "as found" if "cold_cache" in v else "-" for v in runs}
             lines.append(f"| {config} | {solver} | {statistics.median(walls):.2f} | {len(walls)} | {', '.join(sorted(cache))} |")
     lines += designs_table(out) + judges_table(out) + discover_table(out)
-    lines += ["", SECTION_END]
-    text = doc.read_text() if doc.exists() else ""
-    if SECTION_START in text and SECTION_END in text:
-        before, rest = text.split(SECTION_START, 1)
-        after = rest.split(SECTION_END, 1)[1]
-    else:
-        before, after = text + "\n", "\n"
-    doc.write_text(before + "\n".join(lines) + after)
+    write_between(doc, SECTION_START, SECTION_END, "\n".join(lines))
     print(f"speed_benchmark: wrote {doc}")
 
 
