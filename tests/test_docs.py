@@ -84,7 +84,8 @@ def test_the_documented_oscillator_trains_and_tests_from_the_users_folder(tmp_pa
     rows = _rows(fit)
     assert [float(r["val/fp_abs_err"]) for r in rows if r.get("val/fp_abs_err")][0] > 0.05, "f_p misses the friction"
     assert len([r for r in rows if r.get("val/abs_err")]) == 2
-    assert sorted(p.name for p in (tmp_path / "data").iterdir())[0].startswith("measured-"), "generated sets cached in data/"
+    cached = sorted(p.name.split("-")[0] for p in (tmp_path / "data").iterdir())
+    assert cached == ["baselines"] * 4 + ["measured", "test", "val"], "the sets, and f_p and the Reference on each (2 runs x 2)"
 
     report = json.loads((runs / "version_1" / "metrics.json").read_text())
     assert report["fp"]["abs_err"]["mean"] > 0.05 and report["reference"]["abs_err"]["mean"] == 0.0
