@@ -232,13 +232,12 @@ class Evaluation(Callback):
         hardware = torch.cuda.get_device_name(device) if device.type == "cuda" else f"cpu bf16={native_bf16(device)}"
         settings = (self.options, self.plan, self.reference_repeats, self.reference_on_same_inputs, hardware)
         key = cache_key(settings, torch.__version__, _scoring_code(), _content(data))
-        started, scored = time.perf_counter(), []
-        results = cached(self.cache_dir, "baselines", key, lambda: scored.append(1) or self._score_baselines(data))
-        if not scored:
-            rank_zero_info(f"otgb: f_p alone and the Reference on this set: read from {self.cache_dir}/baselines-{key}.pt")
-            spent = torch.tensor(time.perf_counter() - started)
-            results |= {"fp_eval_seconds": spent, "ref_eval_seconds": torch.zeros(())}
-        return results
+        path, started = Path(self.cache_dir) / f"baselines-{key}.pt", time.perf_counter()
+        if not path.is_file():
+            return cached(self.cache_dir, "baselines", key, lambda: self._score_baselines(data))
+        rank_zero_info(f"otgb: f_p alone and the Reference on this set: read from {path}")
+        results = cached(self.cache_dir, "baselines", key, lambda: self._score_baselines(data))
+        return results | {"fp_eval_seconds": torch.tensor(time.perf_counter() - started), "ref_eval_seconds": torch.zeros(())}
 
     def _score_baselines(self, data: dict[str, Tensor]) -> dict[str, Tensor]:
         results = {}
