@@ -23,6 +23,7 @@ table the test part.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -337,7 +338,8 @@ def evidence_step(
 
     kept, comparisons, added = weigh(fitting.physics, kept, cross_check, per_term, fitting, start, interval)
     for c in comparisons:
-        progress(f"evidence: {c.replaced.feature} against {c.by.feature}: {c.standard_errors:+.1f} standard errors")
+        margin = f"{c.standard_errors:+.1f} standard errors" if math.isfinite(c.difference) else "the swapped model diverges"
+        progress(f"evidence: {c.replaced.feature} against {c.by.feature}: {margin}")
     return kept, comparisons, added
 
 
