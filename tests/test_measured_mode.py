@@ -84,7 +84,8 @@ def test_fit_and_test_on_a_measured_file(tmp_path):
     table = (report_dir / "metrics.md").read_text()
     assert "Evaluation mode **marginal**" in table and "two halves" in table and "| Energy distance" in table
     assert measured.read_bytes() == before, "the user's file is never modified"
-    assert not (tmp_path / "cache").exists(), "nothing is generated or cached for a file"
+    cached = {path.name.split("-")[0] for path in (tmp_path / "cache").iterdir()}
+    assert cached == {"baselines"}, "no set is generated for a file; only f_p's and the Reference's scores are kept"
 
 
 def test_recorded_inputs_give_joint_metrics_on_real_data(tmp_path):
