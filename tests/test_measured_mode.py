@@ -131,3 +131,16 @@ def test_a_bad_file_is_one_line_before_anything_is_written(tmp_path, content, me
     assert result.returncode == 2 and result.stderr.strip().splitlines() == [result.stderr.strip()]
     assert result.stderr.startswith(f"otgb: error: {path}") and re.search(message, result.stderr)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.npz"], "no run directory, no cache"
+
+
+def test_a_cache_folder_that_cannot_be_written_costs_a_warning_not_the_results(tmp_path):
+    measured = export(tmp_path, "friction.npz")
+    (tmp_path / "a-file").write_text("not a folder")
+    blocked = f"--data.cache_dir={tmp_path / 'a-file' / 'cache'}"  # under a file: no user, root included, can write there
+    done = subprocess.run(
+        [sys.executable, "-m", "otgb.cli", "test", *marginal_args(tmp_path, measured, blocked)], capture_output=True, text=True
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "otgb: evaluation.cache_baselines: cannot write" in done.stderr and "scored again next run" in done.stderr
+    report = json.loads((tmp_path / "run" / "version_0" / "metrics.json").read_text())
+    assert report["fp"]["energy"]["mean"] > report["reference"]["energy"]["mean"], "the baselines are there all the same"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import logging
 import time
 from pathlib import Path
 from typing import Any
@@ -13,7 +14,7 @@ from lightning import Callback, LightningModule, Trainer
 from lightning.pytorch.utilities import rank_zero_info
 from torch import Tensor
 
-from otgb.data.measured import cache_key, cached
+from otgb.data.measured import cache_key, save_atomically
 from otgb.errors import InputError
 from otgb.metrics.c2st import CLASSIFIERS
 from otgb.metrics.classifiers import PRECISIONS, native_bf16
@@ -24,6 +25,7 @@ from otgb.reports import write_report
 EVERY_VALIDATION = ("mmd", "mmd2_median", "energy")
 POINTWISE = ("abs_err", "nrmse")
 TESTS = ("mmdagg_reject", "mmdagg_pvalue", "mmdagg_mmd2", "c2st")
+log = logging.getLogger("otgb.evaluation")  # a warning prints as its one line, like the solvers'
 
 
 class Evaluation(Callback):
@@ -233,11 +235,16 @@ class Evaluation(Callback):
         settings = (self.options, self.plan, self.reference_repeats, self.reference_on_same_inputs, hardware)
         key = cache_key(settings, torch.__version__, _scoring_code(), _content(data))
         path, started = Path(self.cache_dir) / f"baselines-{key}.pt", time.perf_counter()
-        if not path.is_file():
-            return cached(self.cache_dir, "baselines", key, lambda: self._score_baselines(data))
-        rank_zero_info(f"otgb: f_p alone and the Reference on this set: read from {path}")
-        results = cached(self.cache_dir, "baselines", key, lambda: self._score_baselines(data))
-        return results | {"fp_eval_seconds": torch.tensor(time.perf_counter() - started), "ref_eval_seconds": torch.zeros(())}
+        if path.is_file():
+            rank_zero_info(f"otgb: f_p alone and the Reference on this set: read from {path}")
+            results = torch.load(path, map_location="cpu", weights_only=True)
+            return results | {"fp_eval_seconds": torch.tensor(time.perf_counter() - started), "ref_eval_seconds": torch.zeros(())}
+        results = self._score_baselines(data)
+        try:
+            save_atomically(results, path)
+        except OSError as error:  # a read-only folder costs the next run the scoring, not this run its results
+            log.warning(f"otgb: evaluation.cache_baselines: cannot write {path} ({error.strerror}); scored again next run")
+        return results
 
     def _score_baselines(self, data: dict[str, Tensor]) -> dict[str, Tensor]:
         results = {}

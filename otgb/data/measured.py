@@ -62,11 +62,16 @@ def cached(cache_dir: str | os.PathLike, split: str, key: str, build: Callable[[
     if path.is_file():
         return torch.load(path, map_location="cpu", weights_only=True)
     data = build()
+    save_atomically(data, path)
+    return data
+
+
+def save_atomically(data: dict[str, Tensor], path: Path) -> None:
+    """``torch.save`` to a temporary file beside ``path``, then renamed: a reader never sees half a file."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(f".tmp{os.getpid()}")
     torch.save(data, tmp)
     os.replace(tmp, path)
-    return data
 
 
 MIN_HELD_OUT = 10  # trajectories per held-out part: its Reference compares two halves of >= 5
