@@ -364,6 +364,8 @@ SECTION_START, SECTION_END = "<!-- speed: scripts/speed_benchmark.py -->", "<!--
 
 def write_table(args: argparse.Namespace) -> None:
     out, doc = Path(args.out), Path(args.doc)
+    if not doc.is_file():
+        raise SystemExit(f"speed_benchmark table: --doc {doc}: no such page")
     lines = [""]
     steps = _read(out / "steps.json")
     configs = list(dict.fromkeys(key.split("/")[0] for key in steps))
