@@ -31,10 +31,10 @@ import torch
 from torch import Tensor
 
 from otgb.discovery.log import diverged
-from otgb.discovery.refine import FitSample, FittedTerms, batched_discrepancy, row_terms, term_names
+from otgb.discovery.refine import FitSample, FittedTerms, batched_discrepancy, centre, row_terms, term_names
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
-from otgb.physics.priors import Constant, Prior, Uniform
+from otgb.physics.priors import Choice, Constant, Prior, Uniform
 from otgb.physics.terms import LibraryTerm
 
 Z95 = 1.959964
@@ -51,15 +51,17 @@ class Intervals:
 
 
 def parameters(fitted: FittedTerms) -> Tensor:
-    """p: the centres, then (families that vary) the half-widths (uniform) or standard deviations (normal)."""
-    centres = [prior.quantile(torch.tensor(0.5)).item() for prior in fitted.priors]
+    """p: the centres, then (families that vary) the half-widths (uniform, two-point) or standard deviations (normal)."""
+    centres = [centre(prior) for prior in fitted.priors]
     if fitted.family == "constant":
         return torch.tensor(centres, dtype=torch.float64)
     return torch.tensor(centres + [spread(prior) for prior in fitted.priors], dtype=torch.float64)
 
 
 def spread(prior: Prior) -> float:
-    """A uniform prior's half-width, a normal prior's standard deviation."""
+    """A uniform or two-point prior's half-width, a normal prior's standard deviation."""
+    if isinstance(prior, Choice):
+        return (max(prior.values) - min(prior.values)) / 2
     return (prior.high - prior.low) / 2 if isinstance(prior, Uniform) else prior.std
 
 

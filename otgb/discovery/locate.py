@@ -19,6 +19,8 @@ import torch
 from scipy.stats import false_discovery_control
 from torch import Tensor
 
+from otgb.metrics.mmd import standardise
+
 CELLS_PER_BLOCK = 16  # cells whose distance matrices are held at once
 
 
@@ -28,8 +30,12 @@ class DisagreementMap:
 
     ``statistic`` is the energy distance (in the observation's units), ``pvalue`` its
     permutation p-value, ``significant`` the cells kept at false discovery rate ``alpha``.
-    ``whole_*``: the same test between whole trajectories: a difference spread thinly over many
-    cells, or one in how the steps of a trajectory go together, shows there first. ``alpha`` is
+    ``whole_*``: the same test between whole trajectories, each feature (time step, component, cell)
+    z-scored with the pooled samples' mean and standard deviation, as the gap table's energy distance
+    (:func:`otgb.metrics.energy.energy_distance`): a difference spread thinly over many cells, one in
+    how the steps of a trajectory go together, or one late in a decaying trajectory, where the
+    values are small, shows there first (in the observation's units, the large early values would
+    drown it). The pooled z-score does not depend on the labels, so the permutation test stays exact. ``alpha`` is
     split between the two families: the cells at false discovery rate alpha / 2, the whole
     trajectories at level alpha / 2.
     ``mean_*`` / ``spread_*`` / ``amplitude_*`` are each sample's mean, standard deviation and
@@ -147,7 +153,8 @@ def locate(
     cells_a, regions = cell_values(a, grid, regions_per_axis)
     cells_b, _ = cell_values(b, grid, regions_per_axis)
     statistic, pvalue = permutation_energy(cells_a, cells_b, n_permutations, seed)
-    whole, whole_pvalue = permutation_energy(a.flatten(1)[None].double(), b.flatten(1)[None].double(), n_permutations, seed)
+    whole_a, whole_b = standardise(a.flatten(1).double(), b.flatten(1).double())
+    whole, whole_pvalue = permutation_energy(whole_a[None], whole_b[None], n_permutations, seed)
     # two families, alpha split between them (Bonferroni): one whole-trajectory p-value inside the cells'
     # Benjamini-Hochberg set would need p < alpha / (cells + 1), below what the permutations can give
     significant = false_discovery_control(pvalue.numpy()) <= alpha / 2
@@ -183,7 +190,8 @@ def describe(result: DisagreementMap, a_name: str = "measured", b_name: str = "s
         )
     if not result.significant.any():
         return (
-            f"{b_name} and {a_name} trajectories differ as a whole (energy distance {result.whole_statistic:.3g}, "
+            f"{b_name} and {a_name} trajectories differ as a whole (energy distance of the z-scored trajectories "
+            f"{result.whole_statistic:.3g}, "
             f"permutation p = {result.whole_pvalue:.3g}), though no single time step, component or region does"
         )
     times = result.times

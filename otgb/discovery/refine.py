@@ -8,7 +8,9 @@ it is 0 on average at the optimum whatever the batch size), between whole trajec
 between the values at each time step (:func:`discrepancy`). A prior family per fit:
 
 - ``constant``: c (the effect is the same in every trajectory);
-- ``uniform``: U(c - w, c + w); ``normal``: N(c, w^2) (the effect varies between trajectories).
+- ``uniform``: U(c - w, c + w); ``normal``: N(c, w^2); ``two_point``: c - w or c + w, equally likely
+  (the effect varies between trajectories; two-point: it takes one of two values, as two kinds of a
+  part or two operating conditions give).
 
 :mod:`otgb.discovery.variation` decides between them (a richer family only if it lowers the
 discrepancy by more than two standard errors, over simulation draws with common random numbers,
@@ -33,10 +35,10 @@ from otgb.discovery.log import diverged
 from otgb.metrics.energy import batched_energy, cross_row_means, within_means
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
-from otgb.physics.priors import Constant, Normal, Prior, Uniform
+from otgb.physics.priors import Choice, Constant, Normal, Prior, Uniform
 from otgb.physics.terms import LibraryTerm
 
-FAMILIES = ("constant", "uniform", "normal")  # simplest first
+FAMILIES = ("constant", "uniform", "normal", "two_point")  # simplest first
 HELDOUT_REPEATS = 10  # simulation draws per held-out score
 FAMILY_REPEATS = 20  # simulation draws per score of a prior family on the training measurements
 # The loss a fit's L-BFGS sees where the model diverges: finite, so that its strong-Wolfe line search
@@ -121,7 +123,7 @@ class CoefficientPrior(torch.nn.Module):
 
     @property
     def width(self) -> Tensor:
-        """Half-width (uniform) or standard deviation (normal); at least ``MIN_WIDTH`` scales, so that a fit
+        """Half-width (uniform, two-point) or standard deviation (normal); at least ``MIN_WIDTH`` scales, so that a fit
         that shrinks it to nothing (a coefficient that does not vary) still gives a valid prior."""
         return self.scale * (F.softplus(self.raw_width) + MIN_WIDTH)
 
@@ -140,14 +142,31 @@ class CoefficientPrior(torch.nn.Module):
             return [Constant(c) for c in centre]
         if self.family == "uniform":
             return [Uniform(c - w, c + w) for c, w in zip(centre, width)]
+        if self.family == "two_point":
+            return [Choice([c - w, c + w]) for c, w in zip(centre, width)]
         return [Normal(c, w) for c, w in zip(centre, width)]
 
 
+def centre(prior: Prior) -> float:
+    """The centre c of a fitted prior: the constant c, U(c - w, c + w), N(c, w^2) or {c - w, c + w}."""
+    if isinstance(prior, Constant):
+        return prior.value
+    if isinstance(prior, Uniform):
+        return (prior.low + prior.high) / 2
+    if isinstance(prior, Normal):
+        return prior.mean
+    if isinstance(prior, Choice):
+        return sum(prior.values) / len(prior.values)
+    raise TypeError(f"centre: a Constant, Uniform, Normal or Choice prior, got {type(prior).__name__}")
+
+
 def standard_noise(family: str, shape: tuple[int, ...], generator: torch.Generator) -> Tensor:
-    """Draws that a prior family's centre + width * noise maps to coefficients: N(0, 1) (normal) or U(-1, 1)."""
+    """Draws that a prior family's centre + width * noise maps to coefficients: N(0, 1) (normal), -1 or 1 equally
+    likely (two-point) or U(-1, 1)."""
     if family == "normal":
         return torch.randn(shape, generator=generator)
-    return 2 * torch.rand(shape, generator=generator) - 1
+    uniform = 2 * torch.rand(shape, generator=generator) - 1
+    return torch.where(uniform < 0, -1.0, 1.0) if family == "two_point" else uniform
 
 
 @dataclass

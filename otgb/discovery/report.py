@@ -7,13 +7,12 @@ import math
 from pathlib import Path
 from typing import Any
 
-import torch
 import yaml
 
 from otgb.analysis.components import to_json
 from otgb.analysis.figures import close, components_figure, disagreement_figure, distribution_figure, save
 from otgb.discovery.library import implausible
-from otgb.discovery.refine import term_names
+from otgb.discovery.refine import centre, term_names
 from otgb.discovery.variation import FIRST_SPREAD, SPREAD_DOUBLINGS
 from otgb.discovery.workflow import Discovery, term_name
 from otgb.physics.augmented import Augmented
@@ -111,11 +110,6 @@ def flags(result: Discovery, physics: PhysicsModel) -> list[str]:
         for c, value in found
         if (why := implausible(c.feature, c.component, value, physics))
     ]
-
-
-def centre(prior: Prior) -> float:
-    """The median of a coefficient's prior: its value if constant."""
-    return prior.quantile(torch.tensor(0.5)).item()
 
 
 def _terms(result: Discovery) -> list[tuple]:

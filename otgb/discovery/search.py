@@ -37,7 +37,7 @@ import torch
 from torch import Tensor
 
 from otgb.discovery.library import Candidate
-from otgb.discovery.refine import FittedTerms, Fitting, beats, discrepancies
+from otgb.discovery.refine import FittedTerms, Fitting, beats, centre, discrepancies
 from otgb.discovery.regression import design_matrix
 from otgb.physics.base import PhysicsModel
 from otgb.physics.features import is_local
@@ -66,7 +66,7 @@ def fitted_correction(physics: PhysicsModel, dense: FittedTerms, n: int, seed: i
     model = dense.model(physics)
     g = torch.Generator().manual_seed(seed + 5)
     x0, theta = physics.sample_initial_state(n, g), physics.sample_theta(n, g)
-    coefficients = torch.tensor([p.quantile(torch.tensor(0.5)).item() for p in dense.priors]).expand(n, -1)
+    coefficients = torch.tensor([centre(p) for p in dense.priors]).expand(n, -1)
     states = model.solve(model.vector_field, x0, torch.cat([theta, coefficients], 1))
     steps = states.shape[1]
     flat, theta_rows = states.flatten(0, 1), theta.repeat_interleave(steps, 0)

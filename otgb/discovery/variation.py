@@ -1,7 +1,7 @@
 """Whether an effect varies between trajectories: the coefficients' prior family, and the spread the data allow.
 
-The families are nested: a uniform U(c - w, c + w) or a normal N(c, w^2) of zero width is the
-constant c. Each richer family is fitted from the constant's optimum
+The families are nested: a uniform U(c - w, c + w), a normal N(c, w^2) or a two-point
+{c - w, c + w} of zero width is the constant c. Each richer family is fitted from the constant's optimum
 (:func:`otgb.discovery.refine.fit`) and scored on the training measurements with the same
 simulation draws as the constant (common random numbers, ``FAMILY_REPEATS`` draws). A richer
 fit that scores worse than the constant stopped short of the optimum its family contains (it
@@ -26,7 +26,7 @@ from torch import Tensor
 
 from otgb.discovery.refine import FAMILIES, FAMILY_REPEATS, MIN_WIDTH, FittedTerms, Scores, beats, difference, discrepancies
 from otgb.physics.base import PhysicsModel
-from otgb.physics.priors import Constant, Normal, Prior, Uniform
+from otgb.physics.priors import Choice, Constant, Normal, Prior, Uniform
 
 FIRST_SPREAD = 0.02  # the first half-width tried by excluded_spread, in units of the coefficient's size
 SPREAD_DOUBLINGS = 8
@@ -90,7 +90,9 @@ def at_zero_width(richer: FittedTerms, constant: FittedTerms) -> FittedTerms:
 
 
 def widened(family: str, centre: float, width: float) -> Prior:
-    """A prior of ``family`` around ``centre``: half-width (uniform) or standard deviation (normal) ``width``."""
+    """A prior of ``family`` around ``centre``: half-width (uniform, two-point) or standard deviation (normal) ``width``."""
+    if family == "two_point":
+        return Choice([centre - width, centre + width])
     return Uniform(centre - width, centre + width) if family == "uniform" else Normal(centre, width)
 
 

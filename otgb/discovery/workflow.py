@@ -38,7 +38,17 @@ from otgb.discovery.intervals import Intervals, sandwich_intervals
 from otgb.discovery.library import Candidate, build_library, physical_name
 from otgb.discovery.locate import DisagreementMap, describe, locate
 from otgb.discovery.log import DivergenceLog, diverged, progress
-from otgb.discovery.refine import FAMILIES, FittedTerms, Fitting, beats, discrepancies, sample_scores, simulate_finite, term_names
+from otgb.discovery.refine import (
+    FAMILIES,
+    FittedTerms,
+    Fitting,
+    beats,
+    centre,
+    discrepancies,
+    sample_scores,
+    simulate_finite,
+    term_names,
+)
 from otgb.discovery.regression import SelectedTerm, Selection, describe_terms, design_matrix, regress, subset_coefficients
 from otgb.discovery.search import SearchStep, search
 from otgb.discovery.variation import FamilyChoice
@@ -359,14 +369,15 @@ def prune(current: FittedTerms, fitting: Fitting) -> FittedTerms:
 
     The forward order comes from f_phi; the measurements may need a later term instead of an
     earlier one (a network that learned drag as a mostly linear friction ranks velocity first):
-    the model without the earlier term then fits as well and the term goes.
+    the model without the earlier term then fits as well and the term goes. The reduced models are
+    fitted in ``current``'s prior family, started at its centres.
     """
     while len(current.candidates) > 1:
         trials = []
         for k in range(len(current.candidates)):
             keep = [i for i in range(len(current.candidates)) if i != k]
-            init = [current.priors[i].value for i in keep]
-            trials.append(fitting([current.candidates[i] for i in keep], init, natural_scales=False))
+            init = [centre(current.priors[i]) for i in keep]
+            trials.append(fitting([current.candidates[i] for i in keep], init, current.family, natural_scales=False))
         reduced = min(trials, key=lambda f: f.heldout_energy)
         if beats(current.heldout, reduced.heldout):
             return current
@@ -375,6 +386,27 @@ def prune(current: FittedTerms, fitting: Fitting) -> FittedTerms:
         )
         current = reduced
     return current
+
+
+def family_step(kept: FittedTerms, fitting: Fitting, families: tuple[str, ...]) -> tuple[FamilyChoice, list[dict]]:
+    """The prior family of ``kept``'s terms (:func:`choose_prior`); when it varies, the terms are pruned again in it.
+
+    Every earlier step fits constant coefficients. When the effect varies between trajectories, a
+    constant one misfits the measurements, and a further term can lower the held-out discrepancy by
+    taking up part of the variation (on the one-to-many pendulum, whose friction is one of two values,
+    Coulomb friction was added beside viscous friction). Fitted with the chosen family, such a term is
+    no longer needed: it is dropped (:func:`prune`) and the family is chosen again for the terms left.
+    Returns the choice and the dropped terms.
+    """
+    choice = choose_prior(kept, fitting, families)
+    if choice.fitted.family == "constant" or len(kept.candidates) == 1:
+        return choice, []
+    pruned = prune(choice.fitted, fitting)
+    if len(pruned.candidates) == len(kept.candidates):
+        return choice, []
+    dropped = [{"feature": c.feature, "component": c.component} for c in kept.candidates if c not in pruned.candidates]
+    constant = fitting(pruned.candidates, [centre(p) for p in pruned.priors], natural_scales=False)
+    return choose_prior(constant, fitting, families), dropped
 
 
 def final_regression(selections: list[Selection], designs: dict, kept: list[Candidate], settings: DiscoverySettings) -> list:
@@ -450,7 +482,8 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
         kept, result.evidence, result.added = evidence_step(
             kept, result.cross_check, designs, fitting, settings.strong_candidates
         )
-        result.family = choose_prior(kept, fitting, settings.families)
+        result.family, dropped = family_step(kept, fitting, settings.families)
+        result.dropped += dropped
         result.fitted = result.family.fitted
         progress(f"fitted {result.fitted.family} coefficients {result.fitted.priors}")
     sources = {
