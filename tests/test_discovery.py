@@ -150,6 +150,16 @@ def test_the_whole_trajectory_test_sees_a_difference_late_in_a_decaying_trajecto
     assert not locate(a[:, :, None], c[:, :, None], torch.arange(40.0), ("x",), n_permutations=199).any_significant
 
 
+def test_rounding_in_a_feature_fixed_in_both_samples_is_no_difference():
+    """A boundary value that is 0 in one sample and 0 up to rounding (1e-9) in the other: z-scored alone, the
+    rounding would be a unit-spread feature that tells the samples apart."""
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.randn(150, 20, 3, generator=g), torch.randn(150, 20, 3, generator=g)
+    a[:, :, 0], b[:, :, 0] = 0.0, 1e-9 * torch.rand(150, 20, generator=g)
+    found = locate(a, b, torch.arange(20.0), ("boundary", "x", "y"), n_permutations=199)
+    assert not found.whole_significant
+
+
 def test_locate_maps_field_regions():
     model = AdvectionDiffusion()
     measured = _draws(model.with_hidden_effect([Advection(Constant(0.1))]), 100, 1)

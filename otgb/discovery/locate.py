@@ -19,9 +19,8 @@ import torch
 from scipy.stats import false_discovery_control
 from torch import Tensor
 
-from otgb.metrics.mmd import standardise
-
 CELLS_PER_BLOCK = 16  # cells whose distance matrices are held at once
+SPREAD_FLOOR = 1e-3  # of the features' RMS spread: a feature (nearly) constant in both samples is not blown up to unit spread
 
 
 @dataclass
@@ -131,6 +130,17 @@ def permutation_energy(a: Tensor, b: Tensor, n_permutations: int, seed: int) -> 
     return observed, pvalue
 
 
+def z_scored(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
+    """Rows of both samples with each feature centred and scaled by the pooled samples' mean and standard deviation;
+    a spread below ``SPREAD_FLOOR`` of the features' RMS spread (a boundary value fixed in both, up to rounding) is
+    raised to it, so that rounding does not weigh as much as a real feature."""
+    pooled = torch.cat([a, b])
+    mean, spread = pooled.mean(0), pooled.std(0)
+    floor = max(SPREAD_FLOOR * float(spread.pow(2).mean().sqrt()), 1e-300)
+    spread = spread.clamp_min(floor)
+    return (a - mean) / spread, (b - mean) / spread
+
+
 def locate(
     a: Tensor,
     b: Tensor,
@@ -153,7 +163,7 @@ def locate(
     cells_a, regions = cell_values(a, grid, regions_per_axis)
     cells_b, _ = cell_values(b, grid, regions_per_axis)
     statistic, pvalue = permutation_energy(cells_a, cells_b, n_permutations, seed)
-    whole_a, whole_b = standardise(a.flatten(1).double(), b.flatten(1).double())
+    whole_a, whole_b = z_scored(a.flatten(1).double(), b.flatten(1).double())
     whole, whole_pvalue = permutation_energy(whole_a[None], whole_b[None], n_permutations, seed)
     # two families, alpha split between them (Bonferroni): one whole-trajectory p-value inside the cells'
     # Benjamini-Hochberg set would need p < alpha / (cells + 1), below what the permutations can give
