@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from otgb.data import generate_measured
+from otgb.discovery.report import distribution_text
 from otgb.physics import AdvectionDiffusion, Constant, LibraryTerm, Pendulum, ReactionDiffusion, Uniform
 from otgb.reports import write_between
 from otgb.runs import machine, newest
@@ -296,14 +297,8 @@ def _named(t: dict) -> str:
 
 
 def _spread(distribution: dict | None) -> str:
-    """The fitted prior of a coefficient that varies between trajectories: U(low, high) or N(mean, std)."""
-    if not distribution:
-        return ""
-    if distribution.get("kind") == "uniform":
-        return f", varies: U({distribution['low']:.3g}, {distribution['high']:.3g})"
-    if distribution.get("kind") == "normal":
-        return f", varies: N({distribution['mean']:.3g}, {distribution['std']:.3g})"
-    return f", varies: {distribution}"
+    """The fitted distribution of a coefficient that varies between trajectories, e.g. ", varies: U(low, high)"."""
+    return f", varies: {distribution_text(distribution)}" if distribution else ""
 
 
 def main() -> None:

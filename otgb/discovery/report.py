@@ -34,6 +34,21 @@ def distribution(prior: Prior) -> dict[str, Any] | None:
     return {"kind": type(prior).__name__.lower(), **prior.init_args}
 
 
+def distribution_text(distribution: dict[str, Any] | None) -> str:
+    """A coefficient's distribution (:func:`distribution`) as a person reads it: "constant", "U(low, high)",
+    "N(mean, std)" or "one of a, b"."""
+    if distribution is None:
+        return "constant"
+    kind = distribution["kind"]
+    if kind == "uniform":
+        return f"U({distribution['low']:.3g}, {distribution['high']:.3g})"
+    if kind == "normal":
+        return f"N({distribution['mean']:.3g}, {distribution['std']:.3g})"
+    if kind == "choice":
+        return "one of " + ", ".join(f"{v:.3g}" for v in distribution["values"])
+    return json.dumps(distribution)
+
+
 def verdict(result: Discovery, physics: PhysicsModel) -> str:
     """One of three answers with its numbers (the gap closed, partly closed, nothing found), how strongly the
     measurements prefer each named term over its closest alternative, and the flags of implausible terms."""
@@ -345,7 +360,7 @@ def _naming_section(report: dict[str, Any]) -> list[str]:
                 if t["regression_coefficient"] is not None
                 else "-"
             )
-            dist = "constant" if t["distribution"] is None else json.dumps(t["distribution"])
+            dist = distribution_text(t["distribution"])
             lines.append(
                 f"| {t['name']} | {code(t['feature'])} | d{t['component']}/dt | {t['coefficient']:.4g} | {interval} "
                 f"| {inclusion} | {slope} | {share} | {dist} |"
