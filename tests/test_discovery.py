@@ -33,7 +33,7 @@ from otgb.discovery.refine import (
     row_terms,
 )
 from otgb.discovery.regression import SelectedTerm, Selection, design_matrix, regress
-from otgb.discovery.report import named_divergences, write_report
+from otgb.discovery.report import distribution, distribution_text, named_divergences, write_report
 from otgb.discovery.search import best_subsets, subset_values
 from otgb.discovery.variation import choose_family
 from otgb.discovery.workflow import (
@@ -55,6 +55,7 @@ from otgb.physics import (
     Choice,
     Constant,
     LibraryTerm,
+    Normal,
     Pendulum,
     ReactionDiffusion,
     Uniform,
@@ -738,3 +739,9 @@ def test_the_docs_coverage_table_is_what_the_result_files_give(tmp_path):
     script = root / "scripts" / "interval_coverage.py"
     subprocess.run([sys.executable, str(script), "--table", "--doc", str(doc)], check=True)
     assert doc.read_text() == (root / "docs" / "discovery.md").read_text()
+
+
+def test_a_coefficient_s_distribution_reads_as_a_person_writes_it():
+    as_text = [distribution_text(distribution(p)) for p in (Constant(-1.2), Uniform(-1.5, -0.6), Normal(-1.0, 0.25))]
+    assert as_text == ["constant", "U(-1.5, -0.6)", "N(-1, 0.25)"]
+    assert distribution_text(distribution(Choice([-1.4979, -0.5833]))) == "one of -1.5, -0.583"
