@@ -20,13 +20,11 @@ import math
 import time
 from pathlib import Path
 
-import torch
-
 from otgb.data import generate_measured
-from otgb.discovery.intervals import sandwich_intervals
+from otgb.discovery.intervals import sandwich_intervals, spread
 from otgb.discovery.library import Candidate
-from otgb.discovery.refine import fit
-from otgb.physics import AdvectionDiffusion, Constant, LibraryTerm, Pendulum, Uniform
+from otgb.discovery.refine import centre, fit
+from otgb.physics import AdvectionDiffusion, Choice, Constant, LibraryTerm, Pendulum, Uniform
 from otgb.reports import write_between
 
 ROOT = Path(__file__).parents[1]
@@ -40,14 +38,15 @@ CASES = {
     "drag": (Pendulum, "velocity*|velocity|", "velocity", Constant(-0.5), "constant", 1000, 1024),
     "advection": (AdvectionDiffusion, "d_s(T)", "T", Constant(-0.1), "constant", 1000, 1024),
     "stochastic_friction": (Pendulum, "velocity", "velocity", Uniform(-1.5, -0.6), "uniform", 1000, 1024),
+    "two_point_friction": (Pendulum, "velocity", "velocity", Choice([-1.5, -0.6]), "two_point", 1000, 1024),
 }
 
 
 def truth(prior) -> dict[str, float]:
     """The true centre (and half-width) of the hidden coefficient."""
-    if isinstance(prior, Uniform):
-        return {"centre": (prior.low + prior.high) / 2, "width": (prior.high - prior.low) / 2}
-    return {"centre": prior.value}
+    if prior.is_constant:
+        return {"centre": prior.value}
+    return {"centre": centre(prior), "width": spread(prior)}
 
 
 def one_file(case: str, index: int, steps: int) -> dict:
@@ -70,14 +69,14 @@ def one_file(case: str, index: int, steps: int) -> dict:
     row = {"case": case, "file": index, "truth": true, "fit_seconds": fitted_seconds}
     row["interval_seconds"] = time.monotonic() - began - fitted_seconds
     prior_fit = estimate.priors[0]
-    row["estimate"] = {"centre": prior_fit.quantile(torch.tensor(0.5)).item()}
+    row["estimate"] = {"centre": centre(prior_fit)}
     if intervals is None:
         row["interval"] = None
         return row
     row["interval"] = {"centre": intervals.centre[0]}
     row["covers"] = {"centre": intervals.centre[0][0] <= true["centre"] <= intervals.centre[0][1]}
     if intervals.width is not None:
-        row["estimate"]["width"] = (prior_fit.high - prior_fit.low) / 2
+        row["estimate"]["width"] = spread(prior_fit)
         row["interval"]["width"] = intervals.width[0]
         row["covers"]["width"] = intervals.width[0][0] <= true["width"] <= intervals.width[0][1]
     return row
