@@ -233,8 +233,15 @@ def task_table(results: Path, task: str) -> list[str]:
 def describe(term: dict) -> str:
     """A named term as the table's note gives it: feature, component and the coefficient's fitted distribution."""
     prior = term["coefficient"]
-    arguments = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in prior["init_args"].items())
+    arguments = ", ".join(f"{k}={number_text(v)}" for k, v in prior["init_args"].items())
     return f"{term['feature']} on d{term['component']}/dt ({prior['class_path'].rsplit('.', 1)[-1]} {arguments})"
+
+
+def number_text(value) -> str:
+    """A prior's argument at 4 significant digits: a number, or a list of them (a Choice's values)."""
+    if isinstance(value, list):
+        return "[" + ", ".join(map(number_text, value)) + "]"
+    return f"{value:.4g}" if isinstance(value, float) else str(value)
 
 
 def gather(results: Path, target: Path) -> None:

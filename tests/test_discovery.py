@@ -33,7 +33,7 @@ from otgb.discovery.refine import (
     row_terms,
 )
 from otgb.discovery.regression import SelectedTerm, Selection, design_matrix, regress
-from otgb.discovery.report import distribution, distribution_text, named_divergences, write_report
+from otgb.discovery.report import _family_section, distribution, distribution_text, named_divergences, write_report
 from otgb.discovery.search import best_subsets, subset_values
 from otgb.discovery.variation import choose_family
 from otgb.discovery.workflow import (
@@ -745,3 +745,16 @@ def test_a_coefficient_s_distribution_reads_as_a_person_writes_it():
     as_text = [distribution_text(distribution(p)) for p in (Constant(-1.2), Uniform(-1.5, -0.6), Normal(-1.0, 0.25))]
     assert as_text == ["constant", "U(-1.5, -0.6)", "N(-1, 0.25)"]
     assert distribution_text(distribution(Choice([-1.4979, -0.5833]))) == "one of -1.5, -0.583"
+
+
+def test_the_report_says_when_the_measurements_cannot_tell_two_varying_families_apart():
+    def report(uniform: tuple[float, float]) -> dict:
+        pairs = {"constant": (0.014, 0.003), "two_point": (0.0, 0.0), "uniform": uniform}
+        differences = {k: dict(zip(("difference", "standard_error"), v)) for k, v in pairs.items()}
+        scores = {"constant": 0.011, "uniform": -0.002, "two_point": -0.003}
+        return {"family": "two_point", "family_difference": differences, "family_training_discrepancy": scores,
+                "family_stopped_short": [], "terms": []}  # fmt: skip
+
+    alike = "\n".join(_family_section(report((0.0005, 0.0007))))
+    assert "cannot tell the two_point family from uniform" in alike and "constant" not in alike.split("\n")[-1]
+    assert "cannot tell" not in "\n".join(_family_section(report((0.0049, 0.0007))))

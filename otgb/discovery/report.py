@@ -463,6 +463,16 @@ def _family_section(report: dict[str, Any]) -> list[str]:
         f"{report['family_training_discrepancy'][report['family']]:.4g}; the others, and their difference to it: {scores}; "
         "a richer family is chosen only if lower by more than two standard errors).",
     ]
+    alike = [
+        k
+        for k, d in differences.items()
+        if k not in ("constant", report["family"]) and d["difference"] <= 2 * d["standard_error"]
+    ]
+    if report["family"] != "constant" and alike:
+        lines.append(
+            f"The training measurements cannot tell the {report['family']} family from {' or '.join(alike)} (within two "
+            "standard errors): that the coefficient varies is shown, the shape of its distribution is not."
+        )
     for family in report["family_stopped_short"]:
         lines.append(
             f"The {family} fit scored worse than the constant, which its family contains (zero width): "
