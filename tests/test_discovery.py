@@ -6,6 +6,7 @@ import subprocess
 import sys
 from functools import partial
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -33,7 +34,15 @@ from otgb.discovery.refine import (
     row_terms,
 )
 from otgb.discovery.regression import SelectedTerm, Selection, design_matrix, regress
-from otgb.discovery.report import _family_section, distribution, distribution_text, named_divergences, write_report
+from otgb.discovery.report import (
+    _family_section,
+    distribution,
+    distribution_text,
+    low_power,
+    named_divergences,
+    share_removed,
+    write_report,
+)
 from otgb.discovery.search import best_subsets, subset_values
 from otgb.discovery.variation import choose_family
 from otgb.discovery.workflow import (
@@ -758,3 +767,15 @@ def test_the_report_says_when_the_measurements_cannot_tell_two_varying_families_
     alike = "\n".join(_family_section(report((0.0005, 0.0007))))
     assert "cannot tell the two_point family from uniform" in alike and "constant" not in alike.split("\n")[-1]
     assert "cannot tell" not in "\n".join(_family_section(report((0.0049, 0.0007))))
+
+
+def test_a_verdict_on_few_test_trajectories_says_what_the_noise_allows():
+    def result(augmented_energy: float, reference_spread: float, n: int) -> SimpleNamespace:
+        gap = {"f_p": {"energy": 0.67}, "augmented": {"energy": augmented_energy}, "reference": {"c2st_std": reference_spread}}
+        return SimpleNamespace(gap=gap, draws={"f_p": torch.zeros(n, 50, 1)})
+
+    assert share_removed(result(0.067, 0.02, 270)) == "90% of f_p's energy distance to the 270 test trajectories"
+    below = share_removed(result(-0.237, 0.18, 30))  # 135 % read as a share would be noise
+    assert below.startswith("all of f_p's energy distance to the 30 test trajectories") and "-0.237" in below
+    assert low_power(result(0.067, 0.02, 270)) == []
+    assert "30 test trajectories the Reference C2ST spreads +- 0.18" in low_power(result(-0.237, 0.18, 30))[0]

@@ -64,16 +64,15 @@ def verdict(result: Discovery, physics: PhysicsModel) -> str:
     removes, closes = ("removes", "closes") if len(_terms(result)) == 1 else ("remove", "close")
     if result.after is not None and not result.after.any_significant:
         head = (
-            f"missing effect found, the gap is closed: {names} {removes} {gap_closed(result.gap):.0%} of f_p's energy distance "
-            f"to the {len(result.draws['f_p'])} test trajectories, which no longer tell the augmented physics apart; "
-            f"{result.sentence_after}"
+            f"missing effect found, the gap is closed: {names} {removes} {share_removed(result)}, which no longer tell the "
+            f"augmented physics apart; {result.sentence_after}"
         )
     else:
         head = (
-            f"missing effect partly found: {names} {closes} {gap_closed(result.gap):.0%} of f_p's gap (energy distance on "
-            f"the test part); {result.sentence_after}; no library term fits exactly, these are the best approximation"
+            f"missing effect partly found: {names} {closes} {share_removed(result)}; {result.sentence_after}; "
+            "no library term fits exactly, these are the best approximation"
         )
-    parts = [head, *preferences(result, physics), *flags(result, physics)]
+    parts = [head, *preferences(result, physics), *flags(result, physics), *low_power(result)]
     if named := named_divergences(result):
         worst = max(named, key=lambda d: d["diverged"] / d["of"])
         parts.append(
@@ -89,6 +88,31 @@ def gap_closed(gap: dict[str, dict[str, float]]) -> float:
     """The share of f_p's energy distance to the test measurements that the augmented physics removes."""
     before = gap["f_p"]["energy"]
     return 1 - gap["augmented"]["energy"] / before if before > 0 else 0.0
+
+
+def share_removed(result: Discovery) -> str:
+    """How much of f_p's energy distance to the test measurements the augmented physics removes, in words. The
+    unbiased energy distance scatters around 0 when two samples agree, so a share over 100 % is noise, said so."""
+    share, tested = gap_closed(result.gap), f"to the {len(result.draws['f_p'])} test trajectories"
+    if share < 1:
+        return f"{share:.0%} of f_p's energy distance {tested}"
+    left = result.gap["augmented"]["energy"]
+    return f"all of f_p's energy distance {tested} (what is left, {left:.3g}, is below zero: the test sample's noise)"
+
+
+LOW_POWER_SPREAD = 0.1  # the Reference C2ST's spread over its repeats above which the verification is said to be weak
+
+
+def low_power(result: Discovery) -> list[str]:
+    """A sentence when the test part is too small for the verification to see a moderate difference: the Reference
+    C2ST (half the test measurements against the other half) then spreads widely around 0.5."""
+    spread = result.gap["reference"].get("c2st_std", 0.0)
+    if spread <= LOW_POWER_SPREAD:
+        return []
+    return [
+        f"with {len(result.draws['f_p'])} test trajectories the Reference C2ST spreads +- {spread:.2f} around 0.5, so the "
+        "verification cannot see a difference smaller than that: more measurements would sharpen it"
+    ]
 
 
 def preferences(result: Discovery, physics: PhysicsModel) -> list[str]:
