@@ -39,6 +39,7 @@ from pathlib import Path
 import yaml
 
 from otgb.command import logger_override
+from otgb.discovery.report import distribution_text
 from otgb.reports import mean_spread
 from otgb.runs import machine, newest, run_otgb
 
@@ -233,15 +234,9 @@ def task_table(results: Path, task: str) -> list[str]:
 def describe(term: dict) -> str:
     """A named term as the table's note gives it: feature, component and the coefficient's fitted distribution."""
     prior = term["coefficient"]
-    arguments = ", ".join(f"{k}={number_text(v)}" for k, v in prior["init_args"].items())
-    return f"{term['feature']} on d{term['component']}/dt ({prior['class_path'].rsplit('.', 1)[-1]} {arguments})"
-
-
-def number_text(value) -> str:
-    """A prior's argument at 4 significant digits: a number, or a list of them (a Choice's values)."""
-    if isinstance(value, list):
-        return "[" + ", ".join(map(number_text, value)) + "]"
-    return f"{value:.4g}" if isinstance(value, float) else str(value)
+    kind, arguments = prior["class_path"].rsplit(".", 1)[-1].lower(), prior["init_args"]
+    value = f"{arguments['value']:.4g}" if kind == "constant" else distribution_text({"kind": kind, **arguments})
+    return f"{term['feature']} on d{term['component']}/dt ({value})"
 
 
 def gather(results: Path, target: Path) -> None:

@@ -41,11 +41,11 @@ def distribution_text(distribution: dict[str, Any] | None) -> str:
         return "constant"
     kind = distribution["kind"]
     if kind == "uniform":
-        return f"U({distribution['low']:.3g}, {distribution['high']:.3g})"
+        return f"U({distribution['low']:.4g}, {distribution['high']:.4g})"
     if kind == "normal":
-        return f"N({distribution['mean']:.3g}, {distribution['std']:.3g})"
+        return f"N({distribution['mean']:.4g}, {distribution['std']:.4g})"
     if kind == "choice":
-        return "one of " + ", ".join(f"{v:.3g}" for v in distribution["values"])
+        return "one of " + ", ".join(f"{v:.4g}" for v in distribution["values"])
     return json.dumps(distribution)
 
 
@@ -97,7 +97,7 @@ def share_removed(result: Discovery) -> str:
     if share < 1:
         return f"{share:.0%} of f_p's energy distance {tested}"
     left = result.gap["augmented"]["energy"]
-    return f"all of f_p's energy distance {tested} (what is left, {left:.3g}, is below zero: the test sample's noise)"
+    return f"all of f_p's energy distance {tested} (what is left, {left:.3g}, is not above zero: the test sample's noise)"
 
 
 LOW_POWER_SPREAD = 0.1  # the Reference C2ST's spread over its repeats above which the verification is said to be weak
