@@ -250,12 +250,16 @@ def solve_designs(field, x0: torch.Tensor, args: Callable, substeps: int, n_inte
         return torch.cat(states, 1)[:, ::substeps]
 
     times, step = torch.arange(n_intervals + 1, dtype=torch.float32) * h * substeps, {"step_size": h}
-    compiled_loop = solvers._compiled_whole_solve()
+    device = x0.device.type
+    python_loop = torch.compile(solvers._whole_solve, dynamic=True, fullgraph=True)
+    compiled_loop = solvers._compiled_whole_solve(device)
     return {
         "torchdiffeq": lambda: odeint(lambda _, y: field(y, *args()), x0, times, method="rk4", options=step).movedim(0, 1),
         "eager loop": looped(solvers.STEPS["rk4"]),
-        "compiled step": looped(solvers._compiled_step("rk4")),
+        "compiled step, Python wrapper": looped(torch.compile(solvers.STEPS["rk4"], dynamic=True, fullgraph=True)),
+        "compiled step": looped(solvers._compiled_step("rk4", device)),
         f"compiled block of {block} steps": blocked,
+        "compiled scan, Python wrapper": lambda: python_loop(field, x0, args(), "rk4", h, substeps, n_intervals),
         "compiled scan": lambda: compiled_loop(field, x0, args(), "rk4", h, substeps, n_intervals),
     }
 

@@ -126,7 +126,7 @@ def test_auto_solves_eagerly_until_a_models_field_has_been_solved_often(monkeypa
     monkeypatch.setattr(solvers, "COMPILE_AFTER", 3)
     compiled_solves = []
 
-    def recording_solve():
+    def recording_solve(device_type):
         return lambda *args: compiled_solves.append(1) or solvers._whole_solve(*args)
 
     monkeypatch.setattr(solvers, "_compiled_whole_solve", recording_solve)
@@ -142,8 +142,8 @@ def test_auto_solves_eagerly_until_a_models_field_has_been_solved_often(monkeypa
 
 def test_a_small_state_is_solved_as_one_compiled_loop_and_a_field_step_by_step(monkeypatch):
     calls = []
-    monkeypatch.setattr(solvers, "_compiled_whole_solve", lambda: lambda *a: calls.append("whole") or solvers._whole_solve(*a))
-    monkeypatch.setattr(solvers, "_compiled_step", lambda m: lambda *a: calls.append("step") or solvers.STEPS[m](*a))
+    monkeypatch.setattr(solvers, "_compiled_whole_solve", lambda d: lambda *a: calls.append("whole") or solvers._whole_solve(*a))
+    monkeypatch.setattr(solvers, "_compiled_step", lambda m, d: lambda *a: calls.append("step") or solvers.STEPS[m](*a))
     with torch.no_grad():
         _simulate(Pendulum(), "compiled")
         assert calls == ["whole"]
@@ -240,7 +240,7 @@ def test_the_speed_table_in_the_docs_is_what_the_result_files_give(tmp_path):
 
 def test_compiled_gradients_that_differ_from_the_eager_loop_make_the_field_run_eagerly_with_one_line(monkeypatch, caplog):
     """As torch 2.11's compiled loop did (right trajectories, parameter gradients near zero): caught on the first solve."""
-    monkeypatch.setattr(solvers, "_compiled_whole_solve", lambda: lambda *args: solvers._whole_solve(*args).detach())
+    monkeypatch.setattr(solvers, "_compiled_whole_solve", lambda d: lambda *args: solvers._whole_solve(*args).detach())
     greybox = _pendulum_greybox()
     reference = _forward_backward(greybox, "torchdiffeq", 8)
     with caplog.at_level(logging.WARNING, logger="otgb.solvers"):

@@ -137,16 +137,24 @@ STEPS: dict[str, Callable[[Field, Tensor, float, Sequence[Tensor]], Tensor]] = {
 }
 
 
-def _compile(function: Callable) -> Callable:
+def _compile(function: Callable, device_type: str) -> Callable:
+    """``function`` compiled for tensors on ``device_type``, generic in the batch.
+
+    On the CPU the graph's calling code is C++ (inductor's ``cpp_wrapper``) rather than Python:
+    a solve is thousands of small kernels, and the Python that calls them, checks their inputs'
+    sizes and allocates their outputs was a third of a compiled pendulum solve
+    (``scripts/speed_benchmark.py designs``).
+    """
     # every field, grad mode and dtype is one more graph of the same function; step sizes are constants of the graph
     torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
     torch._dynamo.config.specialize_float = True
-    return torch.compile(function, dynamic=True, fullgraph=True)
+    options = {"cpp_wrapper": True} if device_type == "cpu" else {}
+    return torch.compile(function, dynamic=True, fullgraph=True, options=options)
 
 
 @functools.cache
-def _compiled_step(method: str) -> Callable:
-    return _compile(STEPS[method])
+def _compiled_step(method: str, device_type: str) -> Callable:
+    return _compile(STEPS[method], device_type)
 
 
 def _whole_solve(
@@ -165,8 +173,8 @@ def _whole_solve(
 
 
 @functools.cache
-def _compiled_whole_solve() -> Callable:
-    return _compile(_whole_solve)
+def _compiled_whole_solve(device_type: str) -> Callable:
+    return _compile(_whole_solve, device_type)
 
 
 # --- the solve ---------------------------------------------------------------------------
@@ -188,10 +196,11 @@ def integrate(
     arguments = (initial_state, args, method, step_size, substeps, n_times - 1)
     if not compiled:
         return _stepwise_solve(field, *arguments)
+    device = initial_state.device.type
     if initial_state[0].numel() <= WHOLE_SOLVE_MAX_STATE and n_times > 1:
-        fast = functools.partial(_Fallback(key, _compiled_whole_solve(), _stepwise_solve), field)
+        fast = functools.partial(_Fallback(key, _compiled_whole_solve(device), _stepwise_solve), field)
     else:
-        fast = functools.partial(_stepwise_solve, field, step=_Fallback(key, _compiled_step(method), STEPS[method]))
+        fast = functools.partial(_stepwise_solve, field, step=_Fallback(key, _compiled_step(method, device), STEPS[method]))
     if torch.is_grad_enabled() and key not in _gradients_checked:
         _check_against_eager(key, field, fast, arguments)
         if key in _not_compilable:
