@@ -300,7 +300,7 @@ class MapTraining(LightningModule):
                 p.grad = torch.full_like(p, float("nan"))
         average_gradients(parameters, self.trainer.strategy)
         grads = [p.grad for p in parameters if p.grad is not None]
-        if not grads or bool(torch.stack([torch.isfinite(g).all() for g in grads]).all()):  # one device sync
+        if not grads or bool(torch.isfinite(torch.cat([g.reshape(-1) for g in grads])).all()):  # one device sync
             self.guard.passed()
             return True
         opt.zero_grad(set_to_none=True)
