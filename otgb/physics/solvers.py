@@ -23,9 +23,9 @@ The path is one process-wide setting (``otgb fit --solver NAME``, :func:`set_sol
 - ``auto`` (default): compiled once the vector field of one model (per grad mode) has been, or
   is planned to be, solved :data:`COMPILE_AFTER` times; the eager loop before. A compile is
   paid once per model (less from torch's on-disk compile cache) and pays for itself only over
-  more than a thousand solves on 2 cores (whole pendulum fits at 500, 1500 and 3000 steps,
+  several hundred to a thousand solves on 2 cores (whole pendulum fits at 500, 1500 and 3000 steps,
   eager against compiled from an empty cache: ``scripts/speed_benchmark.py fit --cold-cache``,
-  docs/results.md), so short runs (tests, smoke runs) and discovery's many
+  docs/results.md; the threshold keeps a margin above that), so short runs (tests, smoke runs) and discovery's many
   small fits, each of a new model, never compile, and a long training run, which announces
   its steps (:func:`plan_solves`), compiles at once.
   The switch is a count, not a clock: the same config and seed give the same numbers run
