@@ -21,7 +21,9 @@ measurements, this route:
    least-squares coefficients (g's residual alone ranks near-collinear subsets by noise), fits
    the three best of them by distribution matching and scores them again; the subsets the best
    one does not beat are kept as the step's alternatives (``report.json``'s ``search``). Sizes grow until two in a
-   row do not improve; the sparsest model that the best does not beat by two standard errors
+   row do not beat the leader (the last size that beat the leader before it) by two standard errors, as
+   f_phi's route does (a size that lowers the held-out score by less than its noise does not keep the
+   search going); the sparsest model that the best does not beat by two standard errors
    (:func:`otgb.discovery.refine.beats`) is kept.
 """
 
@@ -153,6 +155,7 @@ def search(
     states, theta, correction = fitted_correction(physics, dense, TRAJECTORIES, seed)
     X, y = stacked_design(physics, local, states, theta, correction, seed)
     path: list[SearchStep] = []
+    leader = 0  # the last size that beat the leader before it
     for size in range(1, len(local) + 1):
         step = _best_of_size(physics, local, X, y, size, fitting.val, seed, fitting)
         if step is None:
@@ -160,8 +163,9 @@ def search(
         path.append(step)
         names = [f"{c.feature} on d{c.component}/dt" for c in step.candidates]
         report(f"search: {size} term(s) {names}: held-out energy {step.fitted.heldout_energy:.4g}")
-        best = min(range(len(path)), key=lambda i: path[i].fitted.heldout_energy)
-        if size - 1 - best >= 2:
+        if beats(step.fitted.heldout, path[leader].fitted.heldout):
+            leader = size - 1
+        elif size - 1 - leader >= 2:
             break
     best = min(path, key=lambda s: s.fitted.heldout_energy).fitted if path else None
     if best is None or not best.heldout.finite:  # nothing fitted, or every fitted subset diverges
