@@ -343,8 +343,8 @@ class MapTraining(LightningModule):
         self.log("train/simulations", float(self.trainer.datamodule.simulations) if self.trainer.datamodule else 0.0)
 
     def _logs_this_step(self) -> bool:
-        connector = getattr(self.trainer, "_logger_connector", None)
-        return connector is None or connector.should_update_logs or bool(self.trainer.fast_dev_run)
+        """Lightning's own rule for the steps its loggers write (its ``update_train_step_metrics``)."""
+        return self.trainer._logger_connector.should_update_logs or bool(self.trainer.fast_dev_run)
 
     def _clip(self, opt: Any) -> None:
         if self.grad_clip is not None:

@@ -159,3 +159,20 @@ def test_the_condition_computed_once_per_solve_gives_the_concatenated_networks(n
     parts = net.condition(cond)
     assert torch.allclose(net.conditioned(u, *parts), _concatenated_forward(net, u, cond), atol=1e-6)
     assert torch.allclose(net(u, cond), _concatenated_forward(net, u, cond), atol=1e-6)
+
+
+@pytest.mark.parametrize("padding_mode", ["zeros", "circular", "reflect", "replicate"])
+def test_a_compiled_1d_convolution_equals_the_library_s_values_and_gradients(padding_mode):
+    """Inside a compiled solve a 1-D convolution is shifted views and one matrix product: the same numbers, any padding."""
+    torch.manual_seed(0)
+    net = ConditionalConvNet((1, 20), (1, 20), 3, channels=(16, 16), padding_mode=padding_mode)
+    u, cond = torch.randn(8, 1, 20, requires_grad=True), torch.randn(8, 3)
+
+    def values_and_gradients(conditioned):
+        out = conditioned(u, *net.condition(cond))
+        return [out, *torch.autograd.grad(out.square().sum(), [u, *net.parameters()])]
+
+    eager = values_and_gradients(net.conditioned)
+    compiled = values_and_gradients(torch.compile(net.conditioned, fullgraph=True))
+    for a, b in zip(eager, compiled):
+        assert torch.allclose(a, b, rtol=1e-5, atol=1e-6 * float(a.abs().max()))

@@ -124,14 +124,16 @@ def _convolve(layer: nn.Module, h: Tensor, weight: Tensor) -> Tensor:
     Inside a compiled solve, a 1-D convolution is written as its shifted views and one matrix
     product: the compiler fuses the views into one kernel and calls one matrix product, where the
     library's convolution of a few channels on a short grid spends most of its time outside the
-    arithmetic (an advection-diffusion grey-box solve and its backward: 1.4x faster,
-    ``scripts/speed_benchmark.py designs``). Eagerly, and on 2-D and 3-D grids (where the shifted
-    views multiply the memory), the library's convolution is faster and is used.
+    arithmetic (an advection-diffusion grey-box solve and its backward on one thread: 140 -> 103 ms).
+    Eagerly, and on 2-D and 3-D grids (where the shifted views multiply the memory: 4x slower on
+    reaction-diffusion's 32 x 32 grid), the library's convolution is faster and is used. The
+    padding is the layer's own (``padding_mode`` "zeros" is ``F.pad``'s "constant").
     """
     if h.dim() != 3 or not torch.compiler.is_compiling():
         return layer._conv_forward(h, weight, None)
     size, length = weight.shape[-1], h.shape[-1]
-    padded = F.pad(h, (size // 2, size // 2), mode="circular" if layer.padding_mode == "circular" else "constant")
+    mode = "constant" if layer.padding_mode == "zeros" else layer.padding_mode
+    padded = F.pad(h, (size // 2, size // 2), mode=mode)
     views = torch.stack([padded[..., k : k + length] for k in range(size)], dim=-1)  # (B, C, L, size)
     rows = views.permute(0, 2, 1, 3).reshape(-1, weight.shape[1] * size)  # (B * L, C * size), in the weight's order
     out = rows @ weight.reshape(weight.shape[0], -1).t()
