@@ -118,11 +118,6 @@ def convolution(dims: int) -> type[nn.Module]:
     return CONVOLUTIONS[dims]
 
 
-def _grid_major(net: "ConditionalConvNet") -> bool:
-    """Whether ``net`` runs grid-major, (B, L, C): on a 1-D grid inside a compiled solve (see :func:`_convolve_grid_major`)."""
-    return len(net.grid) == 1 and torch.compiler.is_compiling()
-
-
 def _convolve_grid_major(layer: nn.Module, h: Tensor) -> Tensor:
     """``layer``'s 1-D convolution (no bias) of a grid-major ``h`` (B, L, C), grid-major: (B, L, out channels).
 
@@ -213,7 +208,7 @@ class ConditionalConvNet(nn.Module):
 
     def conditioned(self, u: Tensor, *parts: Tensor) -> Tensor:
         """f(u, c) from the condition's parts (:meth:`condition`)."""
-        grid_major = _grid_major(self)
+        grid_major = len(self.grid) == 1 and torch.compiler.is_compiling()  # (B, L, C): see _convolve_grid_major
         h = u.transpose(1, 2) if grid_major else u
         for i, (layer, part) in enumerate(zip(self.layers, parts)):
             if grid_major:
