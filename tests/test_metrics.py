@@ -7,7 +7,7 @@ import torch
 from sklearn.neural_network import MLPClassifier
 
 from otgb.data import generate_joint
-from otgb.metrics import C2ST, MMD, NRMSE, AbsErr, MMDAgg, abs_err, c2st, joint_samples, mmd2, mmdagg, nrmse
+from otgb.metrics import C2ST, MMD, NRMSE, AbsErr, MMDAgg, abs_err, c2st, energy, joint_samples, mmd2, mmdagg, nrmse
 from otgb.metrics.c2st import make_classifier
 from otgb.metrics.classifiers import PRECISIONS, PaperConvClassifier, few_channel_conv
 from otgb.metrics.classifiers import MLPClassifier as TorchMLP
@@ -294,3 +294,41 @@ def test_reference_scores_are_the_noise_floor(one_to_many_set):
     one_draw = {**data, "y": data["y"][:, :1], "y_ref": data["y"][:, :1]}  # a deterministic DGP: both draws equal
     exact = reference_scores(evaluator, one_draw, tests=True, repeats=2)
     assert exact["abs_err"] == 0 and exact["nrmse"] == 0 and exact["c2st"] == 0.5
+
+
+def test_large_energy_distances_are_compiled_with_the_library_s_values_and_gradients(monkeypatch):
+    """Distance matrices from COMPILED_ENTRIES entries on run compiled: the same means and gradients as cdist's."""
+    torch.manual_seed(0)
+    a, b = torch.randn(3, 40, 5, requires_grad=True), torch.randn(3, 30, 5)
+
+    def means_and_gradient() -> list[torch.Tensor]:
+        within, cross = energy.within_means(a), energy.cross_row_means(a, b)
+        return [within, cross, *torch.autograd.grad(within.sum() + cross.square().sum(), a)]
+
+    eager = means_and_gradient()
+    monkeypatch.setattr(energy, "COMPILED_ENTRIES", 1)
+    compiled = means_and_gradient()
+    assert energy._compiled.cache_info().currsize >= 2, "both distance reductions were compiled"
+    for x, y in zip(eager, compiled):
+        assert torch.allclose(x, y, rtol=1e-5, atol=1e-6)
+
+
+def test_energy_distances_that_cannot_be_compiled_run_eagerly_after_one_line(monkeypatch, caplog):
+    def cannot_compile(function):
+        def fail(*samples):
+            raise RuntimeError("no C compiler\nsecond line")
+
+        return fail
+
+    torch.manual_seed(0)
+    a, b = torch.randn(2, 20, 3), torch.randn(2, 10, 3)
+    expected = energy.cross_row_means(a, b)
+    monkeypatch.setattr(energy, "COMPILED_ENTRIES", 1)
+    monkeypatch.setattr(energy, "_compiled", cannot_compile)
+    monkeypatch.setattr(energy, "_not_compilable", set())
+    with caplog.at_level("WARNING", logger="otgb.metrics"):
+        assert torch.equal(energy.cross_row_means(a, b), expected)
+        assert torch.equal(energy.cross_row_means(a, b), expected)
+    assert [r.getMessage() for r in caplog.records] == [
+        "otgb: energy distances run eagerly: they could not be compiled (no C compiler)"
+    ]

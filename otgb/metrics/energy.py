@@ -19,7 +19,10 @@ bandwidth, and is smooth in the samples, so it is a stable selection metric.
 
 from __future__ import annotations
 
+import functools
+import logging
 import math
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
@@ -28,6 +31,10 @@ from otgb.metrics.mmd import _as_float, standardise
 from otgb.metrics.samples import TwoSampleMetric
 
 MAX_BLOCK_ENTRIES = 2**25  # distance-matrix entries per batched call (256 MiB in float64)
+COMPILED_ENTRIES = 2**24  # distance-matrix entries of a call on the CPU from which it runs compiled (:func:`_distances`)
+
+log = logging.getLogger("otgb.metrics")
+_not_compilable: set[Callable] = set()
 
 
 def batched_energy(p: Tensor, q: Tensor, paired: bool = False) -> Tensor:
@@ -56,7 +63,7 @@ def within_means(x: Tensor) -> Tensor:
         values = x[..., 0].double()
         return (2 * pair_distance_sums(values - values.mean(-1, keepdim=True)) / (n * (n - 1))).to(x.dtype)
     step = max(1, MAX_BLOCK_ENTRIES // (n * n))
-    sums = [torch.cdist(x[g : g + step], x[g : g + step]).sum((1, 2)) for g in range(0, len(x), step)]
+    sums = [_distances(_distance_sums, x[g : g + step]) for g in range(0, len(x), step)]
     return torch.cat(sums) / (n * (n - 1))  # the zero diagonal is skipped by the divisor
 
 
@@ -67,7 +74,45 @@ def cross_row_means(a: Tensor, b: Tensor) -> Tensor:
         centred_a, centred_b = _centred(a[..., 0], b[..., 0])
         return (row_distance_sums(centred_a, centred_b) / n).to(a.dtype)
     step = max(1, MAX_BLOCK_ENTRIES // (n * m))
-    return torch.cat([torch.cdist(a[g : g + step], b[g : g + step]).mean(1) for g in range(0, len(a), step)])
+    return torch.cat([_distances(_mean_distances, a[g : g + step], b[g : g + step]) for g in range(0, len(a), step)])
+
+
+def _distance_sums(x: Tensor) -> Tensor:
+    return torch.cdist(x, x).sum((1, 2))
+
+
+def _mean_distances(a: Tensor, b: Tensor) -> Tensor:
+    return torch.cdist(a, b).mean(1)
+
+
+@functools.cache
+def _compiled(function: Callable) -> Callable:
+    return torch.compile(function, dynamic=True, fullgraph=True)
+
+
+def _distances(function: Callable, *samples: Tensor) -> Tensor:
+    """``function(*samples)`` (a reduction of distance matrices (G, n, m)), compiled on the CPU from
+    :data:`COMPILED_ENTRIES` entries on.
+
+    The compiled function computes the distances, their square root and their reduction in one
+    pass, forward and backward; the library's ``cdist`` makes several passes over the matrix, which is
+    most of a discovery fit's time. Measured on one thread, G, n, m, F = 50, 1024, 700, 20 (an
+    advection-diffusion fit's per-time-step distances): 442 ms eager, 163 ms compiled, forward and
+    backward, after a compile of 3 s; smaller matrices stay eager, where the compile would not be repaid.
+    If it cannot be compiled, it runs eagerly after one line saying why.
+    """
+    first, last = samples[0], samples[-1]
+    large = first.device.type == "cpu" and first.shape[0] * first.shape[1] * last.shape[1] >= COMPILED_ENTRIES
+    if not large or function in _not_compilable:
+        return function(*samples)
+    try:
+        return _compiled(function)(*samples)
+    except Exception as error:  # the eager call below re-raises what is the input's fault
+        result = function(*samples)
+        _not_compilable.add(function)
+        reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        log.warning(f"otgb: energy distances run eagerly: they could not be compiled ({reason[:300]})")
+        return result
 
 
 def _centred(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
