@@ -32,6 +32,7 @@ from otgb.command import OTGBCLI, logger_override
 from otgb.data import SimulationDataModule
 from otgb.errors import InputError
 from otgb.parser_errors import ConciseParser
+from otgb.quiet import quiet_known_harmless
 from otgb.training import MapTraining
 
 
@@ -52,6 +53,7 @@ def load_run(config: str | Path | Sequence[str | Path], *overrides: str, ckpt_pa
     loaded into the model."""
     files = [config] if isinstance(config, (str, Path)) else list(config)
     args = [arg for path in files for arg in ("--config", str(path))] + list(overrides)
+    quiet_known_harmless()  # as the otgb command: a script's run is trained, tested and logged alike
     with _quiet():
         cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=args, parser_class=ConciseParser)
     if ckpt_path is not None:
