@@ -125,7 +125,7 @@ def _convolve_grid_major(layer: nn.Module, h: Tensor) -> Tensor:
     product, with the channels as the fastest axis: the compiler fuses the padding, the views and
     the activation before them into one contiguous, vectorised kernel, and calls one matrix product,
     where the library's convolution of a few channels on a short grid spends most of its time outside
-    the arithmetic. With the channels first the views were a strided gather, 7x slower. An
+    the arithmetic. With the channels first the views were a strided gather, 6x slower. An
     advection-diffusion grey-box solve and its backward on one thread: 140 ms with the library's
     convolution, 106 ms channels first, 59 ms grid-major. Eagerly, and on 2-D and 3-D grids (where the
     shifted views multiply the memory: 4x slower on reaction-diffusion's 32 x 32 grid), the library's
