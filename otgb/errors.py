@@ -13,3 +13,9 @@ class InputError(ValueError):
 
 class OutputNotWritten(OSError):
     """A checkpoint, log or report could not be written (a full disk, no permission); the message says which."""
+
+
+def first_line(error: BaseException) -> str:
+    """``Type: first line of the message`` (the type alone for an empty message): an error in one line."""
+    lines = str(error).strip().splitlines()
+    return f"{type(error).__name__}: {lines[0]}" if lines else type(error).__name__

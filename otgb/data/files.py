@@ -34,7 +34,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from otgb.errors import InputError
+from otgb.errors import InputError, first_line
 from otgb.physics.base import PhysicsModel
 
 KEYS = ("y", "t", "theta", "x0")
@@ -149,15 +149,11 @@ def _per_trajectory(
     return value.float()
 
 
-def _first_line(error: Exception) -> str:
-    return f"{type(error).__name__}: {str(error).strip().splitlines()[0] if str(error).strip() else ''}"
-
-
 def _read_pt(path: Path) -> dict[str, Any]:
     try:
         content = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # a corrupt or non-tensor file: say which and why, in one line
-        raise InputError(f"{path}: cannot be read as a PyTorch file of tensors ({_first_line(error)})") from None
+        raise InputError(f"{path}: cannot be read as a PyTorch file of tensors ({first_line(error)})") from None
     if isinstance(content, Tensor):
         return {"y": content}
     if not isinstance(content, dict):
@@ -169,14 +165,14 @@ def _read_npz(path: Path) -> dict[str, Any]:
     try:
         archive = np.load(path, allow_pickle=False)
     except (ValueError, OSError) as error:
-        raise InputError(f"{path}: cannot be read as an .npz archive of numeric arrays ({_first_line(error)})") from None
+        raise InputError(f"{path}: cannot be read as an .npz archive of numeric arrays ({first_line(error)})") from None
     if not isinstance(archive, np.lib.npyio.NpzFile):
         raise InputError(f"{path}: holds a single array (.npy), expected an .npz archive with named arrays ('y', ...)")
     with archive:
         try:
             return {key: archive[key] for key in archive.files}
         except ValueError as error:
-            raise InputError(f"{path}: cannot be read as an .npz archive of numeric arrays ({_first_line(error)})") from None
+            raise InputError(f"{path}: cannot be read as an .npz archive of numeric arrays ({first_line(error)})") from None
 
 
 def _read_csv(path: Path, physics: PhysicsModel) -> dict[str, Any]:

@@ -27,6 +27,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from otgb.compiling import EagerFallback, compile_generic
 from otgb.metrics.mmd import _as_float, standardise
 from otgb.metrics.samples import TwoSampleMetric
 
@@ -87,7 +88,12 @@ def _mean_distances(a: Tensor, b: Tensor) -> Tensor:
 
 @functools.cache
 def _compiled(function: Callable) -> Callable:
-    return torch.compile(function, dynamic=True, fullgraph=True)
+    """``function`` compiled, run eagerly where it cannot be compiled."""
+    return EagerFallback(function, compile_generic(function), function, _not_compilable, _fallback_line, log)
+
+
+def _fallback_line(*samples: Tensor) -> str:
+    return "energy distances run eagerly: they could not be compiled"
 
 
 def _distances(function: Callable, *samples: Tensor) -> Tensor:
@@ -103,16 +109,7 @@ def _distances(function: Callable, *samples: Tensor) -> Tensor:
     """
     first, last = samples[0], samples[-1]
     large = first.device.type == "cpu" and first.shape[0] * first.shape[1] * last.shape[1] >= COMPILED_ENTRIES
-    if not large or function in _not_compilable:
-        return function(*samples)
-    try:
-        return _compiled(function)(*samples)
-    except Exception as error:  # the eager call below re-raises what is the input's fault
-        result = function(*samples)
-        _not_compilable.add(function)
-        reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-        log.warning(f"otgb: energy distances run eagerly: they could not be compiled ({reason[:300]})")
-        return result
+    return _compiled(function)(*samples) if large else function(*samples)
 
 
 def _centred(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:

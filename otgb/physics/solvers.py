@@ -52,6 +52,7 @@ from torch import Tensor
 from torch._higher_order_ops.scan import scan
 from torchdiffeq import odeint
 
+from otgb.compiling import EagerFallback, compile_generic
 from otgb.errors import InputError
 
 SOLVERS = ("auto", "compiled", "eager", "torchdiffeq")
@@ -148,8 +149,7 @@ def _compile(function: Callable, device_type: str) -> Callable:
     # every field, grad mode and dtype is one more graph of the same function; step sizes are constants of the graph
     torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
     torch._dynamo.config.specialize_float = True
-    options = {"cpp_wrapper": True} if device_type == "cpu" else {}
-    return torch.compile(function, dynamic=True, fullgraph=True, options=options)
+    return compile_generic(function, cpp_wrapper=device_type == "cpu")
 
 
 @functools.cache
@@ -198,9 +198,9 @@ def integrate(
         return _stepwise_solve(field, *arguments)
     device = initial_state.device.type
     if initial_state[0].numel() <= WHOLE_SOLVE_MAX_STATE and n_times > 1:
-        fast = functools.partial(_Fallback(key, _compiled_whole_solve(device), _stepwise_solve), field)
+        fast = functools.partial(_fallback(key, _compiled_whole_solve(device), _stepwise_solve), field)
     else:
-        fast = functools.partial(_stepwise_solve, field, step=_Fallback(key, _compiled_step(method, device), STEPS[method]))
+        fast = functools.partial(_stepwise_solve, field, step=_fallback(key, _compiled_step(method, device), STEPS[method]))
     if torch.is_grad_enabled() and key not in _gradients_checked:
         _check_against_eager(key, field, fast, arguments)
         if key in _not_compilable:
@@ -292,23 +292,13 @@ def _compiles(solver: str, key: tuple, owner: object) -> bool:
     return solver != "auto" or counts[key] + int(_setting["planned"]) > COMPILE_AFTER
 
 
-class _Fallback:
-    """The compiled function; if it cannot be compiled, its eager twin, with one line saying why."""
+def _fallback(key: tuple, compiled: Callable, eager: Callable) -> EagerFallback:
+    """The compiled solve (or step); if it cannot be compiled, its eager twin, with one line saying why."""
+    return EagerFallback(key, compiled, eager, _not_compilable, _fallback_line, log)
 
-    def __init__(self, key: tuple, compiled: Callable, eager: Callable) -> None:
-        self.key, self.compiled, self.eager = key, compiled, eager
 
-    def __call__(self, field: Field, *arguments) -> Tensor:
-        if self.key in _not_compilable:
-            return self.eager(field, *arguments)
-        try:
-            return self.compiled(field, *arguments)
-        except Exception as error:  # the eager call below re-raises what is the input's fault
-            result = self.eager(field, *arguments)
-            _not_compilable.add(self.key)
-            reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-            log.warning(f"otgb: the solve of {_field_name(field)} runs eagerly: it could not be compiled ({reason[:300]})")
-            return result
+def _fallback_line(field: Field, *arguments) -> str:
+    return f"the solve of {_field_name(field)} runs eagerly: it could not be compiled"
 
 
 def _field_name(field: Field) -> str:
