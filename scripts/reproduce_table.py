@@ -18,7 +18,8 @@ Reference row is the test's own floor (measured half against half). One-to-many 
 twice: C2ST with the strong judge (``evaluation.c2st_classifier=auto``) and with the paper's.
 
 Every finished run leaves a small JSON in ``--results`` (``results/table/<task>/<row>/seed<S>.json``:
-the test's figures, the fit's wall time, the machine, the command); ``--gather`` writes every table
+the test's figures, the fit's training wall time (from its checkpoint, resumes included; a discover
+run's, its commands'), the machine, the command); ``--gather`` writes every table
 from those files alone, so the committed tables are reproducible from committed files.
 
 Interrupted? Run the same command again: finished runs (a result file) are skipped, an unfinished
@@ -36,6 +37,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import torch
 import yaml
 
 from otgb.command import logger_override
@@ -93,8 +95,18 @@ def configs(task: str, method: str) -> list[str]:
     return [arg for path in files for arg in ("--config", str(path))]
 
 
+def training_seconds(folder: Path) -> float:
+    """The training wall time of the fit in ``folder``, resumes included, as its newest ``last.ckpt`` records it.
+
+    From the checkpoint rather than from timing the command: a fit whose command was stopped
+    after the checkpoint (a session that ended) and resumed later keeps its time.
+    """
+    last = newest(folder / "fit", "version_*/checkpoints/last.ckpt")
+    return float(torch.load(last, map_location="cpu", weights_only=False)["otgb"]["elapsed_s"])
+
+
 def add_fit_time(folder: Path, seconds: float) -> float:
-    """Adds a fit's (or a resumed fit's) seconds to the run's ``wall_time.json``; the total."""
+    """Adds a discover run's (or a resumed one's) seconds to the run's ``wall_time.json``; the total."""
     path = folder / "wall_time.json"
     total = (json.loads(path.read_text())["fit_s"] if path.exists() else 0.0) + seconds
     path.write_text(json.dumps({"fit_s": total}))
@@ -121,8 +133,8 @@ class Grid:
         last = newest(folder / "fit", "version_*/checkpoints/last.ckpt")  # a resumed fit writes the next version
         resume = [f"--ckpt_path={last}"] if last is not None else []
         print(f"{self.task} {method} seed {seed}: {'resuming' if resume else 'fitting'}", flush=True)
-        seconds = run_otgb(["fit", *common, logger_override(str(folder), "fit"), *resume], folder / "otgb.log")
-        fit_s = add_fit_time(folder, seconds)
+        run_otgb(["fit", *common, logger_override(str(folder), "fit"), *resume], folder / "otgb.log")
+        fit_s = training_seconds(folder)
         best = newest(folder / "fit", "version_*/checkpoints/best-*.ckpt")  # the resumed fit's only if it beat the earlier best
         self.test_and_record(method, seed, folder, [*common, f"--ckpt_path={best}"], fit_s)
 
