@@ -145,7 +145,14 @@ class OTGBCLI(LightningCLI):
         config = self.config[self.subcommand] if self.subcommand else self.config
         set_solver(checked_solver(config.solver, "--solver"))
         name_loggers_after_config(config.trainer.logger, config.get("config"))
-        self.new_log_dirs = [_first_new(log_dir) for log_dir in share_logger_version(config.trainer.logger)]
+        log_dirs = share_logger_version(config.trainer.logger)
+        self.new_log_dirs = [_first_new(log_dir) for log_dir in log_dirs]
+        if len(log_dirs) > 1:  # e.g. --trainer.logger.init_args.save_dir, which moves only the last logger of the list
+            rank_zero_info(
+                f"otgb: this run's loggers write to {len(log_dirs)} folders ({', '.join(map(str, log_dirs))}); its "
+                "checkpoints and figures go with the first. To move the whole run, give --trainer.logger a list with "
+                "every logger's save_dir (docs/runs.md)"
+            )
 
     def instantiate_trainer(self, **kwargs: Any) -> Trainer:
         """The trainer, with :class:`SimulationProgressBar` unless the progress bar is off or the config names one."""

@@ -426,6 +426,19 @@ def test_own_config_gets_the_defaults_and_names_the_run(tmp_path, monkeypatch):
     assert [logger.name for logger in named.trainer.loggers] == ["mine", "mine"], "a logger named by the user keeps its name"
 
 
+def test_a_run_whose_loggers_write_to_two_folders_says_so_in_one_line(tmp_path, monkeypatch, caplog):
+    """``--trainer.logger.init_args.save_dir`` moves only the last logger of the list: the run says where each went."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(logging.getLogger("lightning.pytorch"), "propagate", True)  # Lightning's info lines reach caplog
+    args = ["--config", CONFIG, "--trainer.logger.init_args.save_dir=elsewhere"]
+    with caplog.at_level(logging.INFO):
+        cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=args)
+    folders = [Path(logger.log_dir).parent.parent for logger in cli.trainer.loggers]
+    assert folders == [Path("runs"), Path("elsewhere")]
+    lines = [r.getMessage() for r in caplog.records if "loggers write to" in r.getMessage()]
+    assert len(lines) == 1 and "runs/pendulum/version_0" in lines[0] and "elsewhere/pendulum/version_0" in lines[0], lines
+
+
 def test_categorical_latent_draws_equally_likely_one_hot_codes(tmp_path):
     config = str(Path(CONFIG).with_name("pendulum_2m.yaml"))
     args = _args(tmp_path, "--model.latent=categorical", "--model.z_dim=3", config=config)
