@@ -36,7 +36,7 @@ def _lower_view_copies() -> None:
     A compiled loop (torch's ``scan``, otgb's solve of a small state) is differentiated through
     a graph in which every view is replaced by its copying twin (``state[:, 0]`` becomes
     ``select_copy``); torch 2.13's inductor has no lowering for these two, so each ran as a
-    separate call through the dispatcher, 17 per step of a pendulum solve, about a third of its
+    separate call through the dispatcher, 17 per step of a pendulum solve, about 30 % of its
     time. Here each is the view followed by a copy, which inductor fuses into the kernel that
     reads it. If inductor's lowering registry is not as expected, nothing is registered and
     the copies stay separate calls: slower, with the same values.
