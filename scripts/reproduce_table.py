@@ -102,6 +102,8 @@ def training_seconds(folder: Path) -> float:
     after the checkpoint (a session that ended) and resumed later keeps its time.
     """
     last = newest(folder / "fit", "version_*/checkpoints/last.ckpt")
+    if last is None:
+        sys.exit(f"{folder / 'fit'}: no last.ckpt after the fit; its log: {folder / 'otgb.log'}")
     return float(torch.load(last, map_location="cpu", weights_only=False)["otgb"]["elapsed_s"])
 
 
