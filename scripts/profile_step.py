@@ -1,6 +1,7 @@
 """Where the time of one training step goes: simulation, map solve, critic, backward.
 
     python scripts/profile_step.py --config configs/pendulum.yaml [--steps 20] [--batch-size 64] [--solver compiled]
+        [--device cuda] [--trace 25]
 
 Builds the model and data module from the config (as `otgb fit` would), then times the
 parts of Algorithm 1 on real batches: the f_p simulation of a step's source batches, the
@@ -8,6 +9,10 @@ grey-box forward solves, the map backward passes, and the critic update (forward
 backward). Prints mean milliseconds per training step, each part's share (the share of
 "simulate f_p" is the fraction of a step spent simulating) and f_p's simulations per second.
 The first two steps (where a compiled solve compiles) are timed apart, as the warm-up.
+``--device cuda`` runs on the GPU, each part timed to the end of its kernels. ``--trace N``
+then profiles two more steps with ``torch.profiler`` and prints its N operators of most time
+(on the device where there is one, else on the host), with the number of host-device
+synchronisations.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ from collections import defaultdict
 from contextlib import contextmanager
 
 import torch
+from lightning.pytorch.utilities import move_data_to_device
 
 from otgb.data import SimulationDataModule
 from otgb.ot import critic_loss
@@ -37,10 +43,14 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--batch-size", type=int, default=None, help="source batch size (default: the config's)")
     parser.add_argument("--solver", choices=SOLVERS, default="compiled", help="the solve path (otgb fit's --solver)")
+    parser.add_argument("--device", default="cpu", help="where the model and its batches live (cpu, cuda)")
+    parser.add_argument("--trace", type=int, default=0, help="profile two more steps and print this many operators")
     args = parser.parse_args()
     overrides = [f"--solver={args.solver}"] + ([] if args.batch_size is None else [f"--data.batch_size={args.batch_size}"])
     model, dm = build(args.config, overrides)  # the run's --solver is set as `otgb fit` sets it
     dm.setup("fit")
+    device = torch.device(args.device)
+    model.to(device)
     map_opt = torch.optim.Adam(model.transport_map.parameters(), lr=1e-4)
     critic_opt = torch.optim.Adam(model.critic.parameters(), lr=1e-4)
     stream = iter(dm.train_dataloader())
@@ -50,15 +60,13 @@ def main() -> None:
     def timed(name: str):
         start = time.perf_counter()
         yield
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
         times[name] += time.perf_counter() - start
 
-    warmup = 0.0
-    for step in range(args.steps + 2):
-        if step == 2:  # the first steps warm up allocators and caches, and compile the solves
-            warmup = sum(times.values())
-            times.clear()
+    def step() -> None:
         with timed("sample (x0, theta)"):
-            batch = next(stream)
+            batch = move_data_to_device(next(stream), device)
         with timed("simulate f_p"):
             batch = dm.on_after_batch_transfer(batch, 0)
         for k in range(model.t_max):
@@ -80,6 +88,12 @@ def main() -> None:
         with timed("optimizer steps"):
             critic_opt.step()
 
+    warmup = 0.0
+    for index in range(args.steps + 2):
+        if index == 2:  # the first steps warm up allocators and caches, and compile the solves
+            warmup = sum(times.values())
+            times.clear()
+        step()
     total = sum(times.values())
     print(
         f"{args.config}: {1000 * total / args.steps:.1f} ms per training step (T_max = {model.t_max}, batch {dm.batch_size}, "
@@ -89,6 +103,23 @@ def main() -> None:
         print(f"  {name:32s} {1000 * seconds / args.steps:8.1f} ms  {100 * seconds / total:5.1f} %")
     rate = args.steps * dm.batch_size * model.t_max / times["simulate f_p"]
     print(f"f_p simulations per second (batch {dm.batch_size}): {rate:.0f}")
+    if args.trace:
+        print_trace(step, device, args.trace)
+
+
+def print_trace(step, device: torch.device, rows: int) -> None:
+    """Two steps under ``torch.profiler``: the ``rows`` operators of most self time, and the host-device synchronisations."""
+    activities = [torch.profiler.ProfilerActivity.CPU]
+    if device.type == "cuda":
+        activities.append(torch.profiler.ProfilerActivity.CUDA)
+    with torch.profiler.profile(activities=activities) as profile:
+        for _ in range(2):
+            step()
+    events = profile.key_averages()
+    sort = "self_cuda_time_total" if device.type == "cuda" else "self_cpu_time_total"
+    print(events.table(sort_by=sort, row_limit=rows, max_name_column_width=60))
+    syncs = {e.key: e.count for e in events if "Synchronize" in e.key or e.key == "aten::_local_scalar_dense"}
+    print(f"host-device synchronisations in 2 steps: {syncs or 'none'}")
 
 
 if __name__ == "__main__":

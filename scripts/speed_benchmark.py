@@ -52,6 +52,7 @@ both files into ``--doc`` between the markers ``<!-- speed: scripts/speed_benchm
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import statistics
@@ -92,6 +93,9 @@ class StepTimes(Callback):
         self._last = now
 
 
+CUDA_GRAPHS = "compiled-cuda-graphs"  # a design under trial in `steps`: the compiled step replayed as CUDA graphs
+
+
 def time_steps(config: str, solver: str, steps: int, workdir: Path, overrides: list[str]) -> tuple[list[float], bool]:
     """The wall time of each training step of ``config``, and whether they ran on a GPU."""
     from otgb.command import logger_override
@@ -101,12 +105,40 @@ def time_steps(config: str, solver: str, steps: int, workdir: Path, overrides: l
     args = [
         str(ROOT / "configs" / f"{config}.yaml"), logger_override(str(workdir / "runs"), f"{config}-{solver}"),
         "--trainer.enable_progress_bar=false", f"--trainer.max_steps={steps}", f"--trainer.val_check_interval={steps}",
-        "--components.enabled=false", f"--data.cache_dir={workdir / 'cache'}", f"--solver={solver}", *overrides,
+        "--components.enabled=false", f"--data.cache_dir={workdir / 'cache'}",
+        f"--solver={'compiled' if solver == CUDA_GRAPHS else solver}", *overrides,
     ]  # fmt: skip
     run = load_run(args[0], *args[1:])
     run.trainer.callbacks.append(timer)
-    run.trainer.fit(run.model, run.datamodule)
+    with cuda_graphs(solver == CUDA_GRAPHS):
+        run.trainer.fit(run.model, run.datamodule)
     return timer.times, run.trainer.strategy.root_device.type == "cuda"
+
+
+@contextlib.contextmanager
+def cuda_graphs(enabled: bool):
+    """While ``enabled``: every compiled solve is the compiled step (small states too), on the GPU replayed as a CUDA
+    graph (``torch.compile``'s ``reduce-overhead``), so that a step's kernels launch as one graph, without the host
+    synchronisation of each iteration of the compiled ``scan`` (inductor runs it as a ``while_loop`` on the host)."""
+    from otgb.physics import solvers
+
+    if not enabled:
+        yield
+        return
+    compile_, whole_state = solvers._compile, solvers.WHOLE_SOLVE_MAX_STATE
+
+    def replayed(function, device_type):
+        if device_type != "cuda":
+            return compile_(function, device_type)
+        return torch.compile(function, mode="reduce-overhead", dynamic=True, fullgraph=True)
+
+    solvers._compiled_step.cache_clear()
+    solvers._compile, solvers.WHOLE_SOLVE_MAX_STATE = replayed, 0
+    try:
+        yield
+    finally:
+        solvers._compile, solvers.WHOLE_SOLVE_MAX_STATE = compile_, whole_state
+        solvers._compiled_step.cache_clear()
 
 
 def summary(times: list[float], warmup: int) -> dict[str, float]:
@@ -261,19 +293,32 @@ def solve_designs(field, x0: torch.Tensor, args: Callable, substeps: int, n_inte
         f"compiled block of {block} steps": blocked,
         "compiled scan, Python wrapper": lambda: python_loop(field, x0, args(), "rk4", h, substeps, n_intervals),
         "compiled scan": lambda: compiled_loop(field, x0, args(), "rk4", h, substeps, n_intervals),
+    } | (cuda_graph_designs(field, x0, args, substeps, n_intervals, h) if device == "cuda" else {})
+
+
+def cuda_graph_designs(field, x0: torch.Tensor, args: Callable, substeps: int, n_intervals: int, h: float) -> dict:
+    """The compiled step and the compiled scan replayed as CUDA graphs (``torch.compile``'s ``reduce-overhead``)."""
+    from otgb.physics import solvers
+
+    graphs = {"mode": "reduce-overhead", "dynamic": True, "fullgraph": True}
+    step, loop = torch.compile(solvers.STEPS["rk4"], **graphs), torch.compile(solvers._whole_solve, **graphs)
+    return {
+        "compiled step, CUDA graphs": lambda: solvers._stepwise_solve(field, x0, args(), "rk4", h, substeps, n_intervals, step),
+        "compiled scan, CUDA graphs": lambda: loop(field, x0, args(), "rk4", h, substeps, n_intervals),
     }
 
 
 def run_designs(args: argparse.Namespace) -> None:
-    from otgb.runs import load_run
+    from otgb.runs import load_run, machine
 
     path, results = results_file(args, "designs.json")
     run = load_run(str(ROOT / "configs" / f"{args.config}.yaml"), "--trainer.logger=false")
-    greybox, physics = run.model.transport_map, run.model.physics
+    device = torch.device(args.device)
+    greybox, physics = run.model.transport_map.to(device), run.model.physics.to(device)
     g = torch.Generator().manual_seed(0)
     batch = run.datamodule.batch_size
-    x0, theta = physics.sample_initial_state(batch, g), physics.sample_theta(batch, g)
-    cond = torch.cat([theta, torch.randn(batch, greybox.z_dim, generator=g)], 1)
+    x0, theta = physics.sample_initial_state(batch, g).to(device), physics.sample_theta(batch, g).to(device)
+    cond = torch.cat([theta, torch.randn(batch, greybox.z_dim, generator=g).to(device)], 1)
     n_intervals = physics.n_obs - 1 if physics.include_initial else physics.n_obs
     substeps = round(physics.dt / physics.step_size)
     if hasattr(greybox.correction, "condition"):  # as GreyBoxODE.solve: the condition's share once per solve
@@ -282,28 +327,35 @@ def run_designs(args: argparse.Namespace) -> None:
         field, field_args = greybox.vector_field, lambda: (theta, cond)
     designs = solve_designs(field, x0, field_args, substeps, n_intervals, physics.step_size, args.block)
     reference = designs["eager loop"]().detach()
-    for name, solve in designs.items():
-        key = f"{args.config}/{name}"
-        if key in results or (args.only and not any(word in name for word in args.only)):
-            continue
+    label = f"{args.config}-{args.label}" if args.label else args.config
+
+    def timed_solve(solve: Callable) -> float:
+        torch.compiler.cudagraph_mark_step_begin()  # a new iteration for the CUDA-graph designs; nothing elsewhere
         start = time.perf_counter()
         solve().square().sum().backward()
-        first = time.perf_counter() - start
-        each = []
-        for _ in range(args.repeats):
-            start = time.perf_counter()
-            solve().square().sum().backward()
-            each.append(time.perf_counter() - start)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        return time.perf_counter() - start
+
+    for name, solve in designs.items():
+        key = f"{label}/{name}"
+        if key in results or (args.only and not any(word in name for word in args.only)):
+            continue
+        first = timed_solve(solve)
+        each = [timed_solve(solve) for _ in range(args.repeats)]
+        torch.compiler.cudagraph_mark_step_begin()
         difference = float((solve().detach() - reference).abs().max())
         median_ms, threads = 1000 * statistics.median(each), torch.get_num_threads()
-        results[key] = {"median_ms": median_ms, "first_s": first, "max_difference": difference, "threads": threads}
+        results[key] = {"median_ms": median_ms, "first_s": first, "max_difference": difference, "threads": threads} | {
+            "machine": machine(device.type == "cuda")
+        }
         path.write_text(json.dumps(results, indent=1))
-    eager = results[f"{args.config}/eager loop"]["median_ms"]
+    eager = results[f"{label}/eager loop"]["median_ms"]
     threads = torch.get_num_threads()
     steps = n_intervals * substeps
-    print(f"{args.config}: one grey-box solve + backward, batch {batch}, {steps} RK4 steps (torch threads {threads}):")
+    print(f"{label}: one grey-box solve + backward, batch {batch}, {steps} RK4 steps (torch threads {threads}, {device}):")
     for key, value in results.items():
-        if key.startswith(f"{args.config}/"):
+        if key.startswith(f"{label}/"):
             print(
                 f"  {key.split('/', 1)[1]:28s} {value['median_ms']:7.1f} ms  x{eager / value['median_ms']:4.2f} of eager  "
                 f"first call {value['first_s']:6.1f} s  max |difference| {value['max_difference']:.1e}"
@@ -489,6 +541,8 @@ def main() -> None:
     designs.add_argument("--block", type=int, default=7, help="steps per compiled block (divides the solve's steps)")
     designs.add_argument("--repeats", type=int, default=20)
     designs.add_argument("--only", nargs="*", help="run only the designs whose name has one of these words (e.g. eager scan)")
+    designs.add_argument("--device", default="cpu", help="where the solves run (cpu, cuda: adds the CUDA-graph designs)")
+    designs.add_argument("--label", help="appended to the config's name in the results (e.g. gpu)")
     discover = commands.add_parser("discover", help="whole `otgb discover` runs on a measured file, per solver")
     discover.add_argument("--config", default="pendulum")
     discover.add_argument("--measured", required=True, help="the measured file")
