@@ -3,7 +3,7 @@
 # training steps on the GPU (torchdiffeq, compiled, compiled replayed as CUDA graphs) and on 2 of the
 # same machine's cores (pinned, beside them), then the GPU tests and a profile of a GPU step.
 #
-#     bash scripts/gpu_benchmark.sh OUT
+#     bash scripts/gpu_benchmark.sh OUT     (about 8 minutes: each part has its own time limit)
 #
 # OUT receives steps-gpu.json, steps-cpu2.json and the logs; merge the JSON files into
 # results/speed/steps.json and run `python scripts/speed_benchmark.py table` to update the docs.
@@ -21,22 +21,22 @@ keep() { cp "$work/$1/steps.json" "$out/steps-$1.json" 2>/dev/null; }
 { nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv; python -c "import torch; print(torch.__version__)"; } >"$out/machine.log" 2>&1
 
 (
-    cpu2 timeout 200 "${steps[@]}" "$work/cpu2" --configs pendulum --label cpu2 --steps 30
+    cpu2 timeout -k 10 180 "${steps[@]}" "$work/cpu2" --configs pendulum --label cpu2 --steps 30
     keep cpu2
-    cpu2 timeout 300 "${steps[@]}" "$work/cpu2" --configs reactdiff --label cpu2 --steps 20
+    cpu2 timeout -k 10 270 "${steps[@]}" "$work/cpu2" --configs reactdiff --label cpu2 --steps 20
     keep cpu2
 ) >"$out/cpu2.log" 2>&1 &
 
 {
-    gpu timeout 250 "${steps[@]}" "$work/gpu" --configs pendulum --label gpu --steps 30 \
+    gpu timeout -k 10 220 "${steps[@]}" "$work/gpu" --configs pendulum --label gpu --steps 30 \
         --solvers torchdiffeq compiled compiled-cuda-graphs -- --trainer.accelerator=gpu
     keep gpu
-    gpu timeout 170 "${steps[@]}" "$work/gpu" --configs reactdiff --label gpu --steps 20 -- --trainer.accelerator=gpu
+    gpu timeout -k 10 150 "${steps[@]}" "$work/gpu" --configs reactdiff --label gpu --steps 20 -- --trainer.accelerator=gpu
     keep gpu
 } >"$out/gpu.log" 2>&1
 
-gpu timeout 110 python -m pytest -m gpu tests/test_gpu.py -q -p no:cacheprovider >"$out/pytest-gpu.log" 2>&1 &
-gpu timeout 110 python scripts/profile_step.py --config configs/pendulum.yaml --device cuda --steps 10 --trace 30 \
+gpu timeout -k 10 90 python -m pytest -m gpu tests/test_gpu.py -q -p no:cacheprovider >"$out/pytest-gpu.log" 2>&1 &
+gpu timeout -k 10 90 python scripts/profile_step.py --config configs/pendulum.yaml --device cuda --steps 10 --trace 30 \
     >"$out/profile-gpu.log" 2>&1
 wait
 keep cpu2
