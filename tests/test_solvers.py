@@ -1,5 +1,6 @@
 """The fast solve path against torchdiffeq's, the reference: same trajectories and gradients, compiled once."""
 
+import json
 import logging
 import subprocess
 import sys
@@ -236,6 +237,28 @@ def test_the_speed_table_in_the_docs_is_what_the_result_files_give(tmp_path):
     results = ROOT / "results" / "speed"
     subprocess.run([sys.executable, str(script), "table", "--out", str(results), "--doc", str(doc)], check=True)
     assert doc.read_text() == (ROOT / "docs" / "results.md").read_text()
+
+
+def test_profile_step_splits_a_step_into_its_parts_and_counts_the_host_synchronisations():
+    script = ROOT / "scripts" / "profile_step.py"
+    command = [sys.executable, str(script), "--config", str(ROOT / "configs" / "pendulum.yaml"), "--steps", "2"]
+    done = subprocess.run([*command, "--batch-size", "4", "--solver", "eager", "--trace", "5"], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert "ms per training step (T_max = 1, batch 4" in lines[0] and "solver eager" in lines[0], lines[0]
+    parts = {line.strip().split("  ")[0] for line in lines[1:9]}
+    assert {"simulate f_p", "map forward (grey-box solve)", "map backward", "critic backward"} <= parts, parts
+    assert lines[-1].startswith("host-device synchronisations in 2 steps: "), lines[-1]
+
+
+def test_the_solve_designs_run_on_the_device_asked_for_under_their_label(tmp_path):
+    script = ROOT / "scripts" / "speed_benchmark.py"
+    command = [sys.executable, str(script), "designs", "--out", str(tmp_path), "--device", "cpu", "--label", "here"]
+    subprocess.run([*command, "--repeats", "2", "--only", "eager", "torchdiffeq"], check=True, capture_output=True)
+    results = json.loads((tmp_path / "designs.json").read_text())
+    assert sorted(results) == ["pendulum-here/eager loop", "pendulum-here/torchdiffeq"]
+    assert results["pendulum-here/torchdiffeq"]["max_difference"] < 1e-4
+    assert results["pendulum-here/eager loop"]["machine"].startswith(("x86_64", "aarch64", "arm64", "i386"))
 
 
 def test_compiled_gradients_that_differ_from_the_eager_loop_make_the_field_run_eagerly_with_one_line(monkeypatch, caplog):
