@@ -60,8 +60,9 @@ def init_options(class_path: str) -> list[str]:
 def concise(message: str, parser: ArgumentParser) -> tuple[str, bool]:
     """One line for a jsonargparse error ``message`` (what, where, the closest valid names), and whether it is about a
     name (an option, key or class), for which ``--help`` lists the valid ones."""
-    where = re.search(r'Parser key "([\w.]+)"', message)
-    place = f"--{where.group(1)}: " if where else ""
+    keys = re.findall(r'Parser key "([\w.]+)"', message)  # the option, then the keys inside it down to the error
+    where = keys[0] if keys else None
+    place = "".join(f"{key}: " for key in [f"--{where}", *keys[1:]]) if where else ""
     unknown = re.match(r"unrecognized arguments: (.*)", message)
     if unknown:
         options = [token.split("=")[0] for token in unknown.group(1).split() if token.startswith("--")]
@@ -71,14 +72,15 @@ def concise(message: str, parser: ArgumentParser) -> tuple[str, bool]:
     if key:
         names = [o[2:] for o in closest("--" + key.group(1), option_names(parser))]
         return f"unknown key '{key.group(1)}'{_did_you_mean(names)}", True
-    bad_class = re.search(r"given class_path '([\w.]+)'", message)
-    option = re.search(r"Option '(\w+)' is not accepted", message)
+    classes = re.findall(r"class_path[= ]'([\w.]+)'", message)  # the class given, then those inside its arguments
+    bad_class = classes[-1] if classes else None
+    option = re.search(r"Option '([\w.]+)' is not accepted", message)
     if bad_class and option:
-        path, name = bad_class.group(1), option.group(1)
-        return f"{place}{path} has no option '{name}'{_did_you_mean(closest(name, init_options(path)))}", True
+        name = option.group(1).split(".")[0]  # 'xii.init_args.value': the misspelt option is 'xii'
+        return f"{place}{bad_class} has no option '{name}'{_did_you_mean(closest(name, init_options(bad_class)))}", True
     missing = re.search(r"module '([\w.]+)' has no attribute '(\w+)'", message)  # a class given for a callable
     if bad_class or missing:
-        path = bad_class.group(1) if bad_class else f"{missing.group(1)}.{missing.group(2)}"
+        path = bad_class or f"{missing.group(1)}.{missing.group(2)}"
         return f"{place}no class '{path}'{_did_you_mean(closest(path, class_names(path)))}", True
     expected = re.search(r"Expected a <class '(\w+)'>\. Got value: (.*)", message)
     if expected:
@@ -88,7 +90,14 @@ def concise(message: str, parser: ArgumentParser) -> tuple[str, bool]:
 
 
 class ConciseParser(LightningArgumentParser):
-    """Lightning's argument parser whose errors are one line naming the closest valid names."""
+    """Lightning's argument parser whose errors are one line naming the closest valid names.
+
+    Abbreviated options are errors too (argparse's default took ``--trainer.max_step`` for
+    ``--trainer.max_steps`` without a word, while a misspelling was rejected).
+    """
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **{"allow_abbrev": False, **kwargs})
 
     def error(self, message: str, ex: Exception | None = None) -> NoReturn:
         if not self.exit_on_error:

@@ -221,6 +221,16 @@ def test_bad_input_is_one_line_status_2_and_no_run_directory(tmp_path):
         (["--model.objective.gama=1"], "--model.objective: otgb.ot.WeakTransport has no option 'gama' (did you mean gamma?)"),
         (["--data.simulation_budget=abc"], "--data.simulation_budget: expected int, got abc"),
         (["--config", "bad.yaml"], "unknown key 'data.simulation_budgit' (did you mean data.simulation_budget?)"),
+        (["--trainer.max_step=3"], "unknown option --trainer.max_step (did you mean --trainer.max_steps"),  # no abbreviations
+        (
+            ["--config", "friction.yaml"],  # a misspelt option of a class inside a list
+            "--data.hidden_effect: otgb.physics.ViscousFriction has no option 'xii' (did you mean xi?)",
+        ),
+        (
+            ["--config", "constant.yaml"],  # ... and of a class inside that class
+            "--data.hidden_effect: xi: otgb.physics.Constant has no option 'valu' (did you mean value?)",
+        ),
+        (["--config", "critic.yaml"], "--model.critic: otgb.models.MLPCritic has no option 'hiden' (did you mean hidden?)"),
         (["--trainer.accelerator=gpux"], "trainer: You selected an invalid accelerator name"),
         (["--model.objective.gamma=-1"], "model.objective.gamma=-1.0: expected a value in [0, 1]"),  # raised while built
         (
@@ -231,6 +241,12 @@ def test_bad_input_is_one_line_status_2_and_no_run_directory(tmp_path):
 )
 def test_parser_errors_are_a_few_lines_ending_with_the_closest_names(tmp_path, monkeypatch, capsys, args, last):
     (tmp_path / "bad.yaml").write_text("data:\n  simulation_budgit: 5\n")
+    effect = "data:\n  hidden_effect:\n    - class_path: otgb.physics.ViscousFriction\n      init_args:\n        {}:\n"
+    constant = "          class_path: otgb.physics.Constant\n          init_args: {{{}: 1.2}}\n"
+    (tmp_path / "friction.yaml").write_text(effect.format("xii") + constant.format("value"))
+    (tmp_path / "constant.yaml").write_text(effect.format("xi") + constant.format("valu"))
+    critic = "model:\n  critic:\n    class_path: otgb.models.MLPCritic\n    init_args: {hiden: [5]}\n"
+    (tmp_path / "critic.yaml").write_text(critic)
     monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as exit_info:
         main(["fit", "--config", CONFIG, f"--data.cache_dir={tmp_path / 'cache'}", *args])
