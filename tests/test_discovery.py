@@ -41,6 +41,7 @@ from otgb.discovery.report import (
     low_power,
     named_divergences,
     share_removed,
+    verdict,
     write_report,
 )
 from otgb.discovery.search import best_subsets, subset_values
@@ -295,6 +296,38 @@ def test_the_named_models_own_divergences_are_said_apart_from_the_candidates():
     result = Discovery(before=None, sentence_before="", fitted=named, diverged=records)
     assert named_divergences(result) == records[1:]
     assert named_divergences(Discovery(before=None, sentence_before="", diverged=records)) == [], "nothing named"
+
+
+def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it_at_the_start_of_the_verdict():
+    """Friction found, quadratic drag within two standard errors of it: the verdict's first clause names friction *or*
+    drag. Where the closest alternative is clearly worse (Coulomb friction, +2.1 standard errors), it is a preference
+    after the first clause."""
+    friction, drag, coulomb = (Candidate(f, "velocity") for f in ("velocity", "velocity*|velocity|", "sign(velocity)"))
+
+    def said(*evidence):
+        result = Discovery(
+            before=SimpleNamespace(any_significant=True),
+            sentence_before="",
+            fitted=FittedTerms("constant", [friction], [Constant(-0.4)], Scores([0.1]), []),
+            evidence=list(evidence),
+            after=SimpleNamespace(any_significant=False),
+            sentence_after="they agree everywhere",
+            gap={"f_p": {"energy": 1.0}, "augmented": {"energy": 0.1}, "reference": {"c2st_std": 0.05}},
+            draws={"f_p": torch.zeros(30, 2)},
+        )
+        return verdict(result, Pendulum()).split("; ")
+
+    to_coulomb = Comparison(friction, coulomb, -0.48, 0.15, 0.072)
+    head, *rest = said(Comparison(friction, drag, -0.37, -0.043, 0.046), to_coulomb)
+    assert head == (
+        "missing effect found, the gap is closed: viscous friction (velocity on dvelocity/dt) or quadratic drag "
+        "(velocity*|velocity|), which the measurements cannot tell apart (-0.9 standard errors), removes 90% of f_p's "
+        "energy distance to the 30 test trajectories, which no longer tell the augmented physics apart"
+    ), head
+    assert rest == ["they agree everywhere"]
+    head, *rest = said(to_coulomb)
+    assert head.startswith("missing effect found, the gap is closed: viscous friction (velocity on dvelocity/dt) removes")
+    assert rest == ["they agree everywhere", "velocity preferred over Coulomb friction (sign(velocity)) by 2.1 standard errors"]
 
 
 def test_intervals_contain_the_estimate_and_cover_the_truth_on_fresh_files():

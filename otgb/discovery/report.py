@@ -60,7 +60,12 @@ def verdict(result: Discovery, physics: PhysicsModel) -> str:
             + result.sentence_before
             + "), but no candidate term closes the gap"
         )
-    names = ", ".join(f"{term_name(c, centre(p), physics)} ({c.feature} on d{c.component}/dt)" for c, p in _terms(result))
+    ambiguous = {(c.replaced.feature, c.replaced.component): c for c in closest_alternatives(result) if c.ambiguous}
+    names = ", ".join(
+        f"{term_name(c, centre(p), physics)} ({c.feature} on d{c.component}/dt)"
+        + _or_alike(ambiguous.get((c.feature, c.component)), physics)
+        for c, p in _terms(result)
+    )
     removes, closes = ("removes", "closes") if len(_terms(result)) == 1 else ("remove", "close")
     if result.after is not None and not result.after.any_significant:
         head = (
@@ -115,22 +120,34 @@ def low_power(result: Discovery) -> list[str]:
     ]
 
 
-def preferences(result: Discovery, physics: PhysicsModel) -> list[str]:
-    """Per named term, its closest alternative on the validation measurements, in standard errors."""
-    sentences = []
+def closest_alternatives(result: Discovery) -> list:
+    """Per named term, the alternative closest to it on the validation measurements (evidence records)."""
+    closest = []
     for candidate in result.fitted.candidates:
         mine = [c for c in result.evidence if c.replaced == candidate and math.isfinite(c.difference)]
-        if not mine:
-            continue
-        closest = min(mine, key=lambda c: abs(c.standard_errors))
-        other = f"{term_name(closest.by, closest.coefficient, physics)} ({closest.by.feature})"
-        if closest.ambiguous:
-            sentences.append(
-                f"the measurements cannot tell {candidate.feature} from {other} ({closest.standard_errors:+.1f} standard errors)"
-            )
-        else:
-            sentences.append(f"{candidate.feature} preferred over {other} by {closest.standard_errors:.1f} standard errors")
-    return sentences
+        if mine:
+            closest.append(min(mine, key=lambda c: abs(c.standard_errors)))
+    return closest
+
+
+def _or_alike(alternative, physics: PhysicsModel) -> str:
+    """For a named term that the measurements cannot tell from ``alternative``: that alternative, at the term's name,
+    so that the verdict's first words give both."""
+    if alternative is None:
+        return ""
+    other = f"{term_name(alternative.by, alternative.coefficient, physics)} ({alternative.by.feature})"
+    return f" or {other}, which the measurements cannot tell apart ({alternative.standard_errors:+.1f} standard errors),"
+
+
+def preferences(result: Discovery, physics: PhysicsModel) -> list[str]:
+    """Per named term that its closest alternative does not match, how strongly the validation measurements prefer it
+    (the ambiguous ones are said beside the term's name, :func:`verdict`)."""
+    return [
+        f"{c.replaced.feature} preferred over {term_name(c.by, c.coefficient, physics)} ({c.by.feature}) by "
+        f"{c.standard_errors:.1f} standard errors"
+        for c in closest_alternatives(result)
+        if not c.ambiguous
+    ]
 
 
 def named_divergences(result: Discovery) -> list[dict]:
