@@ -51,11 +51,11 @@ BETTER = {
     "abs_err": "lower",
     "nrmse": "lower",
     "mmd": "lower, to the Reference",
-    "mmd2_median": "lower, to the Reference",
-    "energy": "lower, to the Reference",
+    "mmd2_median": "lower, to the Reference (unbiased: below 0 is noise)",
+    "energy": "lower, to the Reference (unbiased: below 0 is noise)",
     "mmdagg_reject": "no (yes: the samples differ)",
     "mmdagg_pvalue": "higher (below 0.05: they differ)",
-    "mmdagg_mmd2": "lower, to the Reference",
+    "mmdagg_mmd2": "lower, to the Reference (unbiased: below 0 is noise)",
     "c2st": "0.5: cannot be told apart; 1: always can",
 }
 HEADLINE = ("c2st", "energy", "abs_err")  # the summary sentence's metric: the first one present

@@ -120,7 +120,7 @@ def write_page(page: str) -> None:
 
 def _words(command: str) -> list[str]:
     """The command's words without a leading ``PYTHONPATH=.``."""
-    words = shlex.split(command)
+    words = shlex.split(command, comments=True)  # a documented command may end with a comment
     return words[1:] if "=" in words[0] else words
 
 
