@@ -121,3 +121,15 @@ def test_panels_compared_by_eye_share_one_scale(figures):
         assert len(limits) == 1, f"{kind}: panels on different y scales {limits}"
     images = [ax.images[0] for ax in figures["disagreement, field"].axes if ax.images]
     assert len({image.norm.vmax for image in images}) == 1, "before and after heatmaps on one colour scale"
+
+
+def test_a_disagreement_map_says_its_sizes_and_lists_significant_cells_only_where_there_are_some():
+    pendulum, rows, _ = _pendulum_rows(40)
+    measured = rows["y"][:, 0]
+    same = locate(measured, measured.clone(), pendulum.observation_times(), pendulum.observed, n_permutations=99)
+    differ = locate(measured, rows["x"], pendulum.observation_times(), pendulum.observed, n_permutations=99)
+    assert same.sizes == (len(measured), len(measured)) and not same.any_significant
+    figure = disagreement_figure([(differ, "before"), (same, "after")])
+    before, after = ([t.get_text() for t in ax.get_legend().get_texts()] for ax in figure.axes)
+    assert differ.significant.any() and any(text.endswith(": significant") for text in before), before
+    assert not any(text.endswith(": significant") for text in after), after

@@ -237,7 +237,8 @@ def _draw_disagreement(ax: plt.Axes, result: Any, title: str, top: float) -> Non
         for c, name in enumerate(result.components):
             stat, sig = result.statistic[:, c, 0].numpy(), result.significant[:, c, 0].numpy()
             (line,) = ax.plot(times, stat, label=name)
-            ax.plot(times[sig], stat[sig], "o", color=line.get_color(), ms=4, label=f"{name}: significant")
+            if sig.any():
+                ax.plot(times[sig], stat[sig], "o", color=line.get_color(), ms=4, label=f"{name}: significant")
         ax.set_ylim(min(0.0, float(result.statistic.min())), 1.05 * top)
         ax.set_ylabel("energy distance per time step")
         ax.legend(fontsize=7)
@@ -253,7 +254,8 @@ def _draw_disagreement(ax: plt.Axes, result: Any, title: str, top: float) -> Non
         labels = [f"{comp} {reg}" for comp in result.components for reg in result.regions]
         ax.set_yticks(range(len(labels)), labels, fontsize=5)
         ax.set_ylabel("component and region")
-        ax.legend(fontsize=7, loc="upper right")
+        if len(rows):
+            ax.legend(fontsize=7, loc="upper right")
         ax.figure.colorbar(image, ax=ax, label="energy distance")
     ax.set_xlabel("t")
     ax.set_title(title, fontsize=9)

@@ -38,7 +38,8 @@ class DisagreementMap:
     split between the two families: the cells at false discovery rate alpha / 2, the whole
     trajectories at level alpha / 2.
     ``mean_*`` / ``spread_*`` / ``amplitude_*`` are each sample's mean, standard deviation and
-    mean absolute value per cell (averaged over the region), for the sentence.
+    mean absolute value per cell (averaged over the region), for the sentence; ``sizes`` the two
+    samples' numbers of trajectories.
     """
 
     times: Tensor
@@ -58,6 +59,7 @@ class DisagreementMap:
     whole_statistic: float = 0.0
     whole_pvalue: float = 1.0
     whole_significant: bool = False
+    sizes: tuple[int, int] = (0, 0)  # trajectories in a (the measurements) and in b (the model's)
 
     @property
     def any_significant(self) -> bool:
@@ -188,6 +190,7 @@ def locate(
         whole_statistic=float(whole[0]),
         whole_pvalue=float(whole_pvalue[0]),
         whole_significant=whole_significant,
+        sizes=(len(a), len(b)),
     )
 
 

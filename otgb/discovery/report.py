@@ -280,9 +280,9 @@ def _selection_dict(selection: Any) -> dict[str, Any]:
 
 
 def draw_locate(result: Discovery, path: Path) -> None:
-    maps = [(result.before, "f_p vs measured (before)")] + (
-        [(result.after, "augmented vs measured (after)")] if result.after else []
-    )
+    maps = [(result.before, f"f_p vs measured (before): the training part, {result.before.sizes[0]} trajectories")]
+    if result.after:
+        maps.append((result.after, f"augmented vs measured (after): the test part, {result.after.sizes[0]} trajectories"))
     figure = disagreement_figure(maps)
     save(figure, path)
     close(figure)
