@@ -61,6 +61,14 @@ BETTER = {
 HEADLINE = ("c2st", "energy", "abs_err")  # the summary sentence's metric: the first one present
 
 
+def _sample_sizes(run: dict[str, Any], mode: str) -> str:
+    n, draws = run.get("n_inputs"), run.get("draws_per_input")
+    each = f"{draws} draw{'' if draws == 1 else 's'}"
+    if mode == "marginal":
+        return f"{n} held-out measured trajectories against the models' draws ({n} inputs from the priors x {each})"
+    return f"{n} test inputs x {each}"
+
+
 def split_sources(results: dict[str, float]) -> dict[str, dict[str, dict[str, float | None]]]:
     """Flat logged results (``fp_abs_err``, ``ref_c2st_std``, ``joint_mmd``, ...) -> {source: {metric: {mean, std}}}."""
     out: dict[str, dict[str, dict[str, float | None]]] = {source: {} for source in SOURCES}
@@ -174,8 +182,7 @@ def write_report(
     header = (
         f"# Test metrics: {run.get('name')}\n\n"
         f"Evaluation mode **{mode}**: {run.get('description', '')}\n\n"
-        f"checkpoint `{run.get('ckpt_path')}` (step {run.get('global_step')}), {run.get('n_inputs')} test inputs x "
-        f"{run.get('draws_per_input')} draws\n\n"
+        f"checkpoint `{run.get('ckpt_path')}` (step {run.get('global_step')}), {_sample_sizes(run, mode)}\n\n"
     )
     over = ("test inputs (ABS ERR, N-RMSE) or " if "abs_err" in by_source["model"] else "") + "C2ST folds"
     note = f"\nmean ± std: over {over} for model and f_p; over {REFERENCE_NOTE[mode]} for the Reference.\n"

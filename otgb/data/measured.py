@@ -89,7 +89,8 @@ def split_indices(n: int, val_fraction: float, test_fraction: float, seed: int, 
     sizes["train"] = n - sizes["val"] - sizes["test"]
     if min(sizes["val"], sizes["test"]) < MIN_HELD_OUT or sizes["train"] < 1:
         raise InputError(
-            f"{where}: {n} trajectories split by val_fraction={val_fraction}, test_fraction={test_fraction} give "
+            f"{where}: {n} trajector{'y' if n == 1 else 'ies'} split by val_fraction={val_fraction}, "
+            f"test_fraction={test_fraction} give "
             f"{sizes['train']} train / {sizes['val']} validation / {sizes['test']} test; each held-out part needs >= "
             f"{MIN_HELD_OUT} and training >= 1: give more trajectories or larger fractions"
         )
