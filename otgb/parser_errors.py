@@ -12,6 +12,7 @@ import importlib
 import inspect
 import re
 import sys
+from pathlib import Path
 from typing import NoReturn
 
 from jsonargparse import ArgumentParser
@@ -98,6 +99,11 @@ class ConciseParser(LightningArgumentParser):
 
     def __init__(self, *args, **kwargs) -> None:
         super().__init__(*args, **{"allow_abbrev": False, **kwargs})
+        self._given: list[str] = []
+
+    def parse_args(self, args=None, *rest, **kwargs):
+        self._given = list(sys.argv[1:] if args is None else args)  # to name the config file of an error
+        return super().parse_args(args, *rest, **kwargs)
 
     def error(self, message: str, ex: Exception | None = None) -> NoReturn:
         if not self.exit_on_error:
@@ -105,6 +111,19 @@ class ConciseParser(LightningArgumentParser):
         parser = getattr(ex, "subcommand_parser", None) or self
         prog = " ".join(["otgb", *parser.prog.replace(" [options]", "").split()[1:]])
         text, about_names = concise(message, parser)
-        hint = f"; list the options with: {prog} --help" if about_names else ""
+        where = config_file_with(text, self._given) if about_names else None
+        hint = (f" in {where}" if where else "") + (f"; list the options with: {prog} --help" if about_names else "")
         sys.stderr.write(f"otgb: error: {text}{hint}\n")
         self.exit(2)
+
+
+def config_file_with(text: str, given: list[str]) -> str | None:
+    """The last ``--config`` file among ``given`` that holds the name an error ``text`` quotes first (a misspelt key's
+    last part, an option or a class): where a user has to look; None when no file holds it (a command-line option)."""
+    quoted = re.search(r"'([\w.]+)'", text)
+    if not quoted:
+        return None
+    name = quoted.group(1) if "no class" in text else quoted.group(1).rpartition(".")[2]
+    files = [b for a, b in zip(given, given[1:]) if a == "--config"] + [a[9:] for a in given if a.startswith("--config=")]
+    holding = [f for f in files if Path(f).is_file() and re.search(rf"\b{re.escape(name)}\b", Path(f).read_text())]
+    return holding[-1] if holding else None

@@ -220,17 +220,20 @@ def test_bad_input_is_one_line_status_2_and_no_run_directory(tmp_path):
         ),
         (["--model.objective.gama=1"], "--model.objective: otgb.ot.WeakTransport has no option 'gama' (did you mean gamma?)"),
         (["--data.simulation_budget=abc"], "--data.simulation_budget: expected int, got abc"),
-        (["--config", "bad.yaml"], "unknown key 'data.simulation_budgit' (did you mean data.simulation_budget?)"),
+        (["--config", "bad.yaml"], "unknown key 'data.simulation_budgit' (did you mean data.simulation_budget?) in bad.yaml"),
         (["--trainer.max_step=3"], "unknown option --trainer.max_step (did you mean --trainer.max_steps"),  # no abbreviations
         (
             ["--config", "friction.yaml"],  # a misspelt option of a class inside a list
-            "--data.hidden_effect: otgb.physics.ViscousFriction has no option 'xii' (did you mean xi?)",
+            "--data.hidden_effect: otgb.physics.ViscousFriction has no option 'xii' (did you mean xi?) in friction.yaml",
         ),
         (
             ["--config", "constant.yaml"],  # ... and of a class inside that class
-            "--data.hidden_effect: xi: otgb.physics.Constant has no option 'valu' (did you mean value?)",
+            "--data.hidden_effect: xi: otgb.physics.Constant has no option 'valu' (did you mean value?) in constant.yaml",
         ),
-        (["--config", "critic.yaml"], "--model.critic: otgb.models.MLPCritic has no option 'hiden' (did you mean hidden?)"),
+        (
+            ["--config", "critic.yaml"],
+            "--model.critic: otgb.models.MLPCritic has no option 'hiden' (did you mean hidden?) in critic.yaml",
+        ),
         (["--trainer.accelerator=gpux"], "trainer: You selected an invalid accelerator name"),
         (["--model.objective.gamma=-1"], "model.objective.gamma=-1.0: expected a value in [0, 1]"),  # raised while built
         (
