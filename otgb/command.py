@@ -154,6 +154,17 @@ class OTGBCLI(LightningCLI):
                 "every logger's save_dir (docs/runs.md)"
             )
 
+    def before_fit(self) -> None:
+        """One line when ``--trainer.max_steps`` ends the run before its first validation: no validation metrics, no
+        best checkpoint and no trajectory figures then (a shortened run is easy to ask for and was silent about it)."""
+        data, every, stop = self.datamodule, self.trainer.val_check_interval, self.trainer.max_steps
+        steps = data.simulation_budget // (data.batch_size * data.batches_per_step)
+        if isinstance(every, int) and 0 < stop < min(every, steps):
+            rank_zero_info(
+                f"otgb: --trainer.max_steps={stop} ends the run before its first validation (every {every} steps of the "
+                f"budget's {steps}): no validation, no best checkpoint; lower --trainer.val_check_interval or the budget"
+            )
+
     def instantiate_trainer(self, **kwargs: Any) -> Trainer:
         """The trainer, with :class:`SimulationProgressBar` unless the progress bar is off or the config names one."""
         config = self._get(self.config_init, "trainer", default={})

@@ -458,6 +458,19 @@ def test_a_run_whose_loggers_write_to_two_folders_says_so_in_one_line(tmp_path, 
     assert len(lines) == 1 and "runs/pendulum/version_0" in lines[0] and "elsewhere/pendulum/version_0" in lines[0], lines
 
 
+@pytest.mark.parametrize("max_steps, said", [(3, True), (200, False)])
+def test_a_run_stopped_before_its_first_validation_says_so(tmp_path, monkeypatch, caplog, max_steps, said):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(logging.getLogger("lightning.pytorch"), "propagate", True)
+    args = ["--config", CONFIG, f"--trainer.max_steps={max_steps}", "--trainer.val_check_interval=100"]
+    with caplog.at_level(logging.INFO):
+        cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=args)
+        cli.before_fit()
+    lines = [r.getMessage() for r in caplog.records if "before its first validation" in r.getMessage()]
+    expected = f"otgb: --trainer.max_steps={max_steps} ends the run before its first validation (every 100 steps of the budget's"
+    assert lines == [] if not said else len(lines) == 1 and lines[0].startswith(expected), lines
+
+
 def test_categorical_latent_draws_equally_likely_one_hot_codes(tmp_path):
     config = str(Path(CONFIG).with_name("pendulum_2m.yaml"))
     args = _args(tmp_path, "--model.latent=categorical", "--model.z_dim=3", config=config)
