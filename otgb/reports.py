@@ -29,7 +29,10 @@ SOURCES = {"model": "", "fp": "fp_", "reference": "ref_"}
 HEADERS = {"model": "model", "fp": "f_p alone", "reference": "Reference"}
 GROUPS = {"": "", "joint_": "joint with recorded inputs: "}  # metric-name prefix -> row label prefix
 REFERENCE_NOTE = {
-    "joint": "random splits of two independent DGP draw sets on the same inputs",
+    "joint": (
+        "random splits of two independent DGP draw sets on the same inputs (a deterministic DGP draws the same "
+        "trajectories twice: its Reference is each metric's floor, 0 ± 0, or 0.5 for C2ST)"
+    ),
     "marginal": (
         "random splits of the held-out measurements into two halves (half-size samples: the unbiased MMD^2_u and energy "
         "keep their mean, the biased paper-code MMD sits about twice as high as a full-size comparison at the noise floor)"

@@ -201,6 +201,8 @@ def test_regression_names_quadratic_drag():
     assert abs(term.coefficient + 0.5) < 0.01 and term.interval[0] < -0.49 and term.inclusion_probability == 1.0
     assert physical_name(term.candidate.feature, "velocity", term.coefficient, model) == "quadratic drag"
     assert physical_name("velocity^3", "velocity", -0.1, model) == "cubic drag", "a velocity's cube is a drag, not a reaction"
+    square = physical_name("velocity^2", "velocity", -0.1, model)  # the same sign both ways: neither drag nor saturation
+    assert square == "one-sided quadratic push (towards negative velocity)", square
     assert ("angle", "sin(angle)") in {(a, b) for a, b, _ in selection.confusable_pairs}
 
 

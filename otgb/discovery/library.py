@@ -124,6 +124,8 @@ def _named(feature: str, own: str, coefficient: float, model: PhysicsModel) -> s
         return "quadratic drag" if coefficient < 0 else "quadratic anti-drag"
     if feature == f"sign({own})" and is_velocity:
         return "Coulomb friction" if coefficient < 0 else "constant-magnitude push along the motion"
+    if feature == f"{own}^2" and is_velocity:  # the same sign whichever way it moves: no friction
+        return f"one-sided quadratic push (towards {'negative' if coefficient < 0 else 'positive'} {own})"
     if feature == f"{own}^2":
         return "logistic saturation" if coefficient < 0 else "quadratic growth"
     if feature == f"{own}^3" and is_velocity:
