@@ -75,31 +75,37 @@ def probe_series(trajectories: Tensor, names: Sequence[str]) -> tuple[Tensor, li
 def distribution_figure(
     samples: dict[str, Tensor], times: Tensor, names: Sequence[str], step: int | None = None
 ) -> plt.Figure:  # fmt: skip
-    """Median, 25-75 % and 5-95 % bands over time of each source, and three sample paths each, on one y scale per
-    series. ``samples``: source name -> trajectories (N, T, *obs) (the sources may differ in N)."""
+    """Median, 25-75 % and 5-95 % bands over time of each source, and two sample paths each, on one y scale per
+    series. ``samples``: source name -> trajectories (N, T, *obs) (the sources may differ in N). The first source's
+    bands are filled, the others' outlined (25-75 % solid, 5-95 % dotted), so that overlapping bands stay apart."""
     series = {name: probe_series(values.float(), names) for name, values in samples.items()}
     labels = next(iter(series.values()))[1]
     cols = min(len(labels), 3)
     rows = -(-len(labels) // cols)
-    figure, axes = plt.subplots(rows, cols, figsize=(max(4.5 * cols, 6.0), 3.0 * rows + 0.6), squeeze=False)
+    figure, axes = plt.subplots(rows, cols, figsize=(max(4.5 * cols, 8.0), 3.0 * rows + 0.6), squeeze=False)
     t = times.numpy()
     for k, ax in enumerate(axes.flat):
         if k >= len(labels):
             ax.axis("off")
             continue
-        for source, (values, _) in series.items():
+        for i, (source, (values, _)) in enumerate(series.items()):
             colour, style = STYLE.get(source, ("tab:purple", "-"))
             q = torch.quantile(values[..., k], torch.tensor([0.05, 0.25, 0.5, 0.75, 0.95]), dim=0).numpy()
-            ax.fill_between(t, q[0], q[4], color=colour, alpha=0.12, lw=0)
-            ax.fill_between(t, q[1], q[3], color=colour, alpha=0.25, lw=0)
-            ax.plot(t, q[2], color=colour, ls=style, lw=1.5, label=f"{source} (n={len(values)})")
-            for path in values[:3, :, k]:
-                ax.plot(t, path.numpy(), color=colour, ls=style, lw=0.5, alpha=0.6)
+            if i == 0:
+                ax.fill_between(t, q[0], q[4], color=colour, alpha=0.10, lw=0)
+                ax.fill_between(t, q[1], q[3], color=colour, alpha=0.22, lw=0)
+            else:
+                for edge, line in ((0, ":"), (1, "-"), (3, "-"), (4, ":")):
+                    ax.plot(t, q[edge], color=colour, ls=line, lw=0.8)
+            ax.plot(t, q[2], color=colour, ls=style, lw=1.8, label=f"{source} (n={len(values)})")
+            for path in values[:2, :, k]:
+                ax.plot(t, path.numpy(), color=colour, ls=style, lw=0.5, alpha=0.45)
         ax.set_title(labels[k], fontsize=8)
         ax.set_xlabel("t", fontsize=7)
         ax.set_ylabel(labels[k], fontsize=7)
     axes.flat[0].legend(fontsize=7)
-    what = "distributions over time: median, 25-75 % and 5-95 % bands, 3 sample paths each (unpaired)"
+    first = next(iter(series))
+    what = f"median, 25-75 % and 5-95 % over time ({first} filled), 2 paths each (unpaired)"
     title(figure, what, step)
     figure.tight_layout()
     return figure
