@@ -67,7 +67,15 @@ def verdict(result: Discovery, physics: PhysicsModel) -> str:
         for c, p in _terms(result)
     )
     removes, closes = ("removes", "closes") if len(_terms(result)) == 1 else ("remove", "close")
-    if result.after is not None and not result.after.any_significant:
+    closed = result.after is not None and not result.after.any_significant
+    blind = test_part_blind(result) if closed else None
+    if blind:
+        head = (
+            f"missing effect named, not confirmed: {names}, but the {len(result.draws['f_p'])} test trajectories cannot "
+            f"tell even f_p from the measurements ({blind}), so their agreeing with the augmented physics confirms "
+            "nothing: more measurements are needed to confirm it"
+        )
+    elif closed:
         head = (
             f"missing effect found, the gap is closed: {names} {removes} {share_removed(result)}, which no longer tell the "
             f"augmented physics apart; {result.sentence_after}"
@@ -77,7 +85,7 @@ def verdict(result: Discovery, physics: PhysicsModel) -> str:
             f"missing effect partly found: {names} {closes} {share_removed(result)}; {result.sentence_after}; "
             "no library term fits exactly, these are the best approximation"
         )
-    parts = [head, *preferences(result, physics), *flags(result, physics), *low_power(result)]
+    parts = [head, *preferences(result, physics), *flags(result, physics), *([] if blind else low_power(result))]
     if named := named_divergences(result):
         worst = max(named, key=lambda d: d["diverged"] / d["of"])
         parts.append(
@@ -103,6 +111,18 @@ def share_removed(result: Discovery) -> str:
         return f"{share:.0%} of f_p's energy distance {tested}"
     left = result.gap["augmented"]["energy"]
     return f"all of f_p's energy distance {tested} (what is left, {left:.3g}, is not above zero: the test sample's noise)"
+
+
+def test_part_blind(result: Discovery) -> str | None:
+    """When the test part cannot tell f_p itself from the measurements (f_p's C2ST within two of the Reference's
+    standard deviations of 0.5), the numbers that say so; else None. A verification on such a part cannot confirm a
+    closed gap: it would also have passed f_p."""
+    f_p, reference = result.gap.get("f_p", {}), result.gap.get("reference", {})
+    if "c2st" not in f_p or "c2st_std" not in reference:
+        return None
+    if f_p["c2st"] - 0.5 > 2 * reference["c2st_std"]:
+        return None
+    return f"C2ST {f_p['c2st']:.2f}, the Reference's {reference['c2st']:.2f} +- {reference['c2st_std']:.2f}"
 
 
 LOW_POWER_SPREAD = 0.1  # the Reference C2ST's spread over its repeats above which the verification is said to be weak
