@@ -63,6 +63,9 @@ def _figures():
         "fields 1-D": space_time_figure(fields_1d, theta_1d, advdiff, "T", STEP),
         "fields 2-D": frames_figure(fields_2d, theta_2d, reactdiff, [0, 5, 14], "u", STEP),
         "components": components_figure(_components(), STEP),
+        "components, no true field": components_figure(
+            {**_components(), "func_err": None, "func_err_unavailable": "the measurements come from a file"}, STEP
+        ),
         "disagreement, ODE": disagreement_figure([(ode_map, "before"), (ode_map, "after")]),
         "disagreement, field": disagreement_figure([(field_map, "before"), (field_map, "after")]),
     }  # fmt: skip

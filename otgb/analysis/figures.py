@@ -193,35 +193,38 @@ def frames_figure(
 
 
 def components_figure(result: dict[str, Any], step: int | None = None) -> plt.Figure:
-    """Three panels over time: trajectory-level error, function-level errors, |f_p| and |f_phi|
-    (:func:`otgb.analysis.components.component_analysis`'s result)."""
+    """Panels over time: trajectory-level error, function-level errors (where a true vector field is known; else a
+    line below says why they are missing), |f_p| and |f_phi| (:func:`otgb.analysis.components.component_analysis`'s
+    result)."""
     t = result["times"].numpy()
-    figure, (traj, func, parts) = plt.subplots(1, 3, figsize=(13, 3.6))
+    known = result["func_err"] is not None
+    figure, axes = plt.subplots(1, 3 if known else 2, figsize=(13 if known else 9, 3.6))
+    traj, parts = axes[0], axes[-1]
     kind = "ABS ERR" if result["traj_err_kind"] == "abs_err" else "energy distance"
     traj.plot(t, result["traj_err"].numpy(), color="tab:green", label="generated vs measured")
     traj.set_title(f"trajectory level ({kind})", fontsize=9)
     traj.set_ylabel(kind, fontsize=8)
     traj.legend(fontsize=7)
-    if result["func_err"] is None:
-        reason = textwrap.fill(f"not available: {result['func_err_unavailable']}", 40)
-        func.text(0.5, 0.5, reason, ha="center", va="center", fontsize=8)
-        func.set_xticks([])
-        func.set_yticks([])
-    else:
+    if known:
+        func = axes[1]
         func.plot(t, result["func_err_fp"].numpy(), color="tab:orange", ls="--", label="f_p")
         func.plot(t, result["func_err"].numpy(), color="tab:green", label="f_p + f_phi")
         func.legend(fontsize=7)
-    func.set_title("function level: mean |f - f_true|", fontsize=9)
-    func.set_ylabel("mean |f - f_true|", fontsize=8)
+        func.set_title("function level: mean |f - f_true|", fontsize=9)
+        func.set_ylabel("mean |f - f_true|", fontsize=8)
     parts.plot(t, result["f_p_abs"].numpy(), color="tab:orange", ls="--", label="|f_p|")
     parts.plot(t, result["f_phi_abs"].numpy(), color="tab:green", label="|f_phi|")
     parts.set_title(f"components along the solve (f_phi share {result['summary']['correction_share']:.3g})", fontsize=9)
     parts.set_ylabel("mean |f|", fontsize=8)
     parts.legend(fontsize=7)
-    for ax in (traj, func, parts):
+    for ax in axes:
         ax.set_xlabel("t", fontsize=8)
     title(figure, "component analysis of the grey-box along its solve", step)
-    figure.tight_layout()
+    if known:
+        figure.tight_layout()
+    else:
+        figure.text(0.5, 0.01, f"function level not shown: {result['func_err_unavailable']}", ha="center", fontsize=7)
+        figure.tight_layout(rect=(0, 0.05, 1, 1))
     return figure
 
 
