@@ -23,11 +23,15 @@ class _Drop(logging.Filter):
 
 def quiet_known_harmless() -> None:
     """Install the filters (idempotent: ``warnings`` keeps one copy of each filter, loggers one of each object)."""
-    # Lightning advertises its cloud logger at the start of every fit: not about the run.
+    # Lightning advertises its cloud logger at the start of every fit, says that no TPU is there, and that it loads
+    # the training loader to count its steps (the learning-rate schedules ask for that count): none is about the
+    # run (otgb runs on CPUs and CUDA GPUs; the GPU line stays).
+    harmless = ("litlogger", "TPU available: False", "to estimate number of stepping batches")
     for name in ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero"):
         logger = logging.getLogger(name)
         if not any(isinstance(f, _Drop) for f in logger.filters):
-            logger.addFilter(_Drop("litlogger"))
+            for text in harmless:
+                logger.addFilter(_Drop(text))
     # The source stream is an IterableDataset whose __len__ is the number of steps its budget buys; its
     # DataLoader workers take disjoint items (otgb.data.stream), so the length Lightning warns about is exact.
     warnings.filterwarnings("ignore", message="Your `IterableDataset` has `__len__` defined", category=UserWarning)

@@ -482,6 +482,17 @@ def test_categorical_latent_draws_equally_likely_one_hot_codes(tmp_path):
     assert torch.all((counts - n / 3).abs() <= 3 * (n * (1 / 3) * (2 / 3)) ** 0.5), counts
 
 
+def test_a_fit_prints_no_known_harmless_third_party_lines(tmp_path):
+    """otgb.quiet drops Lightning's cloud-logger tip, its TPU line and its note on counting steps; its GPU line stays."""
+    command = [sys.executable, "-m", "otgb.cli", "fit", "--config", CONFIG, "--trainer.max_steps=2"]
+    command.append(f"--data.cache_dir={tmp_path}")
+    done = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    printed = done.stdout + done.stderr
+    assert done.returncode == 0 and "GPU available" in printed, printed[-2000:]
+    for harmless in ("litlogger", "TPU available", "to estimate number of stepping batches"):
+        assert harmless not in printed, harmless
+
+
 def test_load_run_builds_the_model_and_data_of_a_run_quietly(tmp_path, capfd):
     main(["fit", *_args(tmp_path, "--trainer.max_steps=2")])
     ckpt = tmp_path / "run" / "version_0" / "checkpoints" / "last.ckpt"
