@@ -158,10 +158,11 @@ class OTGBCLI(LightningCLI):
         """One line when ``--trainer.max_steps`` ends the run before its first validation: no validation metrics, no
         best checkpoint and no trajectory figures then (a shortened run is easy to ask for and was silent about it)."""
         data, every, stop = self.datamodule, self.trainer.val_check_interval, self.trainer.max_steps
-        steps = data.simulation_budget // (data.batch_size * data.batches_per_step)
-        if isinstance(every, int) and 0 < stop < min(every, steps):
+        steps = data.simulation_budget // self.trainer.world_size // (data.batch_size * data.batches_per_step)
+        first = every if isinstance(every, int) else max(int(steps * every), 1)  # a float: a fraction of the run
+        if 0 < stop < min(first, steps):
             rank_zero_info(
-                f"otgb: --trainer.max_steps={stop} ends the run before its first validation (every {every} steps of the "
+                f"otgb: --trainer.max_steps={stop} ends the run before its first validation (at step {first} of the "
                 f"budget's {steps}): no validation, no best checkpoint; lower --trainer.val_check_interval or the budget"
             )
 

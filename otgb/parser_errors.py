@@ -73,9 +73,8 @@ def concise(message: str, parser: ArgumentParser) -> tuple[str, bool]:
     if key:
         names = [o[2:] for o in closest("--" + key.group(1), option_names(parser))]
         return f"unknown key '{key.group(1)}'{_did_you_mean(names)}", True
-    classes = re.findall(r"class_path[= ]'([\w.]+)'", message)  # the class given, then those inside its arguments
-    bad_class = classes[-1] if classes else None
     option = re.search(r"Option '([\w.]+)' is not accepted", message)
+    bad_class = _owner(message, option.start() if option else len(message))
     if bad_class and option:
         name = option.group(1).split(".")[0]  # 'xii.init_args.value': the misspelt option is 'xii'
         return f"{place}{bad_class} has no option '{name}'{_did_you_mean(closest(name, init_options(bad_class)))}", True
@@ -88,6 +87,14 @@ def concise(message: str, parser: ArgumentParser) -> tuple[str, bool]:
         return f"{place}expected {expected.group(1)}, got {expected.group(2).strip()}", False
     lines = [line.strip(" -") for line in message.splitlines() if line.strip(" -")]
     return (f"{place}{lines[-1]}" if where and len(lines) > 1 else "; ".join(lines) or message), False
+
+
+def _owner(message: str, at: int) -> str | None:
+    """The class an error at position ``at`` of ``message`` is about: the value a callable was given right after it
+    (``Got value: Namespace(class_path='X'``), else the innermost class given before it (``given class_path 'X'``)."""
+    after = re.search(r"Got value: Namespace\(class_path='([\w.]+)'", message[at:])
+    before = re.findall(r"given class_path '([\w.]+)'", message[:at])
+    return after.group(1) if after else (before[-1] if before else None)
 
 
 class ConciseParser(LightningArgumentParser):
@@ -118,12 +125,23 @@ class ConciseParser(LightningArgumentParser):
 
 
 def config_file_with(text: str, given: list[str]) -> str | None:
-    """The last ``--config`` file among ``given`` that holds the name an error ``text`` quotes first (a misspelt key's
-    last part, an option or a class): where a user has to look; None when no file holds it (a command-line option)."""
+    """The first ``--config`` / ``-c`` file among ``given`` whose YAML holds the name an error ``text`` quotes first (a
+    misspelt key's last part or option, as a key; a class, as its path): where a user has to look. None when the
+    command line itself holds the name (outside its config files), or no file does."""
     quoted = re.search(r"'([\w.]+)'", text)
     if not quoted:
         return None
     name = quoted.group(1) if "no class" in text else quoted.group(1).rpartition(".")[2]
-    files = [b for a, b in zip(given, given[1:]) if a == "--config"] + [a[9:] for a in given if a.startswith("--config=")]
-    holding = [f for f in files if Path(f).is_file() and re.search(rf"\b{re.escape(name)}\b", Path(f).read_text())]
-    return holding[-1] if holding else None
+    pattern = re.escape(name) if "no class" in text else rf"\b{re.escape(name)}\s*:"
+    files, others = [], []
+    for previous, token in zip(["", *given], given):
+        if previous in ("--config", "-c"):
+            files.append(token)
+        elif token.startswith("--config="):
+            files.append(token.removeprefix("--config="))
+        elif token not in ("--config", "-c"):
+            others.append(token)
+    if any(re.search(rf"\b{re.escape(name)}\b", token) for token in others):
+        return None
+    holding = [f for f in files if Path(f).is_file() and re.search(pattern, Path(f).read_text())]
+    return holding[0] if holding else None

@@ -35,8 +35,8 @@ keep() { cp "$work/$1/steps.json" "$out/steps-$1.json" 2>/dev/null; }
     keep gpu
 } >"$out/gpu.log" 2>&1
 
-gpu timeout -k 10 90 python -m pytest -m gpu tests/test_gpu.py -q -p no:cacheprovider >"$out/pytest-gpu.log" 2>&1 &
-gpu timeout -k 10 90 python scripts/profile_step.py --config configs/pendulum.yaml --device cuda --steps 10 --trace 30 \
+gpu timeout -k 10 80 python -m pytest -m gpu tests/test_gpu.py -q -p no:cacheprovider >"$out/pytest-gpu.log" 2>&1
+gpu timeout -k 10 70 python scripts/profile_step.py --config configs/pendulum.yaml --device cuda --steps 10 --trace 30 \
     >"$out/profile-gpu.log" 2>&1
 wait
 keep cpu2

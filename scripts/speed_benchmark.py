@@ -96,6 +96,13 @@ class StepTimes(Callback):
 CUDA_GRAPHS = "compiled-cuda-graphs"  # a design under trial in `steps`: the compiled step replayed as CUDA graphs
 
 
+class NewGraphIteration(Callback):
+    """Each training step a new iteration of the CUDA-graph replays (the step's tensors are not kept past it)."""
+
+    def on_train_batch_start(self, *args) -> None:
+        torch.compiler.cudagraph_mark_step_begin()
+
+
 def time_steps(config: str, solver: str, steps: int, workdir: Path, overrides: list[str]) -> tuple[list[float], bool]:
     """The wall time of each training step of ``config``, and whether they ran on a GPU."""
     from otgb.command import logger_override
@@ -110,6 +117,8 @@ def time_steps(config: str, solver: str, steps: int, workdir: Path, overrides: l
     ]  # fmt: skip
     run = load_run(args[0], *args[1:])
     run.trainer.callbacks.append(timer)
+    if solver == CUDA_GRAPHS:
+        run.trainer.callbacks.append(NewGraphIteration())
     with cuda_graphs(solver == CUDA_GRAPHS):
         run.trainer.fit(run.model, run.datamodule)
     return timer.times, run.trainer.strategy.root_device.type == "cuda"
@@ -132,13 +141,18 @@ def cuda_graphs(enabled: bool):
             return compile_(function, device_type)
         return torch.compile(function, mode="reduce-overhead", dynamic=True, fullgraph=True)
 
-    solvers._compiled_step.cache_clear()
+    def fresh() -> None:  # each path compiles, checks its gradients against the eager loop and falls back on its own
+        solvers._compiled_step.cache_clear()
+        solvers._gradients_checked.clear()
+        solvers._not_compilable.clear()
+
+    fresh()
     solvers._compile, solvers.WHOLE_SOLVE_MAX_STATE = replayed, 0
     try:
         yield
     finally:
         solvers._compile, solvers.WHOLE_SOLVE_MAX_STATE = compile_, whole_state
-        solvers._compiled_step.cache_clear()
+        fresh()
 
 
 def summary(times: list[float], warmup: int) -> dict[str, float]:

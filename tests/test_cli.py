@@ -231,6 +231,15 @@ def test_bad_input_is_one_line_status_2_and_no_run_directory(tmp_path):
             "--data.hidden_effect: xi: otgb.physics.Constant has no option 'valu' (did you mean value?) in constant.yaml",
         ),
         (
+            ["--config", "correction.yaml"],  # a class given to a callable inside another class's arguments
+            "--model.transport_map: correction: otgb.models.ConditionalMLP has no option 'hiden' (did you mean hidden?) "
+            "in correction.yaml",
+        ),
+        (  # a command-line typo is not blamed on the config file, which holds 'xi' elsewhere
+            ["--model.critic.init_args.xi=3"],
+            "--model.critic: otgb.models.MLPCritic has no option 'xi'; list the options",
+        ),
+        (
             ["--config", "critic.yaml"],
             "--model.critic: otgb.models.MLPCritic has no option 'hiden' (did you mean hidden?) in critic.yaml",
         ),
@@ -250,6 +259,8 @@ def test_parser_errors_are_a_few_lines_ending_with_the_closest_names(tmp_path, m
     (tmp_path / "constant.yaml").write_text(effect.format("xi") + constant.format("valu"))
     critic = "model:\n  critic:\n    class_path: otgb.models.MLPCritic\n    init_args: {hiden: [5]}\n"
     (tmp_path / "critic.yaml").write_text(critic)
+    correction = "model:\n  transport_map:\n    init_args:\n      correction:\n        class_path: otgb.models.ConditionalMLP\n"
+    (tmp_path / "correction.yaml").write_text(correction + "        init_args: {hiden: [64, 64]}\n")
     monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as exit_info:
         main(["fit", "--config", CONFIG, f"--data.cache_dir={tmp_path / 'cache'}", *args])
@@ -458,17 +469,20 @@ def test_a_run_whose_loggers_write_to_two_folders_says_so_in_one_line(tmp_path, 
     assert len(lines) == 1 and "runs/pendulum/version_0" in lines[0] and "elsewhere/pendulum/version_0" in lines[0], lines
 
 
-@pytest.mark.parametrize("max_steps, said", [(3, True), (200, False)])
-def test_a_run_stopped_before_its_first_validation_says_so(tmp_path, monkeypatch, caplog, max_steps, said):
+@pytest.mark.parametrize(
+    "max_steps, every, first", [(3, "100", 100), (200, "100", None), (50, "0.5", 1562), (2000, "0.5", None), (-1, "100", None)]
+)
+def test_a_run_stopped_before_its_first_validation_says_so(tmp_path, monkeypatch, caplog, max_steps, every, first):
+    """An int val_check_interval counts steps, a float is a fraction of the run (3125 steps of the config's budget)."""
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(logging.getLogger("lightning.pytorch"), "propagate", True)
-    args = ["--config", CONFIG, f"--trainer.max_steps={max_steps}", "--trainer.val_check_interval=100"]
+    args = ["--config", CONFIG, f"--trainer.max_steps={max_steps}", f"--trainer.val_check_interval={every}"]
     with caplog.at_level(logging.INFO):
         cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=args)
         cli.before_fit()
     lines = [r.getMessage() for r in caplog.records if "before its first validation" in r.getMessage()]
-    expected = f"otgb: --trainer.max_steps={max_steps} ends the run before its first validation (every 100 steps of the budget's"
-    assert lines == [] if not said else len(lines) == 1 and lines[0].startswith(expected), lines
+    expected = f"otgb: --trainer.max_steps={max_steps} ends the run before its first validation (at step {first} of the budget's"
+    assert lines == [] if first is None else len(lines) == 1 and lines[0].startswith(expected), lines
 
 
 def test_categorical_latent_draws_equally_likely_one_hot_codes(tmp_path):

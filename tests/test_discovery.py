@@ -36,6 +36,7 @@ from otgb.discovery.refine import (
 from otgb.discovery.regression import SelectedTerm, Selection, design_matrix, regress
 from otgb.discovery.report import (
     _family_section,
+    confirmed,
     distribution,
     distribution_text,
     low_power,
@@ -317,16 +318,17 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
             gap={"f_p": f_p or {"energy": 1.0}, "augmented": {"energy": 0.1}, "reference": {"c2st": 0.57, "c2st_std": 0.05}},
             draws={"f_p": torch.zeros(30, 2)},
         )
+        said.confirmed = confirmed(result)
         return verdict(result, Pendulum()).split("; ")
 
     to_coulomb = Comparison(friction, coulomb, -0.48, 0.15, 0.072)
     head, *rest = said(Comparison(friction, drag, -0.37, -0.043, 0.046), to_coulomb)
     assert head == (
         "missing effect found, the gap is closed: viscous friction (velocity on dvelocity/dt) or quadratic drag "
-        "(velocity*|velocity|), which the measurements cannot tell apart (-0.9 standard errors), removes 90% of f_p's "
+        "(velocity*|velocity|) (the measurements cannot tell them apart: -0.9 standard errors) removes 90% of f_p's "
         "energy distance to the 30 test trajectories, which no longer tell the augmented physics apart"
     ), head
-    assert rest == ["they agree everywhere"]
+    assert rest == ["they agree everywhere"] and said.confirmed
     head, *rest = said(to_coulomb)
     assert head.startswith("missing effect found, the gap is closed: viscous friction (velocity on dvelocity/dt) removes")
     assert rest == ["they agree everywhere", "velocity preferred over Coulomb friction (sign(velocity)) by 2.1 standard errors"]
@@ -337,6 +339,12 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
         "the augmented physics confirms nothing: more measurements are needed to confirm it"
     ), head
     assert rest == ["velocity preferred over Coulomb friction (sign(velocity)) by 2.1 standard errors"]
+    head, *rest = said(Comparison(friction, drag, -0.37, -0.043, 0.046), f_p={"energy": 1.0, "c2st": 0.58})
+    assert head.startswith(
+        "missing effect named, not confirmed: viscous friction (velocity on dvelocity/dt) or quadratic drag "
+        "(velocity*|velocity|) (the measurements cannot tell them apart: -0.9 standard errors), but the 30 test"
+    ), head
+    assert not said.confirmed, "a test part that cannot tell f_p apart confirms nothing"
 
 
 def test_intervals_contain_the_estimate_and_cover_the_truth_on_fresh_files():

@@ -50,7 +50,8 @@ def distribution_text(distribution: dict[str, Any] | None) -> str:
 
 
 def verdict(result: Discovery, physics: PhysicsModel) -> str:
-    """One of three answers with its numbers (the gap closed, partly closed, nothing found), how strongly the
+    """One of four answers with its numbers (the gap closed, named but not confirmed, partly closed, nothing found),
+    how strongly the
     measurements prefer each named term over its closest alternative, and the flags of implausible terms."""
     if not result.before.any_significant:
         return "no missing effect found: " + result.sentence_before
@@ -113,6 +114,12 @@ def share_removed(result: Discovery) -> str:
     return f"all of f_p's energy distance {tested} (what is left, {left:.3g}, is not above zero: the test sample's noise)"
 
 
+def confirmed(result: Discovery) -> bool:
+    """Whether the test part confirms the named terms: the gap closed there, on a part that tells f_p apart."""
+    closed = result.found and result.after is not None and not result.after.any_significant
+    return bool(closed and not test_part_blind(result))
+
+
 def test_part_blind(result: Discovery) -> str | None:
     """When the test part cannot tell f_p itself from the measurements (f_p's C2ST within two of the Reference's
     standard deviations of 0.5), the numbers that say so; else None. A verification on such a part cannot confirm a
@@ -120,7 +127,7 @@ def test_part_blind(result: Discovery) -> str | None:
     f_p, reference = result.gap.get("f_p", {}), result.gap.get("reference", {})
     if "c2st" not in f_p or "c2st_std" not in reference:
         return None
-    if f_p["c2st"] - 0.5 > 2 * reference["c2st_std"]:
+    if not math.isfinite(f_p["c2st"]) or f_p["c2st"] - 0.5 > 2 * reference["c2st_std"]:
         return None
     return f"C2ST {f_p['c2st']:.2f}, the Reference's {reference['c2st']:.2f} +- {reference['c2st_std']:.2f}"
 
@@ -156,7 +163,7 @@ def _or_alike(alternative, physics: PhysicsModel) -> str:
     if alternative is None:
         return ""
     other = f"{term_name(alternative.by, alternative.coefficient, physics)} ({alternative.by.feature})"
-    return f" or {other}, which the measurements cannot tell apart ({alternative.standard_errors:+.1f} standard errors),"
+    return f" or {other} (the measurements cannot tell them apart: {alternative.standard_errors:+.1f} standard errors)"
 
 
 def preferences(result: Discovery, physics: PhysicsModel) -> list[str]:
@@ -221,6 +228,7 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
         )
     return {
         "found": result.found,
+        "confirmed": confirmed(result),
         "verdict": verdict(result, physics),
         "terms": terms,
         "ambiguous": _ambiguous(result, physics),
