@@ -360,9 +360,8 @@ def run_designs(args: argparse.Namespace) -> None:
         torch.compiler.cudagraph_mark_step_begin()
         difference = float((solve().detach() - reference).abs().max())
         median_ms, threads = 1000 * statistics.median(each), torch.get_num_threads()
-        results[key] = {"median_ms": median_ms, "first_s": first, "max_difference": difference, "threads": threads} | {
-            "machine": machine(device.type == "cuda")
-        }
+        results[key] = {"median_ms": median_ms, "first_s": first, "max_difference": difference, "threads": threads}
+        results[key]["machine"] = machine(device.type == "cuda")
         path.write_text(json.dumps(results, indent=1))
     eager = results[f"{label}/eager loop"]["median_ms"]
     threads = torch.get_num_threads()

@@ -252,7 +252,7 @@ def test_profile_step_splits_a_step_into_its_parts_and_counts_the_scalar_reads()
     assert re.match(r"scalar reads from the device in 2 steps: \d+ ", lines[-1]), lines[-1]
 
 
-def test_the_solve_designs_run_on_the_device_asked_for_under_their_label(tmp_path):
+def test_the_solve_designs_are_recorded_under_their_label_with_the_machine(tmp_path):
     script = ROOT / "scripts" / "speed_benchmark.py"
     command = [sys.executable, str(script), "designs", "--out", str(tmp_path), "--device", "cpu", "--label", "here"]
     subprocess.run([*command, "--repeats", "2", "--only", "eager", "torchdiffeq"], check=True, capture_output=True)
