@@ -44,6 +44,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 
+from otgb.analysis.figures import save  # noqa: E402
 from otgb.metrics.c2st import c2st  # noqa: E402
 from otgb.metrics.samples import joint_samples  # noqa: E402
 from otgb.runs import load_run  # noqa: E402
@@ -145,7 +146,7 @@ def figure(rows: list[dict], times: torch.Tensor, ratio: torch.Tensor, title: st
     fig.suptitle(title)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
+    save(fig, out)
 
 
 def main() -> None:

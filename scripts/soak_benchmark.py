@@ -151,10 +151,9 @@ def summarise(out: Path, args: argparse.Namespace, state: dict) -> dict:
 
 def memory_figure(out: Path) -> None:
     """``memory.png``: host (and GPU) memory over the soak's wall time, from ``memory.csv``; a restart shows as a drop."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from otgb.analysis.figures import save  # switches matplotlib to its file backend
 
     samples = [[float(v) for v in row] for row in csv.reader(open(out / "memory.csv"))]
     minutes = [(row[0] - samples[0][0]) / 60 for row in samples]
@@ -165,7 +164,7 @@ def memory_figure(out: Path) -> None:
     ax.set(xlabel="wall time (min)", ylabel="GiB", title=f"soak memory: {out.name}")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(out / "memory.png", dpi=110)
+    save(fig, out / "memory.png")
     plt.close(fig)
 
 
