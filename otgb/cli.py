@@ -6,7 +6,8 @@
 
 ``fit`` / ``validate`` / ``test`` run :class:`otgb.command.OTGBCLI`; ``discover`` runs
 :func:`otgb.discovery.cli.discover`. ``otgb test`` writes ``metrics.json`` and ``metrics.md`` into its
-run directory, and each command ends with a line naming its run directory. Bad user input
+run directory and prints the report's summary sentence (Lightning's metric table with ``--verbose
+true``); each command ends with a line naming its run directory. Bad user input
 (:class:`otgb.errors.InputError`, or the parser's own errors) ends the command with one line
 ``otgb: error: <message>`` and exit status 2; a diverged training or f_p solve ends it with one such
 line and status 1.
@@ -29,6 +30,7 @@ from otgb.guard import TrainingDiverged
 from otgb.parser_errors import ConciseParser
 from otgb.physics.base import SimulationDiverged
 from otgb.quiet import quiet_known_harmless
+from otgb.reports import summary_of
 from otgb.training import MapTraining
 
 MAIN_FILES = ("metrics.md", "metrics.json", "config.yaml", "metrics.csv", "checkpoints", "figures", "components.json")
@@ -59,7 +61,10 @@ def main(args: list[str] | None = None) -> None:
         cli = OTGBCLI(MapTraining, SimulationDataModule, args=args, parser_class=ConciseParser)
         loggers = cli.trainer.loggers  # not trainer.log_dir: a collective under DDP, and the other ranks have finished
         if cli.trainer.is_global_zero and loggers and loggers[0].log_dir:
-            print(closing_line(cli.subcommand, Path(loggers[0].log_dir)), file=sys.stderr)
+            run = Path(loggers[0].log_dir)
+            if cli.subcommand == "test" and (sentence := summary_of(run)):
+                print(f"otgb test: {sentence}", file=sys.stderr)
+            print(closing_line(cli.subcommand, run), file=sys.stderr)
     except InputError as error:
         print(f"otgb: error: {error}", file=sys.stderr)
         raise SystemExit(2) from None

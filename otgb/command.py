@@ -124,6 +124,14 @@ class OTGBCLI(LightningCLI):
             main_kwargs = {**defaults, **main_kwargs}
         super().setup_parser(add_subcommands, main_kwargs, subparser_kwargs)
 
+    def _prepare_subcommand_parser(self, klass: type, subcommand: str, **kwargs: Any):
+        """The subcommand's parser; ``test`` prints no metric table unless ``--verbose true``: its results are in the
+        run's ``metrics.md``, whose summary sentence and path the command's last lines give."""
+        parser = super()._prepare_subcommand_parser(klass, subcommand, **kwargs)
+        if subcommand == "test":
+            parser.set_defaults(verbose=False)
+        return parser
+
     def add_arguments_to_parser(self, parser) -> None:
         parser.link_arguments(("model.t_max", "model.critic_steps"), "data.batches_per_step", compute_fn=source_batches)
         parser.link_arguments("model.critic_steps", "data.measured_batches_per_step")

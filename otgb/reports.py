@@ -142,6 +142,15 @@ def summary(by_source: dict[str, dict[str, dict[str, float | None]]]) -> str:
     return f"{values}: the model closes {(fp - model) / (fp - ref):.0%} of f_p's distance to the noise floor.\n\n"
 
 
+def summary_of(run_dir: Path) -> str:
+    """The summary sentence of the report in ``run_dir`` (:func:`summary`); empty where there is none."""
+    path = run_dir / "metrics.json"
+    if not path.is_file():
+        return ""
+    content = json.loads(path.read_text())
+    return summary({source: content.get(source, {}) for source in SOURCES}).strip()
+
+
 def per_time_section(per_time: dict[str, Any], times: list[float], components: list[str]) -> str:
     """Where in time each source differs most from the measured data (energy distance per step)."""
     lines = ["| component | " + " | ".join(f"{HEADERS[s]}: max at t (value)" for s in SOURCES if s in per_time) + " |"]

@@ -324,8 +324,11 @@ def test_test_writes_metrics_json_and_table(tmp_path, capsys):
     ckpt = tmp_path / "run" / "version_0" / "checkpoints" / "last.ckpt"
     capsys.readouterr()
     main(["test", *_args(tmp_path, "--evaluation.reference_repeats=2"), f"--ckpt_path={ckpt}"])
-    last = capsys.readouterr().err.strip().splitlines()[-1]
+    captured = capsys.readouterr()
+    summary, last = captured.err.strip().splitlines()[-2:]
     assert last.startswith(f"otgb test: results in {tmp_path / 'run' / 'version_1'}: metrics.md, metrics.json"), last
+    assert summary.startswith("otgb test: C2ST accuracy: model ") and "Reference (noise floor)" in summary, summary
+    assert "Test metric" not in captured.out + captured.err, "the results are in metrics.md, not a raw metric table"
     report = json.loads((tmp_path / "run" / "version_1" / "metrics.json").read_text())
     assert report["run"]["ckpt_path"] == str(ckpt) and report["run"]["global_step"] == 3 and report["run"]["n_inputs"] == 20
     assert report["reference"]["abs_err"] == {"mean": 0.0, "std": 0.0}, "a one-to-one DGP has no noise floor"
