@@ -319,7 +319,7 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
             draws={"f_p": torch.zeros(30, 2)},
         )
         said.confirmed = confirmed(result)
-        return verdict(result, Pendulum()).split("; ")
+        return verdict(result, Pendulum())
 
     to_coulomb = Comparison(friction, coulomb, -0.48, 0.15, 0.072)
     head, *rest = said(Comparison(friction, drag, -0.37, -0.043, 0.046), to_coulomb)
@@ -608,6 +608,7 @@ def test_discover_negative_control_names_nothing(tmp_path):
     run_dir = Path(done.stdout.strip().splitlines()[-1].split("report in ")[1])
     report = json.loads((tmp_path / run_dir / "report.json").read_text())
     assert report["found"] is False and report["terms"] == [] and report["verdict"].startswith("no missing effect found")
+    assert done.stdout.strip().splitlines()[-2] == f"otgb discover: {report['verdict']}", "a one-part verdict: one line"
     assert set(report["gap"]) == {"f_p", "reference"} and not (tmp_path / run_dir / "augmented.yaml").exists()
     assert (tmp_path / run_dir / "report.md").read_text().count("figures/") >= 2
     assert not (tmp_path / run_dir / "checkpoints").exists(), "nothing to learn: no training"
@@ -784,6 +785,11 @@ def test_discover_on_a_known_dgp_adds_pointwise_errors(tmp_path):
     assert done.returncode == 0, done.stderr[-2000:]
     run_dir = tmp_path / done.stdout.strip().splitlines()[-1].split("report in ")[1]
     report = json.loads((run_dir / "report.json").read_text())
+    lines = done.stdout.strip().splitlines()
+    answer = next(i for i, line in enumerate(lines) if line.startswith("otgb discover: missing effect"))
+    details = lines[answer + 1 : -1]  # the answer, then its evidence indented, then the run directory
+    assert details and all(line.startswith("  ") for line in details), lines[answer:]
+    assert [lines[answer].removeprefix("otgb discover: "), *(line.strip() for line in details)] == report["verdict_parts"]
     errors = report["pointwise"]
     assert errors["augmented"]["abs_err_horizon"] < errors["f_p"]["abs_err_horizon"] / 5
     assert errors["augmented"]["abs_err_twice_horizon"] < errors["f_p"]["abs_err_twice_horizon"] / 5

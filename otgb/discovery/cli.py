@@ -85,7 +85,10 @@ def discover(args: list[str]) -> Path:
     """Run ``otgb discover`` with its command-line arguments: the workflow, then the verdict and the run directory on
     stdout. Returns the run directory."""
     finished = discover_run(args)
-    print(f"otgb discover: {finished.report['verdict']}")
+    answer, *details = finished.report["verdict_parts"]
+    print(f"otgb discover: {answer}")
+    for detail in details:
+        print(f"  {detail}")
     print(f"otgb discover: report in {finished.run_dir}")
     return finished.run_dir
 

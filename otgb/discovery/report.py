@@ -49,18 +49,18 @@ def distribution_text(distribution: dict[str, Any] | None) -> str:
     return json.dumps(distribution)
 
 
-def verdict(result: Discovery, physics: PhysicsModel) -> str:
-    """One of four answers with its numbers (the gap closed, named but not confirmed, partly closed, nothing found),
-    how strongly the
-    measurements prefer each named term over its closest alternative, and the flags of implausible terms."""
+def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
+    """The verdict in parts, the answer first: one of four (the gap closed, named but not confirmed, partly closed,
+    nothing found) with its numbers; then how strongly the measurements prefer each named term over its closest
+    alternative, and the flags of implausible terms. ``report.json``'s ``verdict`` joins them with "; "."""
     if not result.before.any_significant:
-        return "no missing effect found: " + result.sentence_before
+        return ["no missing effect found: " + result.sentence_before]
     if not result.found:
-        return (
+        return [
             "no missing effect found in the library: the measurements differ from f_p ("
             + result.sentence_before
             + "), but no candidate term closes the gap"
-        )
+        ]
     ambiguous = {(c.replaced.feature, c.replaced.component): c for c in closest_alternatives(result) if c.ambiguous}
     names = ", ".join(
         f"{term_name(c, centre(p), physics)} ({c.feature} on d{c.component}/dt)"
@@ -71,22 +71,24 @@ def verdict(result: Discovery, physics: PhysicsModel) -> str:
     closed = result.after is not None and not result.after.any_significant
     blind = test_part_blind(result) if closed else None
     if blind:
-        head = (
+        answer = [
             f"missing effect named, not confirmed: {names}, but the {len(result.draws['f_p'])} test trajectories cannot "
             f"tell even f_p from the measurements ({blind}), so their agreeing with the augmented physics confirms "
             "nothing: more measurements are needed to confirm it"
-        )
+        ]
     elif closed:
-        head = (
+        answer = [
             f"missing effect found, the gap is closed: {names} {removes} {share_removed(result)}, which no longer tell the "
-            f"augmented physics apart; {result.sentence_after}"
-        )
+            "augmented physics apart",
+            result.sentence_after,
+        ]
     else:
-        head = (
-            f"missing effect partly found: {names} {closes} {share_removed(result)}; {result.sentence_after}; "
-            "no library term fits exactly, these are the best approximation"
-        )
-    parts = [head, *preferences(result, physics), *flags(result, physics), *([] if blind else low_power(result))]
+        answer = [
+            f"missing effect partly found: {names} {closes} {share_removed(result)}",
+            result.sentence_after,
+            "no library term fits exactly, these are the best approximation",
+        ]
+    parts = [*answer, *preferences(result, physics), *flags(result, physics), *([] if blind else low_power(result))]
     if named := named_divergences(result):
         worst = max(named, key=lambda d: d["diverged"] / d["of"])
         parts.append(
@@ -95,7 +97,7 @@ def verdict(result: Discovery, physics: PhysicsModel) -> str:
         )
     if result.undertrained:
         parts.append("the OT grey-box is undertrained, the terms come from the library search")
-    return "; ".join(parts)
+    return parts
 
 
 def gap_closed(gap: dict[str, dict[str, float]]) -> float:
@@ -229,7 +231,8 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
     return {
         "found": result.found,
         "confirmed": confirmed(result),
-        "verdict": verdict(result, physics),
+        "verdict": "; ".join(parts := verdict(result, physics)),
+        "verdict_parts": parts,
         "terms": terms,
         "ambiguous": _ambiguous(result, physics),
         "evidence": [_comparison_dict(c, physics) for c in result.evidence],
@@ -346,8 +349,10 @@ def markdown(report: dict[str, Any], facts: dict[str, Any]) -> str:
     lines = [
         "# Missing-effect discovery",
         "",
-        f"**Verdict:** {report['verdict']}",
+        f"**Verdict:** {report['verdict_parts'][0]}",
         "",
+        *(f"- {part}" for part in report["verdict_parts"][1:]),
+        *([""] if len(report["verdict_parts"]) > 1 else []),
         f"Measurements: {facts.get('description', '')}",
         "",
         "## Where f_p and the measurements disagree",
