@@ -28,16 +28,6 @@ from typing import Any
 SOURCES = {"model": "", "fp": "fp_", "reference": "ref_"}
 HEADERS = {"model": "model", "fp": "f_p alone", "reference": "Reference"}
 GROUPS = {"": "", "joint_": "joint with recorded inputs: "}  # metric-name prefix -> row label prefix
-REFERENCE_NOTE = {
-    "joint": (
-        "random splits of two independent DGP draw sets on the same inputs (a deterministic DGP draws the same "
-        "trajectories twice: its Reference is each metric's floor, 0 ± 0, or 0.5 for C2ST)"
-    ),
-    "marginal": (
-        "random splits of the held-out measurements into two halves (half-size samples: the unbiased MMD^2_u and energy "
-        "keep their mean, the biased paper-code MMD sits about twice as high as a full-size comparison at the noise floor)"
-    ),
-}
 LABELS = {
     "abs_err": "ABS ERR",
     "nrmse": "N-RMSE",
@@ -62,14 +52,6 @@ BETTER = {
     "c2st": "0.5: cannot be told apart; 1: always can",
 }
 HEADLINE = ("c2st", "energy", "abs_err")  # the summary sentence's metric: the first one present
-
-
-def _sample_sizes(run: dict[str, Any], mode: str) -> str:
-    n, draws = run.get("n_inputs"), run.get("draws_per_input")
-    each = f"{draws} draw{'' if draws == 1 else 's'}"
-    if mode == "marginal":
-        return f"{n} held-out measured trajectories against the models' draws ({n} inputs from the priors x {each})"
-    return f"{n} test inputs x {each}"
 
 
 def split_sources(results: dict[str, float]) -> dict[str, dict[str, dict[str, float | None]]]:
@@ -190,14 +172,13 @@ def write_report(
         content["per_time"] = {"statistic": "energy distance", **(labels or {}), **vectors}
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "metrics.json").write_text(json.dumps(content, indent=2) + "\n")
-    mode = run.get("mode", "joint")
     header = (
         f"# Test metrics: {run.get('name')}\n\n"
-        f"Evaluation mode **{mode}**: {run.get('description', '')}\n\n"
-        f"checkpoint `{run.get('ckpt_path')}` (step {run.get('global_step')}), {_sample_sizes(run, mode)}\n\n"
+        f"Evaluation mode **{run.get('mode')}**: {run.get('description', '')}\n\n"
+        f"checkpoint `{run.get('ckpt_path')}` (step {run.get('global_step')}), {run.get('sample_sizes')}\n\n"
     )
     over = ("test inputs (ABS ERR, N-RMSE) or " if "abs_err" in by_source["model"] else "") + "C2ST folds"
-    note = f"\nmean ± std: over {over} for model and f_p; over {REFERENCE_NOTE[mode]} for the Reference.\n"
+    note = f"\nmean ± std: over {over} for model and f_p; over {run.get('reference_note')} for the Reference.\n"
     section = per_time_section(vectors, labels["times"], labels["components"]) if vectors and labels else ""
     (run_dir / "metrics.md").write_text(header + summary(by_source) + markdown_table(by_source) + note + section)
     return content
