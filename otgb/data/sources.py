@@ -228,10 +228,8 @@ class FileMeasurements(MeasurementSource):
         return False  # halves of the measurements have different inputs: unpaired
 
     def sample_sizes(self, n_inputs: int, draws_per_input: int) -> str:
-        return (
-            f"{n_inputs} held-out measured trajectories against the models' draws ({n_inputs} inputs from the priors x "
-            f"{draws(draws_per_input)})"
-        )
+        inputs = f"{n_inputs} inputs x {draws(draws_per_input)}"
+        return f"{n_inputs} held-out measured trajectories against the models' draws ({inputs})"
 
     def facts(self) -> dict[str, Any]:
         split = {part: len(index) for part, index in self.parts.items()}
@@ -242,5 +240,5 @@ class FileMeasurements(MeasurementSource):
 
 
 def draws(n: int) -> str:
-    """ "1 draw", "10 draws"."""
+    """A number of draws in words: 1 draw, 10 draws."""
     return f"{n} draw{'' if n == 1 else 's'}"
