@@ -162,7 +162,7 @@ class GeneratedMeasurements(MeasurementSource):
         return f"{note} (a deterministic DGP draws the same trajectories twice: its Reference is {floor})"
 
     def sample_sizes(self, n_inputs: int, draws_per_input: int) -> str:
-        return f"{n_inputs} test inputs x {draws(draws_per_input)}"
+        return f"{n_inputs} test inputs x {_draw_count(draws_per_input)}"
 
     def as_file(self, folder: Path, trajectories: Tensor) -> str:
         """The generated trajectories written to ``folder/measured.npz``: the next round must see them, not the DGP
@@ -232,7 +232,7 @@ class FileMeasurements(MeasurementSource):
         return False  # halves of the measurements have different inputs: unpaired
 
     def sample_sizes(self, n_inputs: int, draws_per_input: int) -> str:
-        inputs = f"{n_inputs} inputs x {draws(draws_per_input)}"
+        inputs = f"{n_inputs} inputs x {_draw_count(draws_per_input)}"
         return f"{n_inputs} held-out measured trajectories against the models' draws ({inputs})"
 
     def facts(self) -> dict[str, Any]:
@@ -243,6 +243,6 @@ class FileMeasurements(MeasurementSource):
         return str(Path(self.path).resolve())
 
 
-def draws(n: int) -> str:
+def _draw_count(n: int) -> str:
     """A number of draws in words: 1 draw, 10 draws."""
     return f"{n} draw{'' if n == 1 else 's'}"

@@ -207,6 +207,7 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
     terms = []
     intervals = result.intervals
     excluded = result.family.excluded_spread if result.family else None
+    parts = verdict(result, physics)
     for i, (candidate, prior) in enumerate(_terms(result)):
         middle = centre(prior)
         found = regression.get((candidate.feature, candidate.component))
@@ -231,7 +232,7 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
     return {
         "found": result.found,
         "confirmed": confirmed(result),
-        "verdict": "; ".join(parts := verdict(result, physics)),
+        "verdict": "; ".join(parts),
         "verdict_parts": parts,
         "terms": terms,
         "ambiguous": _ambiguous(result, physics),
