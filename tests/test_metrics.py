@@ -2,6 +2,7 @@
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from sklearn.neural_network import MLPClassifier
@@ -244,6 +245,20 @@ def test_paper_judge_finds_a_shifted_field_and_not_an_equal_one(generator):
     assert abs(float(c2st(p, same, classifier=judge, folds=2)["c2st"]) - 0.5) <= 1.5 / math.sqrt(2 * n)
     assert isinstance(make_classifier("paper", 49, None, seed=0), PaperConvClassifier), "selectable by name"
 
+
+def test_paper_judge_stops_once_its_held_out_loss_gains_less_than_1e4_for_50_epochs(generator):
+    """The paper code's threshold: on separable rows the log loss keeps falling by less than 1e-4 an
+    epoch long after the accuracy has settled; the judge stops there instead of at ``max_epochs``."""
+    p = torch.randn(200, 30, generator=generator)
+    q = torch.randn(200, 30, generator=generator) + 2.0
+    features, labels = torch.cat([p, q]).numpy(), np.r_[np.zeros(200), np.ones(200)].astype(np.int64)
+    judge = PaperConvClassifier(batch_size=64, max_epochs=2000, n_iter_no_change=50).fit(features, labels)
+    best, last_gain = -math.inf, 0
+    for epoch, score in enumerate(judge.validation_scores_):
+        last_gain = epoch if score >= best + 1e-4 else last_gain
+        best = max(best, score)
+    assert judge.n_iter_ == last_gain + 52 < 2000, (judge.n_iter_, last_gain)
+    assert judge.validation_scores_[-1] > judge.validation_scores_[last_gain], "the loss was still falling, by < 1e-4 an epoch"
 
 def test_the_paper_judges_convolution_is_the_library_convolution_forward_and_backward(generator):
     for channels_in in (1, 3):
