@@ -260,6 +260,7 @@ def test_paper_judge_stops_once_its_held_out_loss_gains_less_than_1e4_for_50_epo
     assert judge.n_iter_ == last_gain + 52 < 2000, (judge.n_iter_, last_gain)
     assert judge.validation_scores_[-1] > judge.validation_scores_[last_gain], "the loss was still falling, by < 1e-4 an epoch"
 
+
 def test_the_paper_judges_convolution_is_the_library_convolution_forward_and_backward(generator):
     for channels_in in (1, 3):
         conv = torch.nn.Conv1d(channels_in, 3, 3, padding=1)
