@@ -28,14 +28,23 @@ Classifiers (``classifier``):
 - ``"auto"`` (default): "mlp" up to ``AUTO_MLP_MAX_FEATURES`` features, "conv" above.
 - or any scikit-learn classifier (it is cloned per fold).
 
+On a CPU the folds train at once, in threads, each on its share of torch's threads: the judges'
+networks are too small for torch to spread one over several cores (``scripts/speed_benchmark.py
+judges`` measures the gain). Each fold's network starts from ``seed`` as before, so the folds in
+threads give what they give one after the other, up to float rounding.
+
 ``n_permutations`` > 0 adds a permutation p-value: the same cross-validation on randomly
 relabelled rows, p = (1 + #{acc_perm >= acc}) / (n_permutations + 1).
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+from functools import partial
 from typing import Any
 
+import joblib
 import numpy as np
 import torch
 from sklearn.base import clone
@@ -58,6 +67,7 @@ def c2st(
     trajectory_shape: tuple[int, ...] | None = None,
     n_permutations: int = 0,
     precision: str = "auto",
+    n_jobs: int | None = None,
 ) -> dict[str, Tensor]:
     """Cross-validated accuracy of telling p (n, D) from q (m, D) apart.
 
@@ -66,6 +76,7 @@ def c2st(
     and the "conv" classifier reads the trajectory.
     ``precision`` ("auto", "32-true", "bf16-mixed") is the "mlp"/"conv" classifier's
     arithmetic (see :mod:`otgb.metrics.classifiers`).
+    ``n_jobs``: folds trained at once on a CPU (None: as many as torch has threads, at most ``folds``).
     Returns ``c2st`` (mean accuracy over folds), ``c2st_std`` (std over folds) and, with
     permutations, ``c2st_pvalue``.
     """
@@ -85,16 +96,32 @@ def c2st(
         cv = StratifiedKFold(n_splits=folds, shuffle=True, random_state=seed)
     else:
         cv = StratifiedGroupKFold(n_splits=folds, shuffle=True, random_state=seed)
-    scores = cross_val_score(estimator, features, labels, groups=groups, cv=cv, scoring="accuracy", error_score="raise")
-    result = {"c2st": torch.tensor(scores.mean()).float(), "c2st_std": torch.tensor(scores.std()).float()}
-    if n_permutations > 0:
-        rng = np.random.default_rng(seed)
-        null = [
-            cross_val_score(estimator, features, rng.permutation(labels), groups=groups, cv=cv, error_score="raise").mean()
-            for _ in range(n_permutations)
-        ]
-        result["c2st_pvalue"] = torch.tensor((1 + sum(a >= scores.mean() for a in null)) / (n_permutations + 1)).float()
+    with folds_in_threads(folds if p.device.type == "cpu" else 1, n_jobs) as jobs:
+        cross_validate = partial(cross_val_score, estimator, features, groups=groups, cv=cv, error_score="raise", n_jobs=jobs)
+        scores = cross_validate(labels, scoring="accuracy")
+        result = {"c2st": torch.tensor(scores.mean()).float(), "c2st_std": torch.tensor(scores.std()).float()}
+        if n_permutations > 0:
+            rng = np.random.default_rng(seed)
+            null = [cross_validate(rng.permutation(labels)).mean() for _ in range(n_permutations)]
+            result["c2st_pvalue"] = torch.tensor((1 + sum(a >= scores.mean() for a in null)) / (n_permutations + 1)).float()
     return result
+
+
+@contextmanager
+def folds_in_threads(folds: int, n_jobs: int | None) -> Iterator[int]:
+    """Joblib's thread backend for ``n_jobs`` folds at once (None: torch's thread count, at most ``folds``), with
+    torch's threads shared out among them for the duration; yields the number of folds trained at once."""
+    threads = torch.get_num_threads()
+    jobs = max(1, min(folds, threads if n_jobs is None else n_jobs))
+    if jobs == 1:
+        yield 1
+        return
+    torch.set_num_threads(max(1, threads // jobs))
+    try:
+        with joblib.parallel_config(backend="threading"):
+            yield jobs
+    finally:
+        torch.set_num_threads(threads)
 
 
 def input_groups(rows: Tensor, trajectory_shape: tuple[int, ...] | None) -> np.ndarray | None:
