@@ -10,14 +10,24 @@
 # Each part copies its results to OUT as it ends, so a run cut short keeps what it measured.
 # OUT receives steps-gpu.json, steps-cpu2.json and the logs; merge the JSON files into
 # results/speed/steps.json and run `python scripts/speed_benchmark.py table` to update the docs.
-# On a machine whose interpreter is `python3` only, put a `python` on PATH that execs it (a script,
-# not a symbolic link: a link to a virtual environment's interpreter loses the environment).
+# Wheels in .whl/ (packages the machine lacks, e.g. jsonargparse) are installed into a temporary
+# folder first; on a machine whose interpreter is `python3` only, a `python` that execs it is put on
+# PATH (a script, not a symbolic link: a link to a virtual environment's interpreter loses the
+# environment).
 set -u
 out=$1
 deadline=$((SECONDS + ${2:-420}))
 work=$(mktemp -d)
 mkdir -p "$out"
 export PYTHONUNBUFFERED=1
+if ! command -v python >/dev/null; then
+    mkdir -p "$work/bin" && printf '#!/bin/sh\nexec %s "$@"\n' "$(command -v python3)" >"$work/bin/python"
+    chmod +x "$work/bin/python" && export PATH="$work/bin:$PATH"
+fi
+if compgen -G ".whl/*.whl" >/dev/null; then
+    python -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target "$work/site" .whl/*.whl || exit 1
+fi
+export PYTHONPATH="$work/site:$PWD${PYTHONPATH:+:$PYTHONPATH}"
 command -v taskset >/dev/null || taskset() { shift 2; "$@"; }
 limited() {  # limited SECONDS PLACE COMMAND...: on PLACE (cpu2 or gpu), at most SECONDS and never past the deadline
     local left=$((deadline - SECONDS - 15))
