@@ -2,9 +2,11 @@
 
 import json
 import logging
+import os
 import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -250,6 +252,21 @@ def test_profile_step_splits_a_step_into_its_parts_and_counts_the_scalar_reads()
     parts = {line.strip().split("  ")[0] for line in lines[1:9]}
     assert {"simulate f_p", "map forward (grey-box solve)", "map backward", "critic backward"} <= parts, parts
     assert re.match(r"scalar reads from the device in 2 steps: \d+ ", lines[-1]), lines[-1]
+
+
+def test_the_gpu_benchmark_ends_by_its_deadline_and_keeps_each_parts_log(tmp_path):
+    """A lent GPU's call has a hard limit: the script must end inside the seconds it is given, whatever its parts do
+    (here, on a machine without a GPU, the CPU part is cut short and the GPU parts fail)."""
+    shims = tmp_path / "bin"
+    shims.mkdir()
+    (shims / "taskset").write_text('#!/bin/sh\nshift 2\nexec "$@"\n')  # this machine may have fewer than 16 cores
+    (shims / "taskset").chmod(0o755)
+    env = {**os.environ, "PATH": f"{shims}:{os.environ['PATH']}"}
+    start = time.monotonic()
+    subprocess.run(["bash", "scripts/gpu_benchmark.sh", str(tmp_path / "out"), "20"], cwd=ROOT, env=env, capture_output=True)
+    assert time.monotonic() - start < 20 + 10  # the parts' kill grace
+    logs = {"machine.log", "cpu2.log", "gpu.log", "pytest-gpu.log", "profile-gpu.log"}
+    assert logs <= {path.name for path in (tmp_path / "out").iterdir()}
 
 
 def test_the_solve_designs_are_recorded_under_their_label_with_the_machine(tmp_path):
