@@ -420,7 +420,7 @@ def run_judges(args: argparse.Namespace) -> None:
             if key not in results:
                 estimator = PaperConvClassifier(max_epochs=args.epochs, n_iter_no_change=args.epochs, precision=args.precision)
                 start = time.perf_counter()
-                c2st(p, q, classifier=estimator, n_jobs=jobs)
+                c2st(p, q, folds=5, classifier=estimator, n_jobs=jobs)
                 results[key] = {"s_per_epoch": (time.perf_counter() - start) / (5 * args.epochs), "rows": list(features.shape)}
                 path.write_text(json.dumps(results, indent=1))
     if args.whole and "paper/otgb/c2st" not in results:

@@ -275,6 +275,8 @@ def test_c2st_folds_in_threads_give_what_they_give_in_turn(generator, classifier
         torch.set_num_threads(threads)
     assert runs[0] == runs[1]
     assert torch.get_num_threads() == threads, "the folds give torch its threads back"
+    with pytest.raises(ValueError, match="n_jobs=-1, expected None"):
+        c2st(p, q, classifier=classifier, n_jobs=-1)
 
 
 @pytest.fixture(scope="module")

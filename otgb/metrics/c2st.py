@@ -84,6 +84,8 @@ def c2st(
         raise ValueError(f"c2st: expected (n, D) and (m, D), got {tuple(p.shape)} and {tuple(q.shape)}")
     if folds < 2 or min(len(p), len(q)) < folds:
         raise ValueError(f"c2st: {folds}-fold cross-validation needs folds >= 2 and >= {folds} rows per sample")
+    if n_jobs is not None and n_jobs < 1:
+        raise ValueError(f"c2st: n_jobs={n_jobs}, expected None (as many folds at once as torch has threads) or >= 1")
     estimator = make_classifier(classifier, p.shape[1], trajectory_shape, seed, str(p.device), precision)
     mean, std = p.double().mean(0), p.double().std(0)
     std = torch.where(std > 0, std, torch.ones_like(std))
@@ -112,7 +114,7 @@ def folds_in_threads(folds: int, n_jobs: int | None) -> Iterator[int]:
     """Joblib's thread backend for ``n_jobs`` folds at once (None: torch's thread count, at most ``folds``), with
     torch's threads shared out among them for the duration; yields the number of folds trained at once."""
     threads = torch.get_num_threads()
-    jobs = max(1, min(folds, threads if n_jobs is None else n_jobs))
+    jobs = min(folds, threads if n_jobs is None else n_jobs)
     if jobs == 1:
         yield 1
         return
