@@ -28,7 +28,8 @@ if compgen -G ".whl/*.whl" >/dev/null; then
     python -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target "$work/site" .whl/*.whl || exit 1
 fi
 export PYTHONPATH="$work/site:$PWD${PYTHONPATH:+:$PYTHONPATH}"
-command -v taskset >/dev/null || taskset() { shift 2; "$@"; }
+# Pin the two CPU runs and the GPU runs apart where the machine has the cores (and taskset) for it.
+if ! command -v taskset >/dev/null || (($(nproc) < 16)); then taskset() { shift 2; "$@"; }; fi
 limited() {  # limited SECONDS PLACE COMMAND...: on PLACE (cpu2 or gpu), at most SECONDS and never past the deadline
     local left=$((deadline - SECONDS - 15))
     local limit=$(($1 < left ? $1 : left)) place=$2
