@@ -18,15 +18,33 @@ import torch
 from otgb.errors import first_line
 
 
-def compile_generic(function: Callable, cpp_wrapper: bool = False) -> Callable:
+def compile_generic(function: Callable, cpp_wrapper: bool = False, cuda_graphs: bool = False) -> Callable:
     """``function`` under ``torch.compile``, whole (``fullgraph``) and generic in its sizes (``dynamic``).
 
     ``cpp_wrapper``: the graph's calling code is C++ rather than Python (inductor's option), for
     graphs of thousands of small kernels (a solve), where the Python that calls them, checks
     their inputs and allocates their outputs costs more than the kernels.
+    ``cuda_graphs``: on a GPU, each call replays its kernels as one recorded CUDA graph
+    (``mode="reduce-overhead"``), one launch instead of one per kernel. A replay writes its output
+    where the last replay wrote it, so the result is copied out before it is returned.
     """
     _lower_view_copies()
+    if cuda_graphs:
+        return _copied_out(torch.compile(function, mode="reduce-overhead", dynamic=True, fullgraph=True))
     return torch.compile(function, dynamic=True, fullgraph=True, options={"cpp_wrapper": True} if cpp_wrapper else None)
+
+
+def _copied_out(replayed: Callable) -> Callable:
+    @functools.wraps(replayed)
+    def call(*arguments):
+        return replayed(*arguments).clone()
+
+    return call
+
+
+def new_training_step() -> None:
+    """Tell the CUDA-graph replays that a training step begins: the last step's graph memory may be reused."""
+    torch.compiler.cudagraph_mark_step_begin()
 
 
 @functools.cache

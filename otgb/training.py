@@ -32,6 +32,7 @@ from lightning.pytorch.cli import LRSchedulerCallable, OptimizerCallable
 from torch import Tensor, nn
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
+from otgb.compiling import new_training_step
 from otgb.data.seeding import derive_seed
 from otgb.errors import InputError
 from otgb.guard import TrainingDiverged, UpdateGuard, diagnosis
@@ -386,6 +387,7 @@ class MapTraining(LightningModule):
 
     def on_train_batch_start(self, batch: Any, batch_idx: int) -> None:
         without_gradient_sync(self.trainer.strategy)
+        new_training_step()
 
     def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
         self.sigterm.agree(self.trainer)

@@ -54,7 +54,6 @@ both files into ``--doc`` between the markers ``<!-- speed: scripts/speed_benchm
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import statistics
@@ -95,16 +94,6 @@ class StepTimes(Callback):
         self._last = now
 
 
-CUDA_GRAPHS = "compiled-cuda-graphs"  # a design under trial in `steps`: the compiled step replayed as CUDA graphs
-
-
-class NewGraphIteration(Callback):
-    """Each training step a new iteration of the CUDA-graph replays (the step's tensors are not kept past it)."""
-
-    def on_train_batch_start(self, *args) -> None:
-        torch.compiler.cudagraph_mark_step_begin()
-
-
 def time_steps(config: str, solver: str, steps: int, workdir: Path, overrides: list[str]) -> tuple[list[float], bool]:
     """The wall time of each training step of ``config``, and whether they ran on a GPU."""
     from otgb.command import logger_override
@@ -115,46 +104,12 @@ def time_steps(config: str, solver: str, steps: int, workdir: Path, overrides: l
         str(ROOT / "configs" / f"{config}.yaml"), logger_override(str(workdir / "runs"), f"{config}-{solver}"),
         "--trainer.enable_progress_bar=false", f"--trainer.max_steps={steps}", f"--trainer.val_check_interval={steps}",
         "--components.enabled=false", f"--data.cache_dir={workdir / 'cache'}",
-        f"--solver={'compiled' if solver == CUDA_GRAPHS else solver}", *overrides,
+        f"--solver={solver}", *overrides,
     ]  # fmt: skip
     run = load_run(args[0], *args[1:])
     run.trainer.callbacks.append(timer)
-    if solver == CUDA_GRAPHS:
-        run.trainer.callbacks.append(NewGraphIteration())
-    with cuda_graphs(solver == CUDA_GRAPHS):
-        run.trainer.fit(run.model, run.datamodule)
+    run.trainer.fit(run.model, run.datamodule)
     return timer.times, run.trainer.strategy.root_device.type == "cuda"
-
-
-@contextlib.contextmanager
-def cuda_graphs(enabled: bool):
-    """While ``enabled``: every compiled solve is the compiled step (small states too), on the GPU replayed as a CUDA
-    graph (``torch.compile``'s ``reduce-overhead``), so that a step's kernels launch as one graph, without the host
-    synchronisation of each iteration of the compiled ``scan`` (inductor runs it as a ``while_loop`` on the host)."""
-    from otgb.physics import solvers
-
-    if not enabled:
-        yield
-        return
-    compile_, whole_state = solvers._compile, solvers.WHOLE_SOLVE_MAX_STATE
-
-    def replayed(function, device_type):
-        if device_type != "cuda":
-            return compile_(function, device_type)
-        return torch.compile(function, mode="reduce-overhead", dynamic=True, fullgraph=True)
-
-    def fresh() -> None:  # each path compiles, checks its gradients against the eager loop and falls back on its own
-        solvers._compiled_step.cache_clear()
-        solvers._gradients_checked.clear()
-        solvers._not_compilable.clear()
-
-    fresh()
-    solvers._compile, solvers.WHOLE_SOLVE_MAX_STATE = replayed, 0
-    try:
-        yield
-    finally:
-        solvers._compile, solvers.WHOLE_SOLVE_MAX_STATE = compile_, whole_state
-        fresh()
 
 
 def summary(times: list[float], warmup: int) -> dict[str, float]:

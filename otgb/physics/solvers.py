@@ -7,16 +7,19 @@ and the kernel launch's overhead: for the pendulum (2 states, batch 32) that ove
 of a training step. The fast path takes the same methods with the same formulas (torchdiffeq's
 Butcher tableaus, RK4 as its 3/8 rule) and compiles them with ``torch.compile``, shape-generic
 in the batch so that a partial last batch, validation and test sizes and every DDP process
-reuse one graph. Two designs, chosen by the size of the state (measured with
-``scripts/speed_benchmark.py designs``):
+reuse one graph. Two designs, chosen by the size of the state and the device (measured with
+``scripts/speed_benchmark.py designs`` and ``steps``):
 
-- a small state (at most :data:`WHOLE_SOLVE_MAX_STATE` numbers per trajectory, an ODE such as
-  the pendulum): the whole solve is one compiled loop (torch's ``scan``), forward and backward,
-  so no Python or autograd bookkeeping runs between steps; for such states that bookkeeping is
-  most of the time.
-- a field (a PDE on a grid, the advection-diffusion rod included): one whole Runge-Kutta step
-  (its stages and the field they call) is one compiled graph, called once per step. Its
-  convolutions are most of the time, and the compiled loop ran no faster than the step there.
+- a small state on the CPU (at most :data:`WHOLE_SOLVE_MAX_STATE` numbers per trajectory, an ODE
+  such as the pendulum): the whole solve is one compiled loop (torch's ``scan``), forward and
+  backward, so no Python or autograd bookkeeping runs between steps; for such states that
+  bookkeeping is most of the time.
+- a field (a PDE on a grid, the advection-diffusion rod included), and any state on a GPU: one
+  whole Runge-Kutta step (its stages and the field they call) is one compiled graph, called once
+  per step. On the CPU a field's convolutions are most of the time, and the compiled loop ran no
+  faster than the step there. On a GPU the step is replayed as a CUDA graph, one launch for its
+  kernels, while inductor runs a compiled ``scan`` as a loop on the host that waits for the GPU
+  at every iteration (the ``pendulum-gpu`` rows of docs/results.md).
 
 The path is one process-wide setting (``otgb fit --solver NAME``, :func:`set_solver`):
 
@@ -144,12 +147,12 @@ def _compile(function: Callable, device_type: str) -> Callable:
     On the CPU the graph's calling code is C++ (inductor's ``cpp_wrapper``) rather than Python:
     a solve is thousands of small kernels, and the Python that calls them, checks their inputs'
     sizes and allocates their outputs was a third of a compiled pendulum solve
-    (``scripts/speed_benchmark.py designs``).
+    (``scripts/speed_benchmark.py designs``). On a GPU each call is replayed as a CUDA graph.
     """
     # every field, grad mode and dtype is one more graph of the same function; step sizes are constants of the graph
     torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
     torch._dynamo.config.specialize_float = True
-    return compile_generic(function, cpp_wrapper=device_type == "cpu")
+    return compile_generic(function, cpp_wrapper=device_type == "cpu", cuda_graphs=device_type == "cuda")
 
 
 @functools.cache
@@ -197,7 +200,7 @@ def integrate(
     if not compiled:
         return _stepwise_solve(field, *arguments)
     device = initial_state.device.type
-    if initial_state[0].numel() <= WHOLE_SOLVE_MAX_STATE and n_times > 1:
+    if device != "cuda" and initial_state[0].numel() <= WHOLE_SOLVE_MAX_STATE and n_times > 1:
         fast = functools.partial(_fallback(key, _compiled_whole_solve(device), _stepwise_solve), field)
     else:
         fast = functools.partial(_stepwise_solve, field, step=_fallback(key, _compiled_step(method, device), STEPS[method]))
