@@ -42,9 +42,13 @@ def _copied_out(replayed: Callable) -> Callable:
     return call
 
 
-def new_training_step() -> None:
-    """Tell the CUDA-graph replays that a training step begins: the last step's graph memory may be reused."""
-    torch.compiler.cudagraph_mark_step_begin()
+def new_training_step(device: torch.device) -> None:
+    """Tell the CUDA-graph replays on ``device`` that a training step begins: the last step's graph memory may be reused.
+
+    Nothing on a CPU, where the call would first import inductor's CUDA-graph machinery (about 2 s).
+    """
+    if device.type == "cuda":
+        torch.compiler.cudagraph_mark_step_begin()
 
 
 @functools.cache

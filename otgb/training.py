@@ -387,7 +387,7 @@ class MapTraining(LightningModule):
 
     def on_train_batch_start(self, batch: Any, batch_idx: int) -> None:
         without_gradient_sync(self.trainer.strategy)
-        new_training_step()
+        new_training_step(self.device)
 
     def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
         self.sigterm.agree(self.trainer)
