@@ -1,4 +1,4 @@
-"""GPU readiness: one short fit and test of each system on ``--trainer.accelerator gpu``, and the bfloat16 C2ST.
+"""GPU readiness: one short fit and test of each system on ``--trainer.accelerator gpu``, the bfloat16 C2ST, compiled solves.
 
 Marked ``gpu``; skipped where no CUDA device is present (``pytest -m gpu`` on a GPU machine runs them).
 """
@@ -53,3 +53,24 @@ def test_the_greybox_solve_and_its_gradients_on_the_gpu_equal_torchdiffeq_there_
 
 def _to_cpu(value):
     return [v.cpu() for v in value] if isinstance(value, list) else value.cpu()
+
+
+def test_a_compiled_solve_without_gradients_on_the_gpu_keeps_every_state():
+    """On a GPU each compiled step replays a CUDA graph, which writes its output where the last replay wrote it; a
+    solve without gradients (f_p's simulations) keeps every state, so the states must be copies, not the graph's."""
+    assert _decay_solved_without_gradients("cuda") < 1e-5
+
+
+def _decay_solved_without_gradients(device: str) -> float:
+    """The largest relative error of RK4 on d(state)/dt = -rate * state, against exp(-rate t), on ``device``."""
+    from otgb.physics import solvers
+
+    rate, times = torch.linspace(0.5, 2.0, 8, device=device)[:, None], torch.arange(11, device=device) * 0.1
+    solvers.set_solver("compiled")
+    try:
+        with torch.no_grad():
+            states = solvers.integrate(lambda state, k: -k * state, torch.ones(8, 3, device=device), (rate,), "rk4", 0.05, 0.1, 11)
+    finally:
+        solvers.reset()
+    exact = torch.exp(-rate * times)[:, :, None].expand_as(states)
+    return float(((states - exact).abs() / exact).max())
