@@ -66,10 +66,11 @@ def _decay_solved_without_gradients(device: str) -> float:
     from otgb.physics import solvers
 
     rate, times = torch.linspace(0.5, 2.0, 8, device=device)[:, None], torch.arange(11, device=device) * 0.1
+    start = torch.ones(8, 3, device=device)
     solvers.set_solver("compiled")
     try:
         with torch.no_grad():
-            states = solvers.integrate(lambda state, k: -k * state, torch.ones(8, 3, device=device), (rate,), "rk4", 0.05, 0.1, 11)
+            states = solvers.integrate(lambda state, k: -k * state, start, (rate,), "rk4", 0.05, 0.1, 11)
     finally:
         solvers.reset()
     exact = torch.exp(-rate * times)[:, :, None].expand_as(states)
