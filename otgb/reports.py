@@ -111,17 +111,30 @@ def markdown_table(by_source: dict[str, dict[str, dict[str, float | None]]]) -> 
 
 def summary(by_source: dict[str, dict[str, dict[str, float | None]]]) -> str:
     """One sentence: the headline metric for the model, f_p alone and the Reference, and the share of f_p's distance
-    to the Reference that the model closes."""
-    name = next((n for n in HEADLINE if all(n in by_source[s] for s in SOURCES)), None)
-    if name is None:
+    to the Reference that the model closes. Where the model is no closer than f_p by the first headline metric (a
+    C2ST at 1 for both, say), the next one present says how far each is."""
+    names = [n for n in HEADLINE if all(n in by_source[s] for s in SOURCES)]
+    if not names:
         return ""
+    sentence = _summary_clause(names[0], by_source)
+    if sentence.endswith(NO_CLOSER) and len(names) > 1:
+        sentence += "; " + _summary_clause(names[1], by_source)
+    return sentence + ".\n\n"
+
+
+NO_CLOSER = "the model is no closer to the noise floor than f_p alone"
+
+
+def _summary_clause(name: str, by_source: dict[str, dict[str, dict[str, float | None]]]) -> str:
     model, fp, ref = (by_source[s][name]["mean"] for s in SOURCES)
     values = f"{LABELS[name]}: model {model:.3g}, f_p alone {fp:.3g}, Reference (noise floor) {ref:.3g}"
     if not math.isfinite(fp - ref) or fp <= ref:
-        return f"{values}: f_p alone is already at the noise floor.\n\n"
+        return f"{values}: f_p alone is already at the noise floor"
     if model <= ref:  # below the floor: the sampling noise of small held-out sets, not a model better than the data
-        return f"{values}: the model is at the noise floor (no further from the held-out data than the Reference).\n\n"
-    return f"{values}: the model closes {(fp - model) / (fp - ref):.0%} of f_p's distance to the noise floor.\n\n"
+        return f"{values}: the model is at the noise floor (no further from the held-out data than the Reference)"
+    if model >= fp:
+        return f"{values}: {NO_CLOSER}"
+    return f"{values}: the model closes {(fp - model) / (fp - ref):.0%} of f_p's distance to the noise floor"
 
 
 def summary_of(run_dir: Path) -> str:

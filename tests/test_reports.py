@@ -32,6 +32,15 @@ def test_report_files(tmp_path):
     )
 
 
+def test_a_summary_says_when_the_model_is_no_closer_than_f_p_and_then_reads_the_next_metric(tmp_path):
+    results = {"c2st": 0.9997, "fp_c2st": 0.998, "ref_c2st": 0.5, "energy": 0.0934, "fp_energy": 2.4, "ref_energy": 0.0}
+    write_report(tmp_path, {"name": "saturated", "ckpt_path": "x.ckpt", "global_step": 7}, results)
+    sentence = (tmp_path / "metrics.md").read_text().split("\n\n")[3]
+    assert "C2ST accuracy: model 1, f_p alone 0.998, Reference (noise floor) 0.5: the model is no closer to the noise" in sentence
+    assert sentence.endswith("Reference (noise floor) 0: the model closes 96% of f_p's distance to the noise floor.")
+    assert "-0%" not in sentence
+
+
 def test_gather_groups_seeds(tmp_path):
     for seed, c2st in enumerate([0.7, 0.8]):
         _write(tmp_path / f"s{seed}", f"pendulum_mm_seed{seed}", c2st)
