@@ -116,25 +116,23 @@ def summary(by_source: dict[str, dict[str, dict[str, float | None]]]) -> str:
     names = [n for n in HEADLINE if all(n in by_source[s] for s in SOURCES)]
     if not names:
         return ""
-    sentence = _summary_clause(names[0], by_source)
-    if sentence.endswith(NO_CLOSER) and len(names) > 1:
-        sentence += "; " + _summary_clause(names[1], by_source)
+    sentence, no_closer = _summary_clause(names[0], by_source)
+    if no_closer and len(names) > 1:
+        sentence += "; " + _summary_clause(names[1], by_source)[0]
     return sentence + ".\n\n"
 
 
-NO_CLOSER = "the model is no closer to the noise floor than f_p alone"
-
-
-def _summary_clause(name: str, by_source: dict[str, dict[str, dict[str, float | None]]]) -> str:
+def _summary_clause(name: str, by_source: dict[str, dict[str, dict[str, float | None]]]) -> tuple[str, bool]:
+    """The clause of ``name`` and whether it finds the model no closer to the Reference than f_p."""
     model, fp, ref = (by_source[s][name]["mean"] for s in SOURCES)
     values = f"{LABELS[name]}: model {model:.3g}, f_p alone {fp:.3g}, Reference (noise floor) {ref:.3g}"
     if not math.isfinite(fp - ref) or fp <= ref:
-        return f"{values}: f_p alone is already at the noise floor"
+        return f"{values}: f_p alone is already at the noise floor", False
     if model <= ref:  # below the floor: the sampling noise of small held-out sets, not a model better than the data
-        return f"{values}: the model is at the noise floor (no further from the held-out data than the Reference)"
+        return f"{values}: the model is at the noise floor (no further from the held-out data than the Reference)", False
     if model >= fp:
-        return f"{values}: {NO_CLOSER}"
-    return f"{values}: the model closes {(fp - model) / (fp - ref):.0%} of f_p's distance to the noise floor"
+        return f"{values}: the model is no closer to the noise floor than f_p alone", True
+    return f"{values}: the model closes {(fp - model) / (fp - ref):.0%} of f_p's distance to the noise floor", False
 
 
 def summary_of(run_dir: Path) -> str:
