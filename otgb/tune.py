@@ -212,11 +212,11 @@ class Study:
             url = f"sqlite:///{(self.directory / 'study.db').resolve()}"
         if url.endswith(".log"):  # a journal file: for file systems where SQLite's locks are unsafe (NFS)
             return optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(url))
-        retry = optuna.storages.RetryFailedTrialCallback(max_retry=3)
+        retry = optuna.storages.RetryHeartbeatStaleTrialCallback(max_retry=3)
         for attempt in range(OPEN_ATTEMPTS):  # workers started together race to create the tables of a new storage
             try:
                 return optuna.storages.RDBStorage(
-                    url, heartbeat_interval=HEARTBEAT_S, grace_period=GRACE_S, failed_trial_callback=retry
+                    url, heartbeat_interval=HEARTBEAT_S, grace_period=GRACE_S, heartbeat_stale_trial_callback=retry
                 )
             except Exception as error:  # noqa: BLE001 - SQLAlchemy's errors differ by database
                 if attempt == OPEN_ATTEMPTS - 1:
