@@ -21,7 +21,7 @@ from typing import Any
 from lightning import LightningModule, Trainer
 from lightning.pytorch.callbacks import ModelCheckpoint, ProgressBar
 from lightning.pytorch.cli import LightningCLI
-from lightning.pytorch.utilities import rank_zero_info
+from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
 from lightning.pytorch.utilities.exceptions import MisconfigurationException, SIGTERMException
 
 from otgb.callbacks import ComponentAnalysis, Evaluation
@@ -153,6 +153,8 @@ class OTGBCLI(LightningCLI):
         config = self.config[self.subcommand] if self.subcommand else self.config
         set_solver(checked_solver(config.solver, "--solver"))
         name_loggers_after_config(config.trainer.logger, config.get("config"))
+        if rank_zero_only.rank == 0:  # the other ranks start after rank 0 has made the folder
+            refuse_taken_versions(config.trainer.logger)
         log_dirs = share_logger_version(config.trainer.logger)
         self.new_log_dirs = [_first_new(log_dir) for log_dir in log_dirs]
         if len(log_dirs) > 1:  # e.g. --trainer.logger.init_args.save_dir, which moves only the last logger of the list
@@ -165,9 +167,8 @@ class OTGBCLI(LightningCLI):
     def before_fit(self) -> None:
         """One line when ``--trainer.max_steps`` ends the run before its first validation: no validation metrics, no
         best checkpoint and no trajectory figures then (a shortened run is easy to ask for and was silent about it)."""
-        data, every, stop = self.datamodule, self.trainer.val_check_interval, self.trainer.max_steps
-        steps = data.simulation_budget // self.trainer.world_size // (data.batch_size * data.batches_per_step)
-        first = every if isinstance(every, int) else max(int(steps * every), 1)  # a float: a fraction of the run
+        steps, first = check_validation_in_budget(self.datamodule, self.trainer)
+        stop = self.trainer.max_steps
         if 0 < stop < min(first, steps):
             rank_zero_info(
                 f"otgb: --trainer.max_steps={stop} ends the run before its first validation (at step {first} of the "
@@ -193,6 +194,22 @@ class OTGBCLI(LightningCLI):
         checkpoint = self._get(self.config_init, "checkpoint")
         if checkpoint.monitor == AUTO:
             checkpoint.monitor = config.checkpoint.monitor = self.datamodule.selection_metric
+
+
+def check_validation_in_budget(data: Any, trainer: Trainer) -> tuple[int, int]:
+    """The run's training steps and its first validation step; bad input when the budget ends before that validation
+    (Lightning would stop the fit with a traceback once it has started)."""
+    per_step = data.batch_size * data.batches_per_step
+    steps = data.simulation_budget // trainer.world_size // per_step
+    every = trainer.val_check_interval
+    first = every if isinstance(every, int) else max(int(steps * every), 1)  # a float: a fraction of the run
+    if isinstance(every, int) and every > steps:
+        raise InputError(
+            f"trainer.val_check_interval={every}: data.simulation_budget={data.simulation_budget} gives only {steps} "
+            f"training steps ({per_step} simulations a step on each of {trainer.world_size} process(es)); expected a "
+            f"budget of at least {every * per_step * trainer.world_size} or --trainer.val_check_interval <= {steps}"
+        )
+    return steps, first
 
 
 def name_loggers_after_config(loggers: object, config_files: list | None) -> None:
@@ -229,6 +246,25 @@ def _first_new(path: Path) -> Path:
     while not path.parent.exists():
         path = path.parent
     return path
+
+
+def refuse_taken_versions(loggers: object) -> None:
+    """Bad input when a logger's configured ``version`` names a folder that already holds a run: Lightning would write
+    over its logs, or stop with a traceback on its ``config.yaml``. A run's saved ``config.yaml`` pins its version, so
+    giving it again (to rerun or resume that run) lands here."""
+    for logger in loggers if isinstance(loggers, list) else [loggers]:
+        args = getattr(logger, "init_args", None)
+        version = getattr(args, "version", None)
+        if version is None or getattr(args, "save_dir", None) is None:
+            continue
+        folder = Path(args.save_dir) / (getattr(args, "name", None) or "lightning_logs")
+        folder /= version if isinstance(version, str) else f"version_{version}"
+        if not folder.is_dir() or not any(folder.iterdir()):
+            continue
+        raise InputError(
+            f"trainer.logger version {version!r}: {folder} already holds a run; expected a version not taken, or none "
+            "(remove `version` from the config's loggers: the run, resumed or not, gets a new version_N)"
+        )
 
 
 def share_logger_version(loggers: object) -> list[Path]:

@@ -270,6 +270,34 @@ def test_parser_errors_are_a_few_lines_ending_with_the_closest_names(tmp_path, m
     assert not (tmp_path / "runs").exists(), "nothing written"
 
 
+def test_a_budget_that_ends_before_the_first_validation_is_one_line_and_nothing_written(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["fit", "--config", CONFIG, "--data.simulation_budget=1000", f"--data.cache_dir={tmp_path / 'cache'}"])
+    last = capsys.readouterr().err.splitlines()[-1]
+    assert exit_info.value.code == 2
+    assert last == (
+        "otgb: error: trainer.val_check_interval=125: data.simulation_budget=1000 gives only 31 training steps (32 "
+        "simulations a step on each of 1 process(es)); expected a budget of at least 4000 or "
+        "--trainer.val_check_interval <= 31"
+    )
+    assert not (tmp_path / "runs").exists(), "nothing written"
+
+
+def test_a_saved_config_that_pins_a_taken_version_is_refused_and_the_run_kept(tmp_path, monkeypatch, capsys):
+    main(["fit", *_args(tmp_path, "--trainer.max_steps=3")])
+    run = tmp_path / "run" / "version_0"
+    kept = {path: path.read_bytes() for path in run.rglob("*") if path.is_file()}
+    for command in (["fit"], ["test", f"--ckpt_path={run / 'checkpoints' / 'last.ckpt'}"]):
+        with pytest.raises(SystemExit) as exit_info:
+            main([command[0], "--config", str(run / "config.yaml"), *command[1:]])
+        assert exit_info.value.code == 2
+        last = capsys.readouterr().err.splitlines()[-1]
+        assert last.startswith(f"otgb: error: trainer.logger version 0: {run} already holds a run; expected a version")
+    assert {path: path.read_bytes() for path in run.rglob("*") if path.is_file()} == kept
+    assert [p.name for p in (tmp_path / "run").iterdir()] == ["version_0"]
+
+
 class BadInputAtSetup(Callback):
     """Raises InputError once the trainer has started, as a bad measured-data file would."""
 

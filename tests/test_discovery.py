@@ -674,12 +674,15 @@ def test_discover_from_python_as_the_tutorial_does_finds_friction_and_writes_a_c
     assert coulomb["standard_errors"] > 0 and "(sign(velocity))" in report["verdict"], report["verdict"]  # 30 held out
     config = yaml.safe_load((finder.run_dir_ / "augmented.yaml").read_text())
     assert config["data"]["physics"]["class_path"] == "otgb.physics.Augmented"
+    loggers = [logger["init_args"] for logger in config["trainer"]["logger"]]
+    assert all(args["name"] == "auto" and args["version"] is None for args in loggers), "each round: a new version_N"
     fit = subprocess.run(
         [sys.executable, "-m", "otgb.cli", "fit", "--config", str(finder.run_dir_ / "augmented.yaml"), "--trainer.max_steps=2",
          "--trainer.enable_progress_bar=false"],
         cwd=tmp_path, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert fit.returncode == 0, fit.stderr[-2000:]
+    assert fit.stderr.strip().splitlines()[-1].startswith("otgb fit: results in runs/augmented/version_0")
 
 
 @pytest.mark.slow

@@ -629,9 +629,9 @@ def augmented_config(config: dict[str, Any], physics: PhysicsModel, result: Disc
         "class_path": "otgb.physics.Augmented",
         "init_args": {"base": physics_entry, "terms": earlier + new},
     }
-    for logger in config["trainer"].get("logger") or []:
+    for logger in config["trainer"].get("logger") or []:  # the next round's logs: runs/augmented/<a new version_N>
         if isinstance(logger, dict) and "name" in logger.get("init_args", {}):
-            logger["init_args"]["name"] = "auto"
+            logger["init_args"].update(name="auto", version=None)
     return config
 
 
