@@ -631,7 +631,7 @@ def _bad_file(tmp_path: Path, kind: str) -> Path:
     ("mistake", "expected"),
     [
         (("file", "too small"), "30 trajectories split by"),
-        (("file", "all NaN"), "contain NaN/Inf"),
+        (("file", "all NaN"), "NaN/Inf in"),
         (("file", "time grid"), "the time grid [0, 0.2, 0.4"),
         (("setting", "--discover.alpha=2"), "discover: need"),
         (("setting", "--discover.families=[constant,gamma]"), "discover.families=['constant', 'gamma']: expected"),

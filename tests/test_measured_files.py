@@ -63,13 +63,16 @@ def test_csv_keeps_trajectories_in_file_order_and_reads_partial_inputs(tmp_path,
 BAD_CONTENT = {
     "wrong shape": ({"y": torch.randn(12, 40, 1)}, r"'y': measured trajectories have shape \(12, 40, 1\), expected \(N, 50, 1\)"),
     "empty": ({"y": torch.zeros(0, 50, 1)}, "no trajectories"),
-    "nan": ({"y": torch.full((3, 50, 1), float("nan"))}, "3 trajectories contain NaN/Inf"),
+    "nan": ({"y": torch.full((3, 50, 1), float("nan"))}, r"NaN/Inf in 3 of 3 trajectories, the first at position 0"),
     "missing key": ({"z": torch.randn(3, 50, 1)}, r"unknown entries \['z'\]"),
     "no y": ({"t": torch.arange(50.0)}, "no entry 'y'"),
     "bool dtype": ({"y": torch.ones(3, 50, 1, dtype=torch.bool)}, "'y' has dtype (torch.)?bool, expected real numbers"),
     "grid": ({"y": torch.randn(3, 50, 1), "t": torch.arange(50.0) * 0.2}, r"grid \[0, 0.2, 0.4, ..., 9.8\].*model's \[0, 0.1"),
     "theta width": ({"y": torch.randn(3, 50, 1), "theta": torch.ones(3, 2)}, r"'theta' has shape \(3, 2\), expected \(3, 1\)"),
-    "theta inf": ({"y": torch.randn(3, 50, 1), "theta": torch.tensor([[1.0], [float("inf")], [1.0]])}, "1 rows contain NaN/Inf"),
+    "theta inf": (
+        {"y": torch.randn(3, 50, 1), "theta": torch.tensor([[1.0], [float("inf")], [1.0]])},
+        r"NaN/Inf in 1 of 3 rows, the first at position 1",
+    ),
     "x0 shape": ({"y": torch.randn(3, 50, 1), "x0": torch.ones(3, 1)}, r"'x0' has shape \(3, 1\), expected \(3, 2\)"),
 }
 
@@ -93,7 +96,7 @@ def test_bad_files_are_named_in_one_line(tmp_path, pendulum, case):
         ("trajectory,t,angel\n0,0,1\n", r"missing \['angle'\], unknown \['angel'\]"),
         ("trajectory,t,angle\n0,0,1\n0,0.1\n", "line 3: 2 fields, expected 3"),
         ("trajectory,t,angle\n0,0,x\n", r"line 2: a field is not a number"),
-        ("trajectory,t,angle\n0,0,1\n0,0.1,1\n1,0,1\n", r"different numbers of rows \(\[1, 2\]\)"),
+        ("trajectory,t,angle\n0,0,1\n0,0.1,1\n1,0,1\n", r"trajectory 1 has 1 row\(s\), expected 2 as most trajectories have"),
         ("trajectory,t,angle,x0_angle\n0,0,1,1\n", r"\['x0_angle'\] given without \['x0_velocity'\]"),
     ],
 )
@@ -187,6 +190,13 @@ def test_mode_settings_are_checked(tmp_path, measurements):
         (lambda p: p.write_text("\ufefftrajectory,t,angle\n" + "".join(f"0,{k / 10},0.1\n" for k in range(50)) + "\n\n"), None),
         (lambda p: p.write_text("trajectory,t,angle\nnan,0,0.1\n"), "line 2: the 'trajectory' column holds NaN/Inf"),
         (lambda p: p.write_text("trajectory,t,angle\nrun0,0,0.1\n"), "a field is not a number"),
+        (  # a measurement is named by its line, trajectory id and time, not by its position in the file
+            lambda p: p.write_text(
+                "trajectory,t,angle\n"
+                + "".join(f"{7 + i},{k / 10},{'nan' if (i, k) == (1, 3) else 0.1}\n" for i in range(2) for k in range(50))
+            ),
+            r"m.csv, line 55: trajectory 8 at t=0.3: 'angle' is nan, expected a finite number",
+        ),
     ],
 )
 def test_csv_variants(tmp_path, pendulum, write, match):

@@ -119,7 +119,8 @@ def _grid(t: Tensor) -> str:
 def _check_finite(values: Tensor, where: str, what: str) -> None:
     bad = ~torch.isfinite(values.reshape(len(values), -1)).all(dim=1)
     if bool(bad.any()):
-        raise InputError(f"{where}: {int(bad.sum())} {what} contain NaN/Inf (first at index {int(bad.nonzero()[0])})")
+        first = int(bad.nonzero()[0])
+        raise InputError(f"{where}: NaN/Inf in {int(bad.sum())} of {len(bad)} {what}, the first at position {first} (from 0)")
 
 
 def _as_tensor(path: Path, key: str, value: Any) -> Tensor:
@@ -203,12 +204,22 @@ def _read_csv(path: Path, physics: PhysicsModel) -> dict[str, Any]:
         if not np.isfinite(column[name]).all():
             line = int(np.flatnonzero(~np.isfinite(column[name]))[0]) + 2
             raise InputError(f"{path}, line {line}: the '{name}' column holds NaN/Inf, expected a number in every row")
+    for name in header[2:]:
+        if not np.isfinite(column[name]).all():
+            row = int(np.flatnonzero(~np.isfinite(column[name]))[0])
+            raise InputError(
+                f"{path}, line {row + 2}: trajectory {column['trajectory'][row]:g} at t={column['t'][row]:g}: "
+                f"'{name}' is {column[name][row]}, expected a finite number"
+            )
     ids, starts, counts = np.unique(column["trajectory"], return_index=True, return_counts=True)
     order = np.argsort(starts)  # trajectories in the order they appear in the file
     ids, counts = ids[order], counts[order]
     if len(set(counts.tolist())) != 1:
+        usual = max(set(counts.tolist()), key=lambda count: (int((counts == count).sum()), count))
+        odd = int(np.flatnonzero(counts != usual)[0])
         raise InputError(
-            f"{path}: trajectories have different numbers of rows ({sorted(set(counts.tolist()))}), expected the same grid"
+            f"{path}: trajectory {ids[odd]:g} has {counts[odd]} row(s), expected {usual} as most trajectories have: one "
+            "row per time of the grid"
         )
     n, steps = len(ids), int(counts[0])
     index = np.concatenate([np.flatnonzero(column["trajectory"] == i) for i in ids])  # grouped, file order within
