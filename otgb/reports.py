@@ -116,23 +116,28 @@ def summary(by_source: dict[str, dict[str, dict[str, float | None]]]) -> str:
     names = [n for n in HEADLINE if all(n in by_source[s] for s in SOURCES)]
     if not names:
         return ""
-    sentence, no_closer = _summary_clause(names[0], by_source)
-    if no_closer and len(names) > 1:
+    sentence, state = _summary_clause(names[0], by_source)
+    if state == "no closer" and len(names) > 1:
         sentence += "; " + _summary_clause(names[1], by_source)[0]
+    if state == "f_p at the floor" and by_source["fp"].get("mmdagg_reject", {}).get("mean", 0.0) >= 0.5:
+        p_value = by_source["fp"].get("mmdagg_pvalue", {}).get("mean", math.nan)
+        sentence += f"; yet the MMDAgg test tells f_p alone from the held-out data (adjusted p-value {p_value:.2g})"
     return sentence + ".\n\n"
 
 
-def _summary_clause(name: str, by_source: dict[str, dict[str, dict[str, float | None]]]) -> tuple[str, bool]:
-    """The clause of ``name`` and whether it finds the model no closer to the Reference than f_p."""
+def _summary_clause(name: str, by_source: dict[str, dict[str, dict[str, float | None]]]) -> tuple[str, str]:
+    """The clause of ``name`` and where it puts the model: ``f_p at the floor``, ``at the floor``, ``no closer`` (than
+    f_p) or ``closer``."""
     model, fp, ref = (by_source[s][name]["mean"] for s in SOURCES)
     values = f"{LABELS[name]}: model {model:.3g}, f_p alone {fp:.3g}, Reference (noise floor) {ref:.3g}"
     if not math.isfinite(fp - ref) or fp <= ref:
-        return f"{values}: f_p alone is already at the noise floor", False
+        return f"{values}: by this metric f_p alone is already at the noise floor", "f_p at the floor"
     if model <= ref:  # below the floor: the sampling noise of small held-out sets, not a model better than the data
-        return f"{values}: the model is at the noise floor (no further from the held-out data than the Reference)", False
+        text = f"{values}: the model is at the noise floor (no further from the held-out data than the Reference)"
+        return text, "at the floor"
     if model >= fp:
-        return f"{values}: the model is no closer to the noise floor than f_p alone", True
-    return f"{values}: the model closes {(fp - model) / (fp - ref):.0%} of f_p's distance to the noise floor", False
+        return f"{values}: the model is no closer to the noise floor than f_p alone", "no closer"
+    return f"{values}: the model closes {(fp - model) / (fp - ref):.0%} of f_p's distance to the noise floor", "closer"
 
 
 def summary_of(run_dir: Path) -> str:

@@ -41,6 +41,19 @@ def test_a_summary_says_when_the_model_is_no_closer_than_f_p_and_then_reads_the_
     assert "-0%" not in sentence
 
 
+def test_a_summary_that_finds_f_p_at_the_floor_by_c2st_says_when_the_mmdagg_test_rejects_it(tmp_path):
+    """30 held-out trajectories: the C2ST cannot tell f_p from them, the MMDAgg test can; the sentence says both."""
+    results = {"c2st": 0.4667, "fp_c2st": 0.4667, "ref_c2st": 0.5533, "fp_mmdagg_reject": 1.0, "fp_mmdagg_pvalue": 0.005988}
+    write_report(tmp_path, {"name": "few_held_out", "ckpt_path": "x.ckpt", "global_step": 7}, results)
+    sentence = (tmp_path / "metrics.md").read_text().split("\n\n")[3]
+    assert sentence == (
+        "C2ST accuracy: model 0.467, f_p alone 0.467, Reference (noise floor) 0.553: by this metric f_p alone is already at "
+        "the noise floor; yet the MMDAgg test tells f_p alone from the held-out data (adjusted p-value 0.006)."
+    )
+    write_report(tmp_path, {"name": "few_held_out", "ckpt_path": "x.ckpt", "global_step": 7}, results | {"fp_mmdagg_reject": 0.0})
+    assert (tmp_path / "metrics.md").read_text().split("\n\n")[3].endswith("already at the noise floor.")
+
+
 def test_gather_groups_seeds(tmp_path):
     for seed, c2st in enumerate([0.7, 0.8]):
         _write(tmp_path / f"s{seed}", f"pendulum_mm_seed{seed}", c2st)
