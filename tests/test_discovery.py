@@ -291,13 +291,22 @@ def test_the_named_models_own_divergences_are_said_apart_from_the_candidates():
     friction, drag = Candidate("velocity", "velocity"), Candidate("velocity*|velocity|", "velocity")
     named = FittedTerms("constant", [friction, drag], [Constant(-1.6), Constant(0.45)], Scores([0.1]), [])
     v, drag_term = "velocity on dvelocity/dt", "velocity*|velocity| on dvelocity/dt"
+    named_coefficients = ["Constant(value=-1.6)", "Constant(value=0.45)"]
     records = [
         {"what": "fit (constant)", "terms": [drag_term], "diverged": 1024, "of": 1024},
-        {"what": "score", "terms": [v, drag_term], "diverged": 1, "of": 420},
-        {"what": "gap-augmented", "terms": [drag_term, v], "diverged": 2, "of": 90},
+        {"what": "score", "terms": [v, drag_term], "diverged": 1, "of": 420, "coefficients": named_coefficients},
+        {"what": "gap-augmented", "terms": [drag_term, v], "diverged": 2, "of": 90, "coefficients": named_coefficients[::-1]},
+        {"what": "interval", "terms": [v, drag_term], "diverged": 3, "of": 40},  # resamples' refits: other coefficients
+        {  # a wider spread tried around the named coefficients
+            "what": "score",
+            "terms": [v, drag_term],
+            "diverged": 5,
+            "of": 420,
+            "coefficients": ["Uniform(low=-3.0, high=-0.2)", "Constant(value=0.45)"],
+        },
     ]
     result = Discovery(before=None, sentence_before="", fitted=named, diverged=records)
-    assert named_divergences(result) == records[1:]
+    assert named_divergences(result) == records[1:3]
     assert named_divergences(Discovery(before=None, sentence_before="", diverged=records)) == [], "nothing named"
 
 
@@ -324,13 +333,17 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
     to_coulomb = Comparison(friction, coulomb, -0.48, 0.15, 0.072)
     head, *rest = said(Comparison(friction, drag, -0.37, -0.043, 0.046), to_coulomb)
     assert head == (
-        "missing effect found, the gap is closed: viscous friction (velocity on dvelocity/dt) or quadratic drag "
-        "(velocity*|velocity|) (the measurements cannot tell them apart: -0.9 standard errors) removes 90% of f_p's "
-        "energy distance to the 30 test trajectories, which no longer tell the augmented physics apart"
+        "missing effect found, the gap is closed as far as the test part can tell: viscous friction (velocity on "
+        "dvelocity/dt) or quadratic drag (velocity*|velocity|) (the measurements cannot tell them apart: -0.9 standard "
+        "errors) removes 90% of f_p's energy distance to the 30 test trajectories, and no test tells the augmented "
+        "physics from them"
     ), head
     assert rest == ["they agree everywhere"] and said.confirmed
+    head, *rest = said(Comparison(friction, coulomb, -0.48, 0.05, 0.072), Comparison(friction, drag, -0.37, -0.043, 0.046))
+    assert "viscous friction (velocity on dvelocity/dt) or Coulomb friction (sign(velocity)) or quadratic drag " in head
+    assert "(the measurements cannot tell them apart: +0.7, -0.9 standard errors) removes 90%" in head, head
     head, *rest = said(to_coulomb)
-    assert head.startswith("missing effect found, the gap is closed: viscous friction (velocity on dvelocity/dt) removes")
+    assert head.startswith("missing effect found, the gap is closed as far as the test part can tell: viscous friction (")
     assert rest == ["they agree everywhere", "velocity preferred over Coulomb friction (sign(velocity)) by 2.1 standard errors"]
     head, *rest = said(to_coulomb, f_p={"energy": 1.0, "c2st": 0.58})  # a test part that cannot tell f_p apart either
     assert head == (

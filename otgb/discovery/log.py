@@ -23,14 +23,24 @@ def progress(message: str) -> None:
     logger.info(message)
 
 
-def diverged(what: str, terms: list[str], bad: int, total: int, first_inputs: list[float] | None = None) -> None:
+def diverged(
+    what: str,
+    terms: list[str],
+    bad: int,
+    total: int,
+    first_inputs: list[float] | None = None,
+    coefficients: list[str] | None = None,
+) -> None:
     """Say that ``bad`` of ``total`` simulated trajectories of a model made of f_p + ``terms`` diverged in ``what``
     (WARNING, collected by :class:`DivergenceLog`): a fit or score counts the model as infinitely worse there, a
-    verification leaves those trajectories out."""
+    verification leaves those trajectories out. ``coefficients``: the terms' priors, where the step simulated with
+    given ones (a score, a verification), so that the report can tell the named model's own solves from others."""
     details = {"what": what, "terms": terms, "diverged": bad, "of": total, "first_inputs": first_inputs}
-    where = f" (first inputs theta={first_inputs})" if first_inputs is not None else ""
+    details["coefficients"] = coefficients
+    where = f" (first inputs theta={[float(f'{v:.4g}') for v in first_inputs]})" if first_inputs is not None else ""
+    with_ = f" with coefficients {', '.join(coefficients)}" if coefficients else ""
     logger.warning(
-        f"{what}: f_p + {terms or 'nothing'} diverged in {bad} of {total} trajectories{where}",
+        f"{what}: f_p + {terms or 'nothing'}{with_} diverged in {bad} of {total} trajectories{where}",
         extra={"divergence": details},
     )
 

@@ -350,7 +350,7 @@ def discrepancies(
         simulated, bad = simulate_finite(model, x0, torch.cat([theta, coefficients.float()], dim=1))
         if bad.any():
             first = int(bad.nonzero()[0])
-            diverged("score", term_names(candidates), int(bad.sum()), n, theta[first].tolist())
+            diverged("score", term_names(candidates), int(bad.sum()), n, theta[first].tolist(), list(map(repr, priors)))
             return Scores.diverged(repeats)
         value, row = discrepancy_and_rows(simulated.double(), target)
         values.append(float(value))

@@ -61,7 +61,10 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
             + result.sentence_before
             + "), but no candidate term closes the gap"
         ]
-    ambiguous = {(c.replaced.feature, c.replaced.component): c for c in closest_alternatives(result) if c.ambiguous}
+    ambiguous: dict[tuple[str, str], list] = {}
+    for c in sorted(result.evidence, key=lambda c: abs(c.standard_errors)):  # closest first
+        if c.ambiguous and math.isfinite(c.difference):
+            ambiguous.setdefault((c.replaced.feature, c.replaced.component), []).append(c)
     names = ", ".join(
         f"{term_name(c, centre(p), physics)} ({c.feature} on d{c.component}/dt)"
         + _or_alike(ambiguous.get((c.feature, c.component)), physics)
@@ -78,8 +81,8 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
         ]
     elif closed:
         answer = [
-            f"missing effect found, the gap is closed: {names} {removes} {share_removed(result)}, which no longer tell the "
-            "augmented physics apart",
+            f"missing effect found, the gap is closed as far as the test part can tell: {names} {removes} "
+            f"{share_removed(result)}, and no test tells the augmented physics from them",
             result.sentence_after,
         ]
     else:
@@ -159,13 +162,14 @@ def closest_alternatives(result: Discovery) -> list:
     return closest
 
 
-def _or_alike(alternative, physics: PhysicsModel) -> str:
-    """For a named term that the measurements cannot tell from ``alternative``: that alternative, at the term's name,
-    so that the verdict's first words give both."""
-    if alternative is None:
+def _or_alike(alternatives: list | None, physics: PhysicsModel) -> str:
+    """For a named term that the measurements cannot tell from ``alternatives`` (closest first): each of them, at the
+    term's name, so that the verdict's first words give them all."""
+    if not alternatives:
         return ""
-    other = f"{term_name(alternative.by, alternative.coefficient, physics)} ({alternative.by.feature})"
-    return f" or {other} (the measurements cannot tell them apart: {alternative.standard_errors:+.1f} standard errors)"
+    others = "".join(f" or {term_name(a.by, a.coefficient, physics)} ({a.by.feature})" for a in alternatives)
+    errors = ", ".join(f"{a.standard_errors:+.1f}" for a in alternatives)
+    return f"{others} (the measurements cannot tell them apart: {errors} standard errors)"
 
 
 def preferences(result: Discovery, physics: PhysicsModel) -> list[str]:
@@ -180,11 +184,12 @@ def preferences(result: Discovery, physics: PhysicsModel) -> list[str]:
 
 
 def named_divergences(result: Discovery) -> list[dict]:
-    """The divergence records (:mod:`otgb.discovery.log`) of the named model itself: f_p plus exactly its terms."""
+    """The divergence records (:mod:`otgb.discovery.log`) of the named model itself: f_p plus exactly its terms, with
+    the named coefficients (not a fit's trial values, a resample's refit or a wider spread tried around them)."""
     if not result.found or result.fitted is None:
         return []
-    named = set(term_names(result.fitted.candidates))
-    return [d for d in result.diverged if set(d["terms"]) == named]
+    named = set(zip(term_names(result.fitted.candidates), map(repr, result.fitted.priors)))
+    return [d for d in result.diverged if set(zip(d["terms"], d.get("coefficients") or [])) == named]
 
 
 def flags(result: Discovery, physics: PhysicsModel) -> list[str]:
@@ -267,7 +272,7 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
         "family_stopped_short": result.family.stopped_short if result.family else [],
         "dropped_by_heldout_check": result.dropped,
         "interval_method": intervals.method if intervals else None,
-        "diverged": result.diverged,
+        "diverged": [d | {"named": d in named_divergences(result)} for d in result.diverged],
         "undertrained": result.undertrained,
         "correction_share": result.correction_share,
         "pointwise": result.pointwise,
@@ -456,7 +461,6 @@ def _naming_section(report: dict[str, Any]) -> list[str]:
             "Raise `data.simulation_budget` (or give a longer-trained `--ckpt_path`)."
         )
     if report["diverged"]:
-        named = {f"{t['feature']} on d{t['component']}/dt" for t in report["terms"]}
         lines += ["", "### Solves that diverged", ""]
         lines.append(
             "A fit or a score whose solve diverged counts its model as infinitely worse in that step; a verification leaves "
@@ -465,8 +469,11 @@ def _naming_section(report: dict[str, Any]) -> list[str]:
         lines += ["", "| step | f_p plus | diverged trajectories | first inputs |", "|---|---|---|---|"]
         for d in report["diverged"]:
             terms = ", ".join(code(t) for t in d["terms"]) or "nothing"
-            terms += " (**named**)" if named and set(d["terms"]) == named else ""
-            lines.append(f"| {d['what']} | {terms} | {d['diverged']} of {d['of']} | {d['first_inputs'] or '-'} |")
+            terms += " (**named**)" if d.get("named") else ""
+            if d.get("coefficients"):
+                terms += f" with {', '.join(d['coefficients'])}"
+            first = ", ".join(f"{v:.4g}" for v in d["first_inputs"]) if d["first_inputs"] else "-"
+            lines.append(f"| {d['what']} | {terms} | {d['diverged']} of {d['of']} | {first} |")
     lines += _evidence_section(report)
     lines += [
         "",

@@ -178,7 +178,8 @@ def simulate_candidate(model: Augmented, n: int, seed: int, name: str) -> Tensor
     kept, bad = zip(*(simulate_finite(model, x0[i : i + CHUNK], theta[i : i + CHUNK]) for i in range(0, n, CHUNK)))
     bad = torch.cat(bad)
     if bool(bad.any()):
-        diverged(name, term_names(model.added), int(bad.sum()), n, theta[int(bad.nonzero()[0])].tolist())
+        first, coefficients = theta[int(bad.nonzero()[0])].tolist(), [repr(t.priors["coefficient"]) for t in model.added]
+        diverged(name, term_names(model.added), int(bad.sum()), n, first, coefficients)
     return torch.cat(kept)
 
 
