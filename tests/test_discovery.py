@@ -839,6 +839,8 @@ def test_the_report_says_when_the_measurements_cannot_tell_two_varying_families_
     alike = "\n".join(_family_section(report((0.0005, 0.0007))))
     assert "cannot tell the two_point family from uniform" in alike and "constant" not in alike.split("\n")[-1]
     assert "cannot tell" not in "\n".join(_family_section(report((0.0049, 0.0007))))
+    noise = "otgb simulates without observation noise"
+    assert noise in alike and noise not in "\n".join(_family_section(report((0.0049, 0.0007)) | {"family": "constant"}))
 
 
 def test_a_verdict_on_few_test_trajectories_says_what_the_noise_allows():

@@ -550,6 +550,12 @@ def _family_section(report: dict[str, Any]) -> list[str]:
         for k, d in differences.items()
         if k not in ("constant", report["family"]) and d["difference"] <= 2 * d["standard_error"]
     ]
+    if report["family"] != "constant":
+        lines.append(
+            "otgb simulates without observation noise: noise in the measurements widens their spread at every time, "
+            "as a coefficient that varies between trajectories would. Where the measurements are noisy, read this "
+            "family as a varying coefficient or measurement noise (docs/discovery.md, measurement noise)."
+        )
     if report["family"] != "constant" and alike:
         lines.append(
             f"The training measurements cannot tell the {report['family']} family from {' or '.join(alike)} (within two "
