@@ -19,6 +19,8 @@ from otgb.analysis.figures import (
 )
 from otgb.data import generate_measured
 from otgb.discovery.locate import locate
+from otgb.discovery.report import disagreement_panels
+from otgb.discovery.workflow import Discovery
 from otgb.physics import AdvectionDiffusion, Constant, Pendulum, ReactionDiffusion, ViscousFriction
 
 STEP = 1234
@@ -136,3 +138,23 @@ def test_a_disagreement_map_says_its_sizes_and_lists_significant_cells_only_wher
     before, after = ([t.get_text() for t in ax.get_legend().get_texts()] for ax in figure.axes)
     assert differ.significant.any() and any(text.endswith(": significant") for text in before), before
     assert not any(text.endswith(": significant") for text in after), after
+
+
+def test_discovery_draws_before_and_after_on_the_same_test_trajectories():
+    """The figure that should show the gap shrink: f_p and the augmented physics against the same test part, on the
+    training part's scale, with numbers on every panel."""
+    pendulum, rows, _ = _pendulum_rows(40)
+    measured, times = rows["y"][:, 0], pendulum.observation_times()
+    train = locate(measured, rows["x"], times, pendulum.observed, n_permutations=99)
+    test = locate(measured[:20], rows["x"][:20], times, pendulum.observed, n_permutations=99)
+    after = locate(measured[:20], measured[20:], times, pendulum.observed, n_permutations=99)
+    panels = disagreement_panels(Discovery(before=train, sentence_before="", before_on_test=test, after=after))
+    assert [title for _, title in panels] == [
+        "f_p vs measured: the training part, 40 trajectories",
+        "before: f_p vs measured, the test part, 20 trajectories",
+        "after: augmented vs measured, the test part, 20 trajectories",
+    ]
+    figure = disagreement_figure(panels)
+    assert len(figure.axes) == 3 and len({ax.get_ylim() for ax in figure.axes}) == 1, "one scale for all panels"
+    assert all(ax.yaxis.get_ticklabels()[1].get_visible() for ax in figure.axes), "numbers on every panel"
+    close(figure)

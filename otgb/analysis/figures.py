@@ -267,4 +267,5 @@ def _draw_disagreement(ax: plt.Axes, result: Any, title: str, top: float) -> Non
             ax.legend(fontsize=7, loc="upper right")
         ax.figure.colorbar(image, ax=ax, label="energy distance")
     ax.set_xlabel("t")
+    ax.tick_params(labelleft=True)  # each panel its numbers: the shared scale is read on every one
     ax.set_title(title, fontsize=9)

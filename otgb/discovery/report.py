@@ -12,6 +12,7 @@ import yaml
 from otgb.analysis.components import to_json
 from otgb.analysis.figures import close, components_figure, disagreement_figure, distribution_figure, save
 from otgb.discovery.library import implausible
+from otgb.discovery.locate import DisagreementMap
 from otgb.discovery.refine import centre, term_names
 from otgb.discovery.variation import FIRST_SPREAD, SPREAD_DOUBLINGS
 from otgb.discovery.workflow import Discovery, term_name
@@ -317,12 +318,22 @@ def _selection_dict(selection: Any) -> dict[str, Any]:
 
 
 def draw_locate(result: Discovery, path: Path) -> None:
-    maps = [(result.before, f"f_p vs measured (before): the training part, {result.before.sizes[0]} trajectories")]
-    if result.after:
-        maps.append((result.after, f"augmented vs measured (after): the test part, {result.after.sizes[0]} trajectories"))
-    figure = disagreement_figure(maps)
+    figure = disagreement_figure(disagreement_panels(result))
     save(figure, path)
     close(figure)
+
+
+def disagreement_panels(result: Discovery) -> list[tuple[DisagreementMap, str]]:
+    """The disagreement maps and their titles: f_p on the training part (where discovery looked) and, once terms
+    are named, f_p (before) and the augmented physics (after) on the test part, which no fit saw: the same
+    trajectories, so the last two panels compare like with like."""
+    maps = [(result.before, f"f_p vs measured: the training part, {result.before.sizes[0]} trajectories")]
+    if result.before_on_test:
+        test = f"the test part, {result.before_on_test.sizes[0]} trajectories"
+        maps.append((result.before_on_test, f"before: f_p vs measured, {test}"))
+    if result.after:
+        maps.append((result.after, f"after: augmented vs measured, the test part, {result.after.sizes[0]} trajectories"))
+    return maps
 
 
 def write_report(

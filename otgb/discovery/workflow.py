@@ -144,6 +144,7 @@ class Discovery:
     evidence: list[Comparison] = field(default_factory=list)  # the kept terms against their alternatives (.evidence)
     added: list[dict] = field(default_factory=list)  # strong candidates the evidence step added (.evidence)
     dropped: list[dict] = field(default_factory=list)
+    before_on_test: DisagreementMap | None = None  # f_p on the test part: what ``after`` is compared with
     after: DisagreementMap | None = None
     sentence_after: str | None = None
     gap: dict[str, dict[str, float]] = field(default_factory=dict)
@@ -496,6 +497,7 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
         result.intervals = sandwich_intervals(physics, result.fitted, data.train, settings.fit_batch, settings.seed)
         progress(f"intervals: {result.intervals.centre if result.intervals else 'none (the fit is not at a minimum)'}")
         sources["augmented"] = simulate_candidate(result.fitted.model(physics), len(data.test), settings.seed, "gap-augmented")
+        result.before_on_test = locate_step(physics, data.test, settings, "f_p-test")
         result.after = locate_step(result.fitted.model(physics), data.test, settings, "augmented")
         result.sentence_after = describe(result.after, b_name="augmented-physics") + " (on the test part, which no fit saw)"
     progress("verifying on the test part")
