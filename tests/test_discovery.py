@@ -56,6 +56,7 @@ from otgb.discovery.workflow import (
     replaces,
     run,
     simulate_candidate,
+    undertrained_text,
 )
 from otgb.errors import InputError
 from otgb.models import GreyBoxODE, MLPCritic
@@ -853,3 +854,15 @@ def test_a_verdict_on_few_test_trajectories_says_what_the_noise_allows():
     assert below.startswith("all of f_p's energy distance to the 30 test trajectories") and "-0.237, is not above zero" in below
     assert low_power(result(0.067, 0.02, 270)) == []
     assert "30 test trajectories the Reference C2ST spreads +- 0.18" in low_power(result(-0.237, 0.18, 30))[0]
+
+
+def test_an_unused_grey_box_is_said_with_its_standard_error_and_the_likelier_cause():
+    """Better than f_p by less than two standard errors on few validation trajectories: too few to tell, not only
+    undertrained; no better at all: undertrained."""
+    few = undertrained_text(1.13, 0.8, 30, 0.89, 2.02)
+    assert few.startswith(
+        "fits the 30 validation measurements better than f_p alone, but not by two standard errors (energy 0.89 against "
+        "2.02, difference 1.13 ± 0.8): they are too few to tell, or the grey-box is undertrained"
+    )
+    worse = undertrained_text(-0.2, 0.1, 150, 2.2, 2.0)
+    assert worse.startswith("fits the 150 validation measurements no better than f_p alone") and "undertrained" in worse

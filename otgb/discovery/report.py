@@ -15,7 +15,7 @@ from otgb.discovery.library import implausible
 from otgb.discovery.locate import DisagreementMap
 from otgb.discovery.refine import centre, term_names
 from otgb.discovery.variation import FIRST_SPREAD, SPREAD_DOUBLINGS
-from otgb.discovery.workflow import Discovery, term_name
+from otgb.discovery.workflow import Discovery, term_name, undertrained_text
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 from otgb.physics.priors import Prior
@@ -100,7 +100,10 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
             f"simulated trajectories ({worst['what']}): some inputs blow up with these coefficients"
         )
     if result.undertrained:
-        parts.append("the OT grey-box is undertrained, the terms come from the library search")
+        parts.append(
+            "the OT grey-box does not beat f_p alone on the validation part (undertrained, or too few trajectories to "
+            "tell), the terms come from the library search"
+        )
     return parts
 
 
@@ -465,12 +468,11 @@ def _naming_section(report: dict[str, Any]) -> list[str]:
             lines.append(f"\n**Flagged:** {t['name']} ({t['coefficient']:+.4g} {code(t['feature'])}) {t['flag']}.")
     if report["undertrained"]:
         u = report["undertrained"]
-        lines.append(
-            f"\n**The OT grey-box is undertrained:** its energy discrepancy to the validation measurements "
-            f"({u['greybox_heldout_energy']:.4g}) is no better than f_p's alone ({u['f_p_heldout_energy']:.4g}). "
-            "Its correction was not used to name terms; the naming relies on the library search. "
-            "Raise `data.simulation_budget` (or give a longer-trained `--ckpt_path`)."
-        )
+        said = undertrained_text(
+            u["difference"], u["standard_error"], u["validation_trajectories"], u["greybox_heldout_energy"],
+            u["f_p_heldout_energy"],
+        )  # fmt: skip
+        lines.append(f"\n**The OT grey-box's correction is not used:** it {said}.")
     if report["diverged"]:
         lines += ["", "### Solves that diverged", ""]
         lines.append(

@@ -44,6 +44,7 @@ from otgb.discovery.refine import (
     Fitting,
     beats,
     centre,
+    difference,
     discrepancies,
     sample_scores,
     simulate_finite,
@@ -556,12 +557,30 @@ def undertrained(module: Any, heldout: Tensor, settings: DiscoverySettings) -> d
     alone = sample_scores(lambda r: simulate_from_priors(physics, n, seed + 100 + r, "f_p"), heldout, UNDERTRAINED_REPEATS)
     if beats(greybox, alone):
         return None
-    progress(
-        f"the OT grey-box fits the validation measurements no better than f_p alone (energy {greybox.mean:.4g} "
-        f"against {alone.mean:.4g}): it is undertrained; raise data.simulation_budget (or give a longer-trained "
-        "--ckpt_path). Its correction is not used to name terms: the naming relies on the library search"
-    )
-    return {"greybox_heldout_energy": greybox.mean, "f_p_heldout_energy": alone.mean}
+    gain, error = difference(greybox, alone)
+    progress(f"the OT grey-box {undertrained_text(gain, error, n, greybox.mean, alone.mean)}")
+    return {
+        "greybox_heldout_energy": greybox.mean, "f_p_heldout_energy": alone.mean,
+        "difference": gain, "standard_error": error, "validation_trajectories": n,
+    }  # fmt: skip
+
+
+def undertrained_text(gain: float, error: float, n: int, greybox: float, alone: float) -> str:
+    """Why the grey-box's correction is not used, with the numbers: no better than f_p, or better by less than two
+    standard errors of the difference on these ``n`` validation trajectories (too few to tell, or undertrained)."""
+    numbers = f"energy {greybox:.4g} against {alone:.4g}, difference {gain:.3g} ± {error:.2g}"
+    if gain > 0:
+        judged = (
+            f"fits the {n} validation measurements better than f_p alone, but not by two standard errors ({numbers}): "
+            "they are too few to tell, or the grey-box is undertrained; more measurements, or a larger "
+            "data.simulation_budget"
+        )
+    else:
+        judged = (
+            f"fits the {n} validation measurements no better than f_p alone ({numbers}): it is undertrained; raise "
+            "data.simulation_budget (or give a longer-trained --ckpt_path)"
+        )
+    return f"{judged}. Its correction is not used to name terms: the naming relies on the library search"
 
 
 @torch.no_grad()
