@@ -20,6 +20,8 @@ import matplotlib.colors as colors  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from matplotlib.lines import Line2D  # noqa: E402
+from matplotlib.patches import Patch  # noqa: E402
 from torch import Tensor  # noqa: E402
 
 from otgb.physics.base import PhysicsModel  # noqa: E402
@@ -101,10 +103,17 @@ def distribution_figure(
             for path in values[:2, :, k]:
                 ax.plot(t, path.numpy(), color=colour, ls=style, lw=0.5, alpha=0.45)
         ax.set_title(labels[k], fontsize=8)
-        ax.set_xlabel("t", fontsize=7)
-        ax.set_ylabel(labels[k], fontsize=7)
-    axes.flat[0].legend(fontsize=7)
+        ax.set_xlabel("t", fontsize=8)
+        ax.set_ylabel(labels[k], fontsize=8)
     first = next(iter(series))
+    styles = [  # what each line and band is, in grey, after the sources' colours
+        Line2D([], [], color="grey", lw=1.8, label="median (thick)"),
+        Patch(color="grey", alpha=0.3, label=f"{first}: 25-75 % and 5-95 % (filled)"),
+        Line2D([], [], color="grey", lw=0.8, label="others: 25-75 % (solid), 5-95 % (dotted)", ls="-"),
+        Line2D([], [], color="grey", lw=0.5, alpha=0.6, label="2 sample paths (thin)"),
+    ]
+    handles = axes.flat[0].get_legend_handles_labels()[0] + styles
+    axes.flat[0].legend(handles=handles, fontsize=6, loc="best", framealpha=0.8)
     what = f"median, 25-75 % and 5-95 % over time ({first} filled), 2 paths each (unpaired)"
     title(figure, what, step)
     figure.tight_layout()
