@@ -35,9 +35,10 @@ import sys
 from itertools import product
 from pathlib import Path
 
+from otgb.command import logger_override
 from otgb.data.seeding import generator_for
 from otgb.metrics.joint import JointEvaluator
-from otgb.runs import load_run
+from otgb.runs import load_run, newest
 
 MARGINAL = ["--data.hidden_effect=[]"]
 METRICS = ("abs_err", "nrmse", "mmd", "energy", "c2st", "mmdagg_reject")
@@ -58,29 +59,24 @@ def export(config: str, out: Path, record: list[str]) -> Path:
 
 
 def run_args(out: Path, name: str, config: str) -> list[str]:
-    loggers = ", ".join(
-        f"{{class_path: lightning.pytorch.loggers.{cls}, init_args: {{save_dir: {out}, name: {name}, version: 0}}}}"
-        for cls in ("CSVLogger", "TensorBoardLogger")  # CSV first: it wants an empty folder
-    )
-    return ["--config", config, f"--trainer.logger=[{loggers}]", f"--data.cache_dir={out / 'cache'}"]
+    return ["--config", config, logger_override(str(out), name), f"--data.cache_dir={out / 'cache'}"]
 
 
 def fit(out: Path, name: str, config: str, extra: list[str]) -> Path:
-    """Fit (or resume) run ``name``; return its best checkpoint."""
-    run = out / name / "version_0"
-    done = run / "fit.done"
+    """Fit (or resume, into the next version_N) run ``name``; return its best checkpoint."""
+    done = out / name / "fit.done"
     if not done.exists():
-        last = run / "checkpoints" / "last.ckpt"
-        resume = [f"--ckpt_path={last}"] if last.exists() else []
-        otgb("fit", *run_args(out, name, config), *extra, *resume)
+        last = newest(out / name, "version_*/checkpoints/last.ckpt")
+        otgb("fit", *run_args(out, name, config), *extra, *([f"--ckpt_path={last}"] if last else []))
         done.write_text("finished\n")
-    return next((run / "checkpoints").glob("best-*.ckpt"))
+    return newest(out / name, "version_*/checkpoints/best-*.ckpt")
 
 
 def test(out: Path, name: str, config: str, extra: list[str], ckpt: Path | None) -> dict:
-    report = out / name / "version_0" / "metrics.json"
-    if not report.exists():
+    report = newest(out / name, "version_*/metrics.json")
+    if report is None:
         otgb("test", *run_args(out, name, config), *extra, *([f"--ckpt_path={ckpt}"] if ckpt else []))
+        report = newest(out / name, "version_*/metrics.json")
     return json.loads(report.read_text())
 
 
