@@ -19,7 +19,7 @@ from otgb.discovery.evidence import Comparison, choose_swap, weigh
 from otgb.discovery.intervals import sandwich_intervals
 from otgb.discovery.library import Candidate, build_library, physical_name
 from otgb.discovery.locate import describe, locate, permutation_energy
-from otgb.discovery.log import DivergenceLog
+from otgb.discovery.log import DivergenceLog, rounded, short
 from otgb.discovery.refine import (
     FAMILIES,
     FAMILY_REPEATS,
@@ -866,3 +866,9 @@ def test_an_unused_grey_box_is_said_with_its_standard_error_and_the_likelier_cau
     )
     worse = undertrained_text(-0.2, 0.1, 150, 2.2, 2.0)
     assert worse.startswith("fits the 150 validation measurements no better than f_p alone") and "undertrained" in worse
+
+
+def test_progress_lines_give_coefficients_to_four_significant_digits():
+    priors = [Constant(-0.22489754855632782), Uniform(-0.36761, -0.119212), Choice([-1.4979123, -0.58331])]
+    assert short(priors) == "[Constant(-0.2249), Uniform(-0.3676, -0.1192), Choice([-1.498, -0.5833])]"
+    assert rounded([(-0.2866312449901427, -0.16316385212251291)]) == "[[-0.2866, -0.1632]]"

@@ -23,6 +23,18 @@ def progress(message: str) -> None:
     logger.info(message)
 
 
+def rounded(value: Any) -> str:
+    """Numbers, and lists or tuples of them, to 4 significant digits, for a log line."""
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(map(rounded, value)) + "]"
+    return f"{value:.4g}" if isinstance(value, float) else str(value)
+
+
+def short(priors: list[Any]) -> str:
+    """Priors as a person reads them in a log line: ``Constant(-0.2249)``, ``Uniform(-0.3676, -0.1192)``."""
+    return rounded([f"{type(p).__name__}({', '.join(map(rounded, p.init_args.values()))})" for p in priors])
+
+
 def diverged(
     what: str,
     terms: list[str],

@@ -37,7 +37,7 @@ from otgb.discovery.evidence import Comparison, weigh
 from otgb.discovery.intervals import Intervals, sandwich_intervals
 from otgb.discovery.library import Candidate, build_library, physical_name
 from otgb.discovery.locate import DisagreementMap, describe, locate
-from otgb.discovery.log import DivergenceLog, diverged, progress
+from otgb.discovery.log import DivergenceLog, diverged, progress, rounded, short
 from otgb.discovery.refine import (
     FAMILIES,
     FittedTerms,
@@ -477,7 +477,7 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
     kept, truncated = None, False
     if selected and result.undertrained is None:
         kept, result.dropped, truncated = add_step(result.selections, designs, fitting)
-        progress(f"kept {[c.feature for c in kept.candidates]}, coefficients {kept.priors}")
+        progress(f"kept {[c.feature for c in kept.candidates]}, coefficients {short(kept.priors)}")
     result.search_reason = search_reason(physics, kept, truncated, data.val, settings)
     if result.search_reason is not None:
         kept = search_step(kept, result, designs, fitting)
@@ -488,7 +488,7 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
         result.family, dropped = family_step(kept, fitting, settings.families)
         result.dropped += dropped
         result.fitted = result.family.fitted
-        progress(f"fitted {result.fitted.family} coefficients {result.fitted.priors}")
+        progress(f"fitted {result.fitted.family} coefficients {short(result.fitted.priors)}")
     sources = {
         "f_p": simulate_from_priors(physics, len(data.test), settings.seed, "gap-f_p"),
         "greybox": generated(module, len(data.test), settings.seed),
@@ -496,7 +496,7 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
     if result.found:
         result.final_terms = final_regression(result.selections, designs, result.fitted.candidates, settings)
         result.intervals = sandwich_intervals(physics, result.fitted, data.train, settings.fit_batch, settings.seed)
-        progress(f"intervals: {result.intervals.centre if result.intervals else 'none (the fit is not at a minimum)'}")
+        progress(f"intervals: {rounded(result.intervals.centre) if result.intervals else 'none (the fit is not at a minimum)'}")
         sources["augmented"] = simulate_candidate(result.fitted.model(physics), len(data.test), settings.seed, "gap-augmented")
         result.before_on_test = locate_step(physics, data.test, settings, "f_p-test")
         result.after = locate_step(result.fitted.model(physics), data.test, settings, "augmented")
@@ -532,7 +532,7 @@ def search_step(kept: FittedTerms | None, result: Discovery, designs: dict, fitt
         progress("search: nothing better than " + ("f_phi's terms" if kept else "f_p alone"))
         return kept
     result.dropped, result.route = [], "library search"
-    progress(f"search: kept {[c.feature for c in found.candidates]}, coefficients {found.priors}")
+    progress(f"search: kept {[c.feature for c in found.candidates]}, coefficients {short(found.priors)}")
     return found
 
 
