@@ -36,6 +36,7 @@ from otgb.discovery.refine import (
 from otgb.discovery.regression import SelectedTerm, Selection, design_matrix, regress
 from otgb.discovery.report import (
     _family_section,
+    augmented_config,
     confirmed,
     distribution,
     distribution_text,
@@ -228,6 +229,21 @@ def test_distribution_matching_recovers_the_coefficient():
     assert candidate.feature == "velocity*|velocity|"
     fitted = fit(pendulum, [candidate], [-0.3], "constant", _draws(dgp, 700, 1), _draws(dgp, 100, 2))
     assert abs(fitted.priors[0].value + 0.6) < 0.06
+
+
+def test_noisy_measurements_are_fitted_like_for_like_when_their_noise_is_given():
+    """Friction 1.2 measured with white noise of sd 0.1: fitted without the noise, the coefficient comes out biased
+    (the noise's spread is matched by the dynamics); with the measurements' noise on the simulations, near 1.2."""
+    pendulum = Pendulum()
+    dgp = pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))])
+    noisy = [y + 0.1 * torch.randn(y.shape, generator=torch.Generator().manual_seed(s)) for s, y in enumerate(
+        (_draws(dgp, 700, 1), _draws(dgp, 100, 2)))]  # fmt: skip
+    friction = build_library(pendulum, ["velocity"])[2]
+    ignored = fit(pendulum, [friction], [-1.0], "constant", *noisy, score=False).priors[0].value
+    with pendulum.measured_with_noise(0.1, seed=5):
+        given = fit(pendulum, [friction], [-1.0], "constant", *noisy, score=False).priors[0].value
+    assert abs(given + 1.2) < 0.06 and abs(given + 1.2) < abs(ignored + 1.2) / 2, (given, ignored)
+    assert torch.equal(pendulum.observe(torch.ones(2, 3, 2)), torch.ones(2, 3, 1)), "no noise outside the context"
 
 
 def test_a_fit_whose_first_steps_diverge_backtracks_to_the_coefficient():
@@ -840,8 +856,10 @@ def test_the_report_says_when_the_measurements_cannot_tell_two_varying_families_
     alike = "\n".join(_family_section(report((0.0005, 0.0007))))
     assert "cannot tell the two_point family from uniform" in alike and "constant" not in alike.split("\n")[-1]
     assert "cannot tell" not in "\n".join(_family_section(report((0.0049, 0.0007))))
-    noise = "otgb simulates without observation noise"
+    noise = "The simulations carried no measurement noise"
     assert noise in alike and noise not in "\n".join(_family_section(report((0.0049, 0.0007)) | {"family": "constant"}))
+    given = "\n".join(_family_section(report((0.0005, 0.0007)) | {"run": {"measurement_noise": 0.03}}))
+    assert noise not in given and "carried white noise of sd 0.03 (theirs)" in given
 
 
 def test_a_verdict_on_few_test_trajectories_says_what_the_noise_allows():
@@ -872,3 +890,16 @@ def test_progress_lines_give_coefficients_to_four_significant_digits():
     priors = [Constant(-0.22489754855632782), Uniform(-0.36761, -0.119212), Choice([-1.4979123, -0.58331])]
     assert short(priors) == "[Constant(-0.2249), Uniform(-0.3676, -0.1192), Choice([-1.498, -0.5833])]"
     assert rounded([(-0.2866312449901427, -0.16316385212251291)]) == "[[-0.2866, -0.1632]]"
+
+
+@pytest.mark.parametrize("sd", [-0.1, float("nan"), float("inf")])
+def test_a_measurement_noise_that_is_no_standard_deviation_is_refused(sd):
+    with pytest.raises(InputError, match=r"discover.measurement_noise=.*: expected a standard deviation >= 0"):
+        DiscoverySettings(measurement_noise=sd)
+
+
+def test_the_next_round_keeps_the_measurements_noise():
+    config = {"discover": {"measurement_noise": 0.03, "seed": 2}, "data": {"physics": {"class_path": "P"}}, "trainer": {}}
+    result = SimpleNamespace(found=False)
+    assert augmented_config(config, Pendulum(), result)["discover"] == {"measurement_noise": 0.03}
+    assert "discover" not in augmented_config({**config, "discover": {"seed": 2}}, Pendulum(), result)

@@ -108,14 +108,20 @@ def discover_run(args: list[str]) -> Finished:
     datamodule, module, trainer = cli.datamodule, cli.model, cli.trainer
     data = Measurements.from_datamodule(datamodule)
     physics = datamodule.physics
-    before = locate_step(physics, data.train, settings)
+
+    def as_measured():  # simulations compared with the measurements carry their noise; training and truth do not
+        return physics.measured_with_noise(settings.measurement_noise, settings.seed + 7919)
+
+    with as_measured():
+        before = locate_step(physics, data.train, settings)
     progress(describe(before))
     run_dir = Path(trainer.log_dir)
     components = None
     if before.any_significant:
         load_or_fit(cli, cli.config.get("ckpt_path"))
         components = component_analysis(module, datamodule, seed=settings.seed)
-        result = run(module, data, settings, before)
+        with as_measured():
+            result = run(module, data, settings, before)
         process = datamodule.source.pointwise_process
         if process is not None:
             augmented = result.fitted.model(physics) if result.found else None
@@ -124,10 +130,12 @@ def discover_run(args: list[str]) -> Finished:
             result.diverged += log.records
     else:
         result = Discovery(before, describe(before))
-        result.draws = {"f_p": simulate_from_priors(physics, len(data.test), settings.seed, "gap-f_p")}
+        with as_measured():
+            result.draws = {"f_p": simulate_from_priors(physics, len(data.test), settings.seed, "gap-f_p")}
         result.gap = gap_step(result.draws, data.test, settings)
     samples = {"measured": data.test, **{k: v for k, v in result.draws.items() if k != "greybox"}}
     facts = {"description": datamodule.describe(), "config": [str(c) for c in cli.config.get("config") or []]}
+    facts["measurement_noise"] = settings.measurement_noise
     run_dir.mkdir(parents=True, exist_ok=True)
     report = write_report(run_dir, result, physics, facts, samples, components)
     if result.found:

@@ -563,11 +563,15 @@ def _family_section(report: dict[str, Any]) -> list[str]:
         for k, d in differences.items()
         if k not in ("constant", report["family"]) and d["difference"] <= 2 * d["standard_error"]
     ]
-    if report["family"] != "constant":
+    noise = report.get("run", {}).get("measurement_noise") or 0.0
+    if noise > 0:
+        lines.append(f"Every simulation compared with the measurements carried white noise of sd {noise:.4g} (theirs).")
+    elif report["family"] != "constant":
         lines.append(
-            "otgb simulates without observation noise: noise in the measurements widens their spread at every time, "
-            "as a coefficient that varies between trajectories would. Where the measurements are noisy, read this "
-            "family as a varying coefficient or measurement noise (docs/discovery.md, measurement noise)."
+            "The simulations carried no measurement noise (discover.measurement_noise 0): noise in the measurements "
+            "widens their spread at every time, as a coefficient that varies between trajectories would. Where the "
+            "measurements are noisy, read this family as a varying coefficient or measurement noise, or give their "
+            "noise's sd as discover.measurement_noise (docs/discovery.md, measurement noise)."
         )
     if report["family"] != "constant" and alike:
         lines.append(
@@ -641,7 +645,10 @@ def _confusable(pairs: list[dict]) -> str:
 
 def augmented_config(config: dict[str, Any], physics: PhysicsModel, result: Discovery) -> dict[str, Any]:
     """The run's config with ``data.physics`` replaced by f_p plus the named terms (earlier rounds' kept)."""
+    noise = (config.get("discover") or {}).get("measurement_noise") or 0.0
     config = {k: v for k, v in config.items() if k not in ("discover", "ckpt_path", "config")}
+    if noise:  # the measurements' noise is theirs in the next round too
+        config["discover"] = {"measurement_noise": noise}
     physics_entry = config["data"]["physics"]
     earlier = []
     if isinstance(physics, Augmented):

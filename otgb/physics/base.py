@@ -20,7 +20,8 @@ import copy
 import math
 import numbers
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from typing import ClassVar
 
 import torch
@@ -161,7 +162,17 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
         return {name: self.init_args[name] for name in (*self.theta_names, *self.state_names) if name in self.init_args}
 
     def observe(self, state: Tensor) -> Tensor:
-        """The ``observed`` components of states (..., *state_shape) -> (..., *obs_shape)."""
+        """The ``observed`` components of states (..., *state_shape) -> (..., *obs_shape), plus the measurement noise
+        while :meth:`measured_with_noise` is in force."""
+        observed = self._observed_components(state)
+        noise = getattr(self, "_measurement_noise", None)
+        if noise is None:
+            return observed
+        sd, seed = noise
+        draw = torch.randn(observed.shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+        return observed + sd * draw.to(observed)
+
+    def _observed_components(self, state: Tensor) -> Tensor:
         if self.observed == self.state_names:
             return state
         axis = -len(self.state_shape)
@@ -169,6 +180,18 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
         if index == list(range(index[0], index[0] + len(index))):
             return state.narrow(axis, index[0], len(index))
         return state.index_select(axis, torch.tensor(index, device=state.device))
+
+    @contextmanager
+    def measured_with_noise(self, sd: float, seed: int) -> Iterator[None]:
+        """Within it, every observation gets white Gaussian noise of standard deviation ``sd`` (the measurements'
+        units), so that simulations compare with noisy measurements like for like. The noise of a shape is the same
+        on every call (seeded by ``seed``): two models scored on the same inputs see the same noise (common random
+        numbers), and a fit's loss stays a deterministic function of its coefficients. ``sd`` 0: no noise."""
+        self._measurement_noise = (float(sd), int(seed)) if sd > 0 else None
+        try:
+            yield
+        finally:
+            self._measurement_noise = None
 
     def sample_theta(self, n: int, generator: torch.Generator) -> Tensor:
         """theta (n, P) from the priors named in ``theta_names`` (one joint uniform draw)."""
