@@ -153,8 +153,6 @@ class OTGBCLI(LightningCLI):
         config = self.config[self.subcommand] if self.subcommand else self.config
         set_solver(checked_solver(config.solver, "--solver"))
         name_loggers_after_config(config.trainer.logger, config.get("config"))
-        if rank_zero_only.rank == 0:  # the other ranks start after rank 0 has made the folder
-            refuse_taken_versions(config.trainer.logger)
         log_dirs = share_logger_version(config.trainer.logger)
         self.new_log_dirs = [_first_new(log_dir) for log_dir in log_dirs]
         if len(log_dirs) > 1:  # e.g. --trainer.logger.init_args.save_dir, which moves only the last logger of the list
@@ -167,6 +165,7 @@ class OTGBCLI(LightningCLI):
     def before_fit(self) -> None:
         """One line when ``--trainer.max_steps`` ends the run before its first validation: no validation metrics, no
         best checkpoint and no trajectory figures then (a shortened run is easy to ask for and was silent about it)."""
+        refuse_written_log_dirs(self.trainer)
         steps, first = check_validation_in_budget(self.datamodule, self.trainer)
         stop = self.trainer.max_steps
         if 0 < stop < min(first, steps):
@@ -174,6 +173,15 @@ class OTGBCLI(LightningCLI):
                 f"otgb: --trainer.max_steps={stop} ends the run before its first validation (at step {first} of the "
                 f"budget's {steps}): no validation, no best checkpoint; lower --trainer.val_check_interval or the budget"
             )
+
+    def before_validate(self) -> None:
+        refuse_written_log_dirs(self.trainer)
+
+    def before_test(self) -> None:
+        refuse_written_log_dirs(self.trainer)
+
+    def before_predict(self) -> None:
+        refuse_written_log_dirs(self.trainer)
 
     def instantiate_trainer(self, **kwargs: Any) -> Trainer:
         """The trainer, with :class:`SimulationProgressBar` unless the progress bar is off or the config names one."""
@@ -248,23 +256,20 @@ def _first_new(path: Path) -> Path:
     return path
 
 
-def refuse_taken_versions(loggers: object) -> None:
-    """Bad input when a logger's configured ``version`` names a folder that already holds a run: Lightning would write
-    over its logs, or stop with a traceback on its ``config.yaml``. A run's saved ``config.yaml`` pins its version, so
-    giving it again (to rerun or resume that run) lands here."""
-    for logger in loggers if isinstance(loggers, list) else [loggers]:
-        args = getattr(logger, "init_args", None)
-        version = getattr(args, "version", None)
-        if version is None or getattr(args, "save_dir", None) is None:
-            continue
-        folder = Path(args.save_dir) / (getattr(args, "name", None) or "lightning_logs")
-        folder /= version if isinstance(version, str) else f"version_{version}"
-        if not folder.is_dir() or not any(folder.iterdir()):
-            continue
-        raise InputError(
-            f"trainer.logger version {version!r}: {folder} already holds a run; expected a version not taken, or none "
-            "(remove `version` from the config's loggers: the run, resumed or not, gets a new version_N)"
-        )
+def refuse_written_log_dirs(trainer: Trainer) -> None:
+    """Bad input when a logger's folder already holds a run (its ``version`` given, not chosen anew): Lightning would
+    write over its logs, or stop with a traceback on its ``config.yaml``. A run's saved ``config.yaml`` pins its
+    version, so running it again lands here; loading it (:func:`otgb.runs.load_run`) writes nothing and may."""
+    if rank_zero_only.rank != 0:  # the other ranks start after rank 0 has made the folder
+        return
+    for logger in trainer.loggers:
+        folder = Path(logger.log_dir) if getattr(logger, "log_dir", None) else None
+        if folder is not None and folder.is_dir() and any(folder.iterdir()):
+            raise InputError(
+                f"trainer.logger version {logger.version!r}: {folder} already holds a run; expected a version not "
+                "taken, or none (remove `version` from the config's loggers: the run, resumed or not, gets a new "
+                "version_N)"
+            )
 
 
 def share_logger_version(loggers: object) -> list[Path]:

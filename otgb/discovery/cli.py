@@ -29,7 +29,7 @@ import yaml
 from jsonargparse import DefaultHelpFormatter
 
 from otgb.analysis.components import component_analysis
-from otgb.command import OTGBCLI, check_validation_in_budget
+from otgb.command import OTGBCLI, check_validation_in_budget, refuse_written_log_dirs
 from otgb.data import SimulationDataModule
 from otgb.discovery.known import pointwise_errors
 from otgb.discovery.locate import describe
@@ -102,6 +102,7 @@ def discover_run(args: list[str]) -> Finished:
             MapTraining, SimulationDataModule, args=args, run=False, parser_kwargs=parser, parser_class=ConciseParser
         )
     settings: DiscoverySettings = cli.config_init["discover"]
+    refuse_written_log_dirs(cli.trainer)  # the report goes into the trainer's log folder
     if cli.config.get("ckpt_path") is None:
         check_validation_in_budget(cli.datamodule, cli.trainer)
     show_on_stderr()
