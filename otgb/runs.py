@@ -5,6 +5,7 @@ builds them, without training, printing or writing anything), or fit and test on
 
     run = load_run("configs/pendulum.yaml", "--data.n_measured=500", ckpt_path="runs/pendulum/version_0/checkpoints/last.ckpt")
     run.model, run.datamodule, run.trainer
+    run = load_run("runs/pendulum/version_0/config.yaml", ckpt_path="runs/pendulum/version_0/checkpoints/best-step=900.ckpt")
 
     report = fit_and_test(Path("runs/seed0"), ["--config", "configs/pendulum.yaml", "--seed_everything=0"])
     report["model"]["abs_err"]["mean"], report["fit_s"]
@@ -36,6 +37,16 @@ from otgb.quiet import quiet_known_harmless
 from otgb.training import MapTraining
 
 
+class RunLoader(OTGBCLI):
+    """The ``otgb`` parser without subcommands that also takes a run's saved ``config.yaml``, which holds its
+    command's ``ckpt_path`` and ``weights_only``: read and left unused (:func:`load_run`'s ``ckpt_path`` decides)."""
+
+    def add_arguments_to_parser(self, parser) -> None:
+        super().add_arguments_to_parser(parser)
+        parser.add_argument("--ckpt_path", type=str | None, default=None, help="unused here: load_run's ckpt_path decides")
+        parser.add_argument("--weights_only", type=bool | None, default=None, help="unused here")
+
+
 @dataclass
 class Run:
     """A run's objects: the LightningModule (weights from the checkpoint, if one was given), the data module, the
@@ -55,7 +66,7 @@ def load_run(config: str | Path | Sequence[str | Path], *overrides: str, ckpt_pa
     args = [arg for path in files for arg in ("--config", str(path))] + list(overrides)
     quiet_known_harmless()  # as the otgb command: a script's run is trained, tested and logged alike
     with _quiet():
-        cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=args, parser_class=ConciseParser)
+        cli = RunLoader(MapTraining, SimulationDataModule, run=False, args=args, parser_class=ConciseParser)
     if ckpt_path is not None:
         load_weights(cli.model, ckpt_path)
     return Run(cli.model, cli.datamodule, cli.trainer, cli.config)

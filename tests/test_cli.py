@@ -296,6 +296,10 @@ def test_a_saved_config_that_pins_a_taken_version_is_refused_and_the_run_kept(tm
         assert last.startswith(f"otgb: error: trainer.logger version 0: {run} already holds a run; expected a version")
     assert {path: path.read_bytes() for path in run.rglob("*") if path.is_file()} == kept
     assert [p.name for p in (tmp_path / "run").iterdir()] == ["version_0"]
+    loaded = load_run(run / "config.yaml", ckpt_path=run / "checkpoints" / "last.ckpt")  # loading writes nothing: taken
+    trained = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)["state_dict"]
+    assert all(torch.equal(v, trained[k]) for k, v in loaded.model.state_dict().items() if k in trained)
+    assert {path: path.read_bytes() for path in run.rglob("*") if path.is_file()} == kept
 
 
 class BadInputAtSetup(Callback):
