@@ -106,6 +106,8 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
         hidden_effect: terms added to f_p; empty for f_p itself.
     """
 
+    _measurement_noise: tuple[float, int] | None = None  # (sd, seed) while measured_with_noise is in force
+
     state_names: ClassVar[tuple[str, ...]]
     observed: ClassVar[tuple[str, ...]]
     theta_names: ClassVar[tuple[str, ...]]
@@ -165,10 +167,9 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
         """The ``observed`` components of states (..., *state_shape) -> (..., *obs_shape), plus the measurement noise
         while :meth:`measured_with_noise` is in force."""
         observed = self._observed_components(state)
-        noise = getattr(self, "_measurement_noise", None)
-        if noise is None:
+        if self._measurement_noise is None:
             return observed
-        sd, seed = noise
+        sd, seed = self._measurement_noise
         draw = torch.randn(observed.shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
         return observed + sd * draw.to(observed)
 
