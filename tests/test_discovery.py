@@ -15,6 +15,7 @@ import yaml
 from torch import nn
 
 from otgb.data import generate_measured
+from otgb.data.measured import CHUNK, simulate_in_chunks
 from otgb.discovery.evidence import Comparison, choose_swap, weigh
 from otgb.discovery.intervals import sandwich_intervals
 from otgb.discovery.library import Candidate, build_library, physical_name
@@ -244,6 +245,20 @@ def test_noisy_measurements_are_fitted_like_for_like_when_their_noise_is_given()
         given = fit(pendulum, [friction], [-1.0], "constant", *noisy, score=False).priors[0].value
     assert abs(given + 1.2) < 0.06 and abs(given + 1.2) < abs(ignored + 1.2) / 2, (given, ignored)
     assert torch.equal(pendulum.observe(torch.ones(2, 3, 2)), torch.ones(2, 3, 1)), "no noise outside the context"
+
+
+def test_measurement_noise_does_not_repeat_across_the_chunks_of_a_set():
+    """A set larger than one simulation chunk, all rows of the same input: with the noise in force every row's noise
+    is its own (not the first chunk's again), and the same set simulated twice gets the same noise."""
+    pendulum = Pendulum()
+    n = CHUNK + 3
+    x0, theta = torch.full((n, 2), 0.5), torch.full((n, 1), 1.0)
+    with pendulum.measured_with_noise(0.1, seed=5):
+        first, again = simulate_in_chunks(pendulum, x0, theta), simulate_in_chunks(pendulum, x0, theta)
+    assert torch.equal(first, again)
+    assert not torch.allclose(first[0], first[CHUNK]) and not torch.allclose(first[1], first[CHUNK + 1])
+    noise = first - simulate_in_chunks(pendulum, x0, theta)
+    assert abs(float(noise.std()) - 0.1) < 0.01
 
 
 def test_a_fit_whose_first_steps_diverge_backtracks_to_the_coefficient():

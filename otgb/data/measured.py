@@ -105,4 +105,9 @@ def simulate_in_chunks(model: PhysicsModel, x0: Tensor, theta: Tensor, effect: T
     """Trajectories (n, T, *obs) of ``model`` for the inputs x0 (n, *state), theta (n, P) [and effect parameters]."""
     chunks = range(0, len(x0), CHUNK)
     part = lambda v, i: None if v is None else v[i : i + CHUNK]  # noqa: E731
-    return torch.cat([model.simulate(x0[i : i + CHUNK], theta[i : i + CHUNK], part(effect, i)) for i in chunks])
+    return torch.cat([_simulate_rows(model, i, x0[i : i + CHUNK], theta[i : i + CHUNK], part(effect, i)) for i in chunks])
+
+
+def _simulate_rows(model: PhysicsModel, first: int, x0: Tensor, theta: Tensor, effect: Tensor | None) -> Tensor:
+    with model.rows_from(first):
+        return model.simulate(x0, theta, effect)

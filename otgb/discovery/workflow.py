@@ -186,12 +186,17 @@ def simulate_candidate(model: Augmented, n: int, seed: int, name: str) -> Tensor
     """:func:`simulate_from_priors` for a candidate model: the trajectories that diverge are dropped and logged."""
     g = generator_for(seed, "discover", name)
     x0, theta = model.sample_initial_state(n, g), model.sample_theta(n, g)
-    kept, bad = zip(*(simulate_finite(model, x0[i : i + CHUNK], theta[i : i + CHUNK]) for i in range(0, n, CHUNK)))
+    kept, bad = zip(*(_simulate_finite_rows(model, i, x0[i : i + CHUNK], theta[i : i + CHUNK]) for i in range(0, n, CHUNK)))
     bad = torch.cat(bad)
     if bool(bad.any()):
         first, coefficients = theta[int(bad.nonzero()[0])].tolist(), [repr(t.priors["coefficient"]) for t in model.added]
         diverged(name, term_names(model.added), int(bad.sum()), n, first, coefficients)
     return torch.cat(kept)
+
+
+def _simulate_finite_rows(model: Augmented, first: int, x0: Tensor, theta: Tensor) -> tuple[Tensor, Tensor]:
+    with model.rows_from(first):
+        return simulate_finite(model, x0, theta)
 
 
 @torch.no_grad()

@@ -21,6 +21,7 @@ the improved physics.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from contextlib import AbstractContextManager
 
 import torch
 from torch import Tensor, nn
@@ -90,6 +91,9 @@ class Augmented(PhysicsModel):
 
     def observe(self, state: Tensor) -> Tensor:
         return self.base.observe(state)
+
+    def rows_from(self, first: int) -> AbstractContextManager[None]:
+        return self.base.rows_from(first)
 
     def field(self, state: Tensor, theta: Tensor) -> Tensor:
         base_theta = theta[:, : self.base.theta_dim]

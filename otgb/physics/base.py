@@ -107,6 +107,7 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
     """
 
     _measurement_noise: tuple[float, int] | None = None  # (sd, seed) while measured_with_noise is in force
+    _first_row = 0  # the index of the observations' first trajectory in the set they are part of (rows_from)
 
     state_names: ClassVar[tuple[str, ...]]
     observed: ClassVar[tuple[str, ...]]
@@ -170,7 +171,8 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
         if self._measurement_noise is None:
             return observed
         sd, seed = self._measurement_noise
-        draw = torch.randn(observed.shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+        generator = torch.Generator().manual_seed(seed + 1_000_003 * self._first_row)
+        draw = torch.randn(observed.shape, generator=generator, dtype=torch.float64)
         return observed + sd * draw.to(observed)
 
     def _observed_components(self, state: Tensor) -> Tensor:
@@ -193,6 +195,16 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
             yield
         finally:
             self._measurement_noise = None
+
+    @contextmanager
+    def rows_from(self, first: int) -> Iterator[None]:
+        """Within it, observed trajectories are rows ``first``, ``first + 1``, ... of a larger set simulated in chunks:
+        their measurement noise is drawn for those rows, so that the chunks of a set do not repeat one another's."""
+        previous, self._first_row = self._first_row, int(first)
+        try:
+            yield
+        finally:
+            self._first_row = previous
 
     def sample_theta(self, n: int, generator: torch.Generator) -> Tensor:
         """theta (n, P) from the priors named in ``theta_names`` (one joint uniform draw)."""
