@@ -39,12 +39,14 @@ from otgb.training import MapTraining
 
 class RunLoader(OTGBCLI):
     """The ``otgb`` parser without subcommands that also takes a run's saved ``config.yaml``, which holds its
-    command's ``ckpt_path`` and ``weights_only``: read and left unused (:func:`load_run`'s ``ckpt_path`` decides)."""
+    command's ``ckpt_path`` and ``weights_only`` (and a test's or validation's ``verbose``): read and left unused
+    (:func:`load_run`'s ``ckpt_path`` decides)."""
 
     def add_arguments_to_parser(self, parser) -> None:
         super().add_arguments_to_parser(parser)
         parser.add_argument("--ckpt_path", type=str | None, default=None, help="unused here: load_run's ckpt_path decides")
         parser.add_argument("--weights_only", type=bool | None, default=None, help="unused here")
+        parser.add_argument("--verbose", type=bool | None, default=None, help="unused here")
 
 
 @dataclass

@@ -33,6 +33,7 @@ from torch import Tensor, nn
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from otgb.compiling import new_training_step
+from otgb.data.measured import with_measurement_noise
 from otgb.data.seeding import derive_seed
 from otgb.errors import InputError
 from otgb.guard import TrainingDiverged, UpdateGuard, diagnosis
@@ -249,7 +250,8 @@ class MapTraining(LightningModule):
         if y_hat is None:  # no map output to train the critic on: the map is what diverged
             critic_parts, blame = {}, ("map", "every map update of the step gave NaN/Inf")
         else:
-            loss, critic_parts = critic_loss(self.critic, y, y_hat.detach().flatten(0, 1), self.gp_weight, self.generator)
+            y_hat = self._as_measured(y_hat.detach()).flatten(0, 1)
+            loss, critic_parts = critic_loss(self.critic, y, y_hat, self.gp_weight, self.generator)
             critic_parts["critic_loss"], blame = loss, ("critic", "loss or gradients NaN/Inf")
         if self._guarded_backward(opt, self.critic, blame[0], critic_parts.get("critic_loss"), blame[1]):
             self._clip(opt)
@@ -258,6 +260,21 @@ class MapTraining(LightningModule):
         else:
             self.trainer.strategy.optimizer_step(opt.optimizer, closure=lambda: None, model=self)
         return critic_parts
+
+    @property
+    def _measurement_noise(self) -> float:
+        return getattr(self.trainer.datamodule, "measurement_noise", 0.0)  # a Trainer fed loaders alone: none
+
+    def _as_measured(self, y_hat: Tensor) -> Tensor:
+        """The map's outputs as the critic compares them with the measurements: with their noise
+        (``data.measurement_noise``), which a solve cannot produce and the map must not be pushed to imitate."""
+        return with_measurement_noise(y_hat, self._measurement_noise, self.generator)
+
+    def _critic_of_outputs(self) -> Callable[[Tensor], Tensor]:
+        """The critic as the map's loss applies it to the map's outputs: after :meth:`_as_measured`."""
+        if self._measurement_noise == 0:
+            return self.critic
+        return lambda y_hat: self.critic(self._as_measured(y_hat))
 
     def _generate_or_none(self, x: Tensor, x0: Tensor, theta: Tensor) -> Tensor | None:
         try:
@@ -272,7 +289,7 @@ class MapTraining(LightningModule):
         except SimulationDiverged as error:
             y_hat, loss, parts, reason = None, None, {}, str(error)
         else:
-            loss, parts = self.objective.map_loss(x, y_hat, self.critic)
+            loss, parts = self.objective.map_loss(x, y_hat, self._critic_of_outputs())
             reason = "loss or gradients NaN/Inf"
         if not self._guarded_backward(opt, self.transport_map, "map", loss, reason):
             return None, {}

@@ -190,7 +190,7 @@ def run_fit(args: argparse.Namespace) -> None:
         env = None
         if args.cold_cache:  # an empty compile cache: what a new machine pays
             env = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": tempfile.mkdtemp(prefix="otgb-inductor-")}
-        return {"cold_cache": args.cold_cache} | timed_command([
+        return {"cold_cache": args.cold_cache, "threads": torch.get_num_threads()} | timed_command([
             sys.executable, "-m", "otgb.cli", "fit", "--config", str(ROOT / "configs" / f"{args.config}.yaml"),
             f"--solver={solver}", logger_override(str(out / "runs" / key), "run"), "--trainer.enable_progress_bar=false",
             f"--data.cache_dir={out / 'cache'}", *args.overrides,
@@ -419,13 +419,15 @@ def write_table(args: argparse.Namespace) -> None:
             )
     fits = _read(out / "fit.json")
     if fits:
-        lines += ["", "| whole `otgb fit` | solver | minutes | runs | compile cache |", "|---|---|---|---|---|"]
+        lines += ["", "| whole `otgb fit` | solver | minutes | runs | compile cache | torch threads |", "|" + "---|" * 6]
         for prefix in dict.fromkeys(key.rsplit("/", 1)[0] + "/" for key in fits):
             config, solver = prefix.split("/")[:2]
             runs = [v for k, v in fits.items() if k.startswith(prefix)]
             walls = [v["wall_s"] / 60 for v in runs]
             cache = {"empty" if v.get("cold_cache") else "as found" if "cold_cache" in v else "-" for v in runs}
-            lines.append(f"| {config} | {solver} | {statistics.median(walls):.2f} | {len(walls)} | {', '.join(sorted(cache))} |")
+            threads = ", ".join(sorted({str(v.get("threads", "-")) for v in runs}))
+            cache_text = ", ".join(sorted(cache))
+            lines.append(f"| {config} | {solver} | {statistics.median(walls):.2f} | {len(walls)} | {cache_text} | {threads} |")
     lines += designs_table(out) + judges_table(out) + discover_table(out)
     write_between(doc, SECTION_START, SECTION_END, "\n".join(lines))
     print(f"speed_benchmark: wrote {doc}")

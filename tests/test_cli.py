@@ -185,6 +185,8 @@ def test_test_subcommand_and_overrides(tmp_path):
         (["--model.latent=categorical", "--model.z_dim=1", "--model.n_z=2"], "categorical.*needs z_dim >= 2, got 1"),
         (["--evaluation.c2st_precision=bf16"], "c2st_precision='bf16'.*expected one of .*'bf16-mixed'"),
         (["--evaluation.c2st_classifier=svm"], "c2st_classifier='svm'.*expected one of .*'mlp'"),
+        (["--data.measurement_noise=-0.1"], r"data.measurement_noise=-0.1: expected a standard deviation >= 0"),
+        (["--data.measurement_noise=0.05"], r"measurement_noise=0.05 applies to measurements read from a file"),
     ],
 )
 def test_bad_config_value_is_named(tmp_path, override, message):

@@ -3,6 +3,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from otgb.data import SimulationDataModule, SourceStream
+from otgb.data.datamodule import check_measurement_noise
 from otgb.physics import Constant, Pendulum, Uniform, ViscousFriction
 
 
@@ -96,6 +97,9 @@ def test_bad_config_values(tmp_path):
         _module(tmp_path, batch_size=0)
     with pytest.raises(ValueError, match="data.measured_batch_size must be >= 1, got 0"):
         _module(tmp_path, measured_batch_size=0)
+    for sd in (float("nan"), float("inf"), -1.0):
+        with pytest.raises(ValueError, match=rf"data.measurement_noise={sd}: expected a standard deviation >= 0"):
+            check_measurement_noise(sd, "measured.npz")
 
 
 def test_state_dict_restores_the_stream_position(tmp_path):

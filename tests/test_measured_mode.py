@@ -12,18 +12,18 @@ import pytest
 
 from otgb.cli import main
 from otgb.command import logger_override
+from otgb.runs import load_run
 
 ROOT = Path(__file__).parents[1]
 CONFIG = str(ROOT / "configs" / "pendulum.yaml")
 
 
-def export(tmp_path: Path, name: str, *record: str, n: int = 200) -> Path:
+def export(tmp_path: Path, name: str, *record: str, n: int = 200, noise: float = 0.0) -> Path:
     """The friction pendulum's measurements written to a file by scripts/export_measured.py."""
     out = tmp_path / name
     script = str(ROOT / "scripts" / "export_measured.py")
-    subprocess.run(
-        [sys.executable, script, "--config", CONFIG, "--out", str(out), "--n", str(n), "--record", *record], check=True
-    )
+    command = [sys.executable, script, "--config", CONFIG, "--out", str(out), "--n", str(n), "--record", *record]
+    subprocess.run([*command, "--noise", str(noise)], check=True)
     return out
 
 
@@ -144,3 +144,29 @@ def test_a_cache_folder_that_cannot_be_written_costs_a_warning_not_the_results(t
     assert "otgb: evaluation.cache_baselines: cannot write" in done.stderr and "scored again next run" in done.stderr
     report = json.loads((tmp_path / "run" / "version_0" / "metrics.json").read_text())
     assert report["fp"]["energy"]["mean"] > report["reference"]["energy"]["mean"], "the baselines are there all the same"
+
+
+def test_a_perfect_model_of_noisy_measurements_is_at_the_floor_only_when_their_noise_is_given(tmp_path):
+    """The DGP itself (complete physics) scored on 1000 measurements with white noise of sd 0.1: compared noise-free, its
+    draws are told apart from the held-out measurements (the noise gives them away); with data.measurement_noise, the
+    draws carry as much noise and every metric sits at the Reference's floor."""
+    measured = export(tmp_path, "noisy.npz", n=1000, noise=0.1)
+    xi = "{class_path: otgb.physics.Constant, init_args: {value: 1.2}}"
+    effect = f"[{{class_path: otgb.physics.ViscousFriction, init_args: {{xi: {xi}}}}}]"
+    complete = ["--model.transport_map=otgb.models.CompletePhysicsMap", f"--model.transport_map.init_args.hidden_effect={effect}"]
+    reports = {}
+    for sd in (0.0, 0.1):
+        folder = tmp_path / f"sd{sd}"
+        main(["test", *marginal_args(folder, measured, *complete, f"--data.measurement_noise={sd}")])
+        reports[sd] = json.loads((folder / "run" / "version_0" / "metrics.json").read_text())
+    floor = reports[0.1]["reference"]
+    for report in reports.values():
+        assert report["reference"] == floor, "the Reference compares the measurements with themselves: noise or not"
+    c2st, energy = floor["c2st"], floor["energy"]
+    assert reports[0.0]["model"]["c2st"]["mean"] > 0.8 and reports[0.0]["model"]["mmdagg_reject"]["mean"] == 1
+    assert reports[0.1]["model"]["c2st"]["mean"] < c2st["mean"] + 2 * c2st["std"]
+    assert reports[0.1]["model"]["energy"]["mean"] < energy["mean"] + 2 * energy["std"]
+    assert reports[0.1]["model"]["mmdagg_reject"]["mean"] == 0
+    assert reports[0.1]["run"]["measurement_noise"] == 0.1 and "white noise (sd 0.1)" in reports[0.1]["run"]["description"]
+    tested = load_run(tmp_path / "sd0.1" / "run" / "version_0" / "config.yaml")  # a test's saved config loads as a fit's
+    assert tested.datamodule.measurement_noise == 0.1

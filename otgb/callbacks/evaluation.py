@@ -14,7 +14,8 @@ from lightning import Callback, LightningModule, Trainer
 from lightning.pytorch.utilities import rank_zero_info
 from torch import Tensor
 
-from otgb.data.measured import cache_key, save_atomically
+from otgb.data.measured import cache_key, save_atomically, with_measurement_noise
+from otgb.data.seeding import derive_seed
 from otgb.errors import InputError
 from otgb.metrics.c2st import CLASSIFIERS
 from otgb.metrics.classifiers import PRECISIONS, native_bf16
@@ -106,6 +107,7 @@ class Evaluation(Callback):
         self.evaluators: dict[str, JointEvaluator] = {}
         self.validations = 0
         self.baselines_logged = False
+        self.noise = 0.0
 
     # --- what is compared -------------------------------------------------------------------
     def validation_metrics(self, datamodule: Any) -> list[str]:
@@ -123,6 +125,7 @@ class Evaluation(Callback):
         self._check_monitors(trainer, datamodule)
         shape = tuple(pl_module.physics.trajectory_shape)
         self.plan = datamodule.source.evaluation_plan()
+        self.noise = datamodule.source.measurement_noise  # put on the map's and f_p's draws, as on the measurements
 
         def make(prefix: str, paired: bool, sync: bool) -> JointEvaluator:
             per_time = prefix == ""  # the per-time statistic reads the trajectories alone: once per set
@@ -160,18 +163,26 @@ class Evaluation(Callback):
     # --- accumulate -----------------------------------------------------------------------
     def on_validation_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0) -> None:
         if not trainer.sanity_checking:
-            self._update(outputs, batch, pl_module)
+            self._update(outputs, batch, pl_module, ("val", batch_idx))
 
     def on_test_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0) -> None:
-        self._update(outputs, batch, pl_module)
+        self._update(outputs, batch, pl_module, ("test", batch_idx))
 
-    def _update(self, outputs: Any, batch: dict[str, Tensor], pl_module: LightningModule) -> None:
+    def _update(self, outputs: Any, batch: dict[str, Tensor], pl_module: LightningModule, key: tuple) -> None:
         if not isinstance(outputs, dict) or "y_hat" not in outputs:
             raise TypeError("Evaluation: the model's validation/test step must return {'y_hat': (B, M, T, *obs)}")
         if next(iter(self.evaluators.values())).device != pl_module.device:  # the module moved after setup
             self.setup(pl_module.trainer, pl_module, "")
+        y_hat = self._as_measured(outputs["y_hat"], *key, pl_module.global_rank)
         for evaluator in self.evaluators.values():
-            evaluator.update(outputs["y_hat"], batch)
+            evaluator.update(y_hat, batch)
+
+    def _as_measured(self, draws: Tensor, *key: object) -> Tensor:
+        """Draws with the measurements' noise (``data.measurement_noise``), the same on every run for a batch."""
+        if self.noise == 0:
+            return draws
+        generator = torch.Generator(device=draws.device).manual_seed(derive_seed(self.seed, "measurement noise", *key))
+        return with_measurement_noise(draws, self.noise, generator)
 
     # --- compute and log ------------------------------------------------------------------
     def on_validation_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
@@ -233,7 +244,7 @@ class Evaluation(Callback):
             return self._score_baselines(data)
         device = next(iter(self.baselines.values())).device
         hardware = torch.cuda.get_device_name(device) if device.type == "cuda" else f"cpu bf16={native_bf16(device)}"
-        settings = (self.options, self.plan, self.reference_repeats, self.reference_on_same_inputs, hardware)
+        settings = (self.options, self.plan, self.reference_repeats, self.reference_on_same_inputs, self.noise, hardware)
         key = cache_key(settings, torch.__version__, _scoring_code(), _content(data))
         path, started = Path(self.cache_dir) / f"baselines-{key}.pt", time.perf_counter()
         if path.is_file():
@@ -250,7 +261,7 @@ class Evaluation(Callback):
     def _score_baselines(self, data: dict[str, Tensor]) -> dict[str, Tensor]:
         results = {}
         start = time.perf_counter()
-        fp_draws = data["x"].unsqueeze(1).expand_as(data["y"])
+        fp_draws = self._as_measured(data["x"].unsqueeze(1).expand_as(data["y"]), "f_p")
         for prefix, evaluator in self.baselines.items():
             results.update({f"fp_{prefix}{k}": v for k, v in evaluator.evaluate(fp_draws, data, tests=True).items()})
         results["fp_eval_seconds"] = torch.tensor(time.perf_counter() - start)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -63,6 +64,10 @@ class SimulationDataModule(LightningDataModule):
         measured_step_size: Solver step of the generated measured data (joint mode; default: the model's).
         val_fraction: Share of the file's trajectories held out for validation (marginal mode).
         test_fraction: Share of the file's trajectories held out for the test (marginal mode).
+        measurement_noise: Standard deviation of the white noise on every value of the file's measurements, in
+            their units (marginal mode; 0: noise-free). The model's outputs and f_p's get as much wherever they
+            are compared with the measurements (the critic, the marginal metrics, discovery), so that the noise is
+            neither learned by the map nor read as a disagreement.
         n_val: Joint validation inputs generated from the DGP (joint mode).
         n_test: Joint test inputs generated from the DGP (joint mode).
         draws_per_input: DGP draws M per joint validation/test input (joint mode).
@@ -87,6 +92,7 @@ class SimulationDataModule(LightningDataModule):
         measured_step_size: float | None = None,
         val_fraction: float = 0.15,
         test_fraction: float = 0.15,
+        measurement_noise: float = 0.0,
         n_val: int = 200,
         n_test: int = 300,
         draws_per_input: int = 1,
@@ -121,6 +127,7 @@ class SimulationDataModule(LightningDataModule):
                 f"data.measured_path={measured_path!r} and data.hidden_effect are both set: measurements from a file need no "
                 "hidden effect (it only generates synthetic measurements); remove one, e.g. --data.hidden_effect=[]"
             )
+        check_measurement_noise(measurement_noise, measured_path)
         if measured_path is None and not hidden_effect:
             raise InputError(
                 "data: no measured data: set data.measured_path to a file of measurements, or data.hidden_effect to the "
@@ -141,11 +148,16 @@ class SimulationDataModule(LightningDataModule):
         self.source: MeasurementSource = (
             GeneratedMeasurements(physics, list(hidden_effect), n_measured, draws_per_input, seed, cache_dir, measured_step_size)
             if measured_path is None
-            else FileMeasurements(physics, measured_path, val_fraction, test_fraction, seed)
+            else FileMeasurements(physics, measured_path, val_fraction, test_fraction, seed, measurement_noise)
         )
         rank_zero_info(f"otgb: evaluation mode '{self.mode}': {self.describe()}")
 
     # --- the source of the measurements ----------------------------------------------------
+    @property
+    def measurement_noise(self) -> float:
+        """The standard deviation of the noise on the measured values (0: noise-free)."""
+        return self.source.measurement_noise
+
     @property
     def mode(self) -> str:
         """ "joint" (a known DGP generates the measured data) or "marginal" (measurements from a file)."""
@@ -238,3 +250,14 @@ class SimulationDataModule(LightningDataModule):
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         self.items_consumed = int(state_dict["items_consumed"])
         self.stream_seed = state_dict["stream_seed"]
+
+
+def check_measurement_noise(sd: float, measured_path: str | None) -> None:
+    """A standard deviation >= 0, and above 0 only for measurements from a file."""
+    if not (isinstance(sd, (int, float)) and math.isfinite(sd) and sd >= 0):
+        raise InputError(f"data.measurement_noise={sd}: expected a standard deviation >= 0 (0: noise-free)")
+    if sd > 0 and measured_path is None:
+        raise InputError(
+            f"data.measurement_noise={sd} applies to measurements read from a file (data.measured_path); generated "
+            "measurements are noise-free: to try noisy ones, write them to a file (scripts/export_measured.py --noise SD)"
+        )

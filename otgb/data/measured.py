@@ -23,6 +23,13 @@ from otgb.physics.base import PhysicsModel
 CHUNK = 256
 
 
+def with_measurement_noise(values: Tensor, sd: float, generator: torch.Generator) -> Tensor:
+    """``values`` plus white Gaussian noise of standard deviation ``sd`` (drawn by ``generator``, on its device)."""
+    if sd == 0:
+        return values
+    return values + sd * torch.randn(values.shape, generator=generator, device=generator.device, dtype=values.dtype)
+
+
 @torch.no_grad()
 def generate_measured(dgp: PhysicsModel, n: int, seed: int) -> dict[str, Tensor]:
     """|Y| = n trajectories of the DGP from its priors: y (n, T, *obs) and the inputs x0, theta they came from."""

@@ -33,6 +33,7 @@ class MeasurementSource(ABC):
 
     mode: str  # "joint" or "marginal": named in the log at start-up and in every report
     reference_note: str  # what the Reference compares, for the reports: "over <reference_note>"
+    measurement_noise: float = 0.0  # the sd of the white noise on the measured values; generated ones are noise-free
 
     def __init__(self, physics: PhysicsModel, seed: int) -> None:
         self.physics, self.seed = physics, seed
@@ -181,9 +182,12 @@ class FileMeasurements(MeasurementSource):
         "keep their mean, the biased paper-code MMD sits about twice as high as a full-size comparison at the noise floor)"
     )
 
-    def __init__(self, physics: PhysicsModel, path: str, val_fraction: float, test_fraction: float, seed: int) -> None:
+    def __init__(
+        self, physics: PhysicsModel, path: str, val_fraction: float, test_fraction: float, seed: int,
+        measurement_noise: float = 0.0,
+    ) -> None:  # fmt: skip
         super().__init__(physics, seed)
-        self.path, self.file = path, read_measured(path, physics)
+        self.path, self.file, self.measurement_noise = path, read_measured(path, physics), float(measurement_noise)
         self.parts = split_indices(len(self.file), val_fraction, test_fraction, seed, path)
 
     def describe(self) -> str:
@@ -192,9 +196,11 @@ class FileMeasurements(MeasurementSource):
         drawn = [name for name in ("theta", "x0") if name not in recorded]
         parts = [f"{' and '.join(recorded)} as the file recorded {'it' if len(recorded) == 1 else 'them'}"] if recorded else []
         inputs = ", ".join(parts + ([f"{' and '.join(drawn)} drawn from the priors"] if drawn else []))
+        sd = self.measurement_noise
+        noise = f", the map's and f_p's with the measurements' white noise (sd {sd:.4g}) added" if sd else ""
         return (
             f"{len(self.file)} measured trajectories from {self.path} ({sizes}); no DGP is known: the map's draws "
-            f"({inputs}) are compared with held-out measurements by two-sample metrics"
+            f"({inputs}) are compared with held-out measurements by two-sample metrics{noise}"
         )
 
     def measured_set(self) -> Tensor:
@@ -237,7 +243,8 @@ class FileMeasurements(MeasurementSource):
 
     def facts(self) -> dict[str, Any]:
         split = {part: len(index) for part, index in self.parts.items()}
-        return {**super().facts(), "measured_path": self.path, "split": split, "recorded_inputs": list(self.recorded_inputs)}
+        facts = {"measured_path": self.path, "split": split, "recorded_inputs": list(self.recorded_inputs)}
+        return {**super().facts(), **facts, "measurement_noise": self.measurement_noise}
 
     def as_file(self, folder: Path, trajectories: Tensor) -> str:
         return str(Path(self.path).resolve())

@@ -110,8 +110,8 @@ def discover_run(args: list[str]) -> Finished:
     data = Measurements.from_datamodule(datamodule)
     physics = datamodule.physics
 
-    def as_measured():  # simulations compared with the measurements carry their noise; training and truth do not
-        return physics.measured_with_noise(settings.measurement_noise, settings.seed + 7919)
+    def as_measured():  # simulations compared with the measurements carry their noise; the truth does not
+        return physics.measured_with_noise(datamodule.measurement_noise, settings.seed + 7919)
 
     with as_measured():
         before = locate_step(physics, data.train, settings)
@@ -136,7 +136,7 @@ def discover_run(args: list[str]) -> Finished:
         result.gap = gap_step(result.draws, data.test, settings)
     samples = {"measured": data.test, **{k: v for k, v in result.draws.items() if k != "greybox"}}
     facts = {"description": datamodule.describe(), "config": [str(c) for c in cli.config.get("config") or []]}
-    facts["measurement_noise"] = settings.measurement_noise
+    facts["measurement_noise"] = datamodule.measurement_noise
     run_dir.mkdir(parents=True, exist_ok=True)
     report = write_report(run_dir, result, physics, facts, samples, components)
     if result.found:

@@ -568,10 +568,10 @@ def _family_section(report: dict[str, Any]) -> list[str]:
         lines.append(f"Every simulation compared with the measurements carried white noise of sd {noise:.4g} (theirs).")
     elif report["family"] != "constant":
         lines.append(
-            "The simulations carried no measurement noise (discover.measurement_noise 0): noise in the measurements "
+            "The simulations carried no measurement noise (data.measurement_noise 0): noise in the measurements "
             "widens their spread at every time, as a coefficient that varies between trajectories would. Where the "
             "measurements are noisy, read this family as a varying coefficient or measurement noise, or give their "
-            "noise's sd as discover.measurement_noise (docs/discovery.md, measurement noise)."
+            "noise's sd as data.measurement_noise (docs/discovery.md, measurement noise)."
         )
     if report["family"] != "constant" and alike:
         lines.append(
@@ -645,10 +645,7 @@ def _confusable(pairs: list[dict]) -> str:
 
 def augmented_config(config: dict[str, Any], physics: PhysicsModel, result: Discovery) -> dict[str, Any]:
     """The run's config with ``data.physics`` replaced by f_p plus the named terms (earlier rounds' kept)."""
-    noise = (config.get("discover") or {}).get("measurement_noise") or 0.0
     config = {k: v for k, v in config.items() if k not in ("discover", "ckpt_path", "config")}
-    if noise:  # the measurements' noise is theirs in the next round too
-        config["discover"] = {"measurement_noise": noise}
     physics_entry = config["data"]["physics"]
     earlier = []
     if isinstance(physics, Augmented):

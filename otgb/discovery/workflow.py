@@ -79,9 +79,6 @@ class DiscoverySettings:
         fit_batch: Simulated (and at most as many measured) trajectories of each distribution-matching fit.
         families: Prior families tried for the coefficients, simplest first.
         c2st_classifier: The C2ST judge of the gap table ("auto", "mlp" or "conv").
-        measurement_noise: Standard deviation of the white noise on every measured value, in the measurements'
-            units (0: noise-free). Every simulation that discovery compares with the measurements gets as much, so
-            that noise is not read as an effect that varies between trajectories.
         seed: Seed of every draw of the workflow.
     """
 
@@ -98,13 +95,8 @@ class DiscoverySettings:
         fit_batch: int = 1024,
         families: tuple[str, ...] = FAMILIES,
         c2st_classifier: str = "auto",
-        measurement_noise: float = 0.0,
         seed: int = 0,
     ) -> None:
-        if not (math.isfinite(measurement_noise) and measurement_noise >= 0):
-            raise InputError(
-                f"discover.measurement_noise={measurement_noise}: expected a standard deviation >= 0 (0: noise-free)"
-            )
         if n_permutations < 19 or not 0 < alpha < 1 or regions_per_axis < 1:
             raise InputError(
                 f"discover: need n_permutations >= 19, 0 < alpha < 1, regions_per_axis >= 1; "
@@ -121,7 +113,6 @@ class DiscoverySettings:
         self.n_trajectories, self.n_bootstrap, self.theta_products = n_trajectories, n_bootstrap, theta_products
         self.strong_candidates, self.fit_steps, self.fit_batch = strong_candidates, fit_steps, fit_batch
         self.families, self.c2st_classifier, self.seed = tuple(families), c2st_classifier, seed
-        self.measurement_noise = float(measurement_noise)
 
 
 @dataclass
