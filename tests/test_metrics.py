@@ -312,6 +312,17 @@ def test_reference_scores_are_the_noise_floor(one_to_many_set):
     assert exact["abs_err"] == 0 and exact["nrmse"] == 0 and exact["c2st"] == 0.5
 
 
+def test_draws_as_measured_move_the_two_sample_metrics_and_leave_the_pointwise_errors(one_to_many_set):
+    """With the measurements' noise on the compared draws, the distances change; ABS ERR / N-RMSE stay the draws' own."""
+    data = {**one_to_many_set, "y": one_to_many_set["y"][:, :1]}
+    draws = data["x"].unsqueeze(1)
+    noisy = draws + 0.5 * torch.randn(draws.shape, generator=torch.Generator().manual_seed(0))
+    evaluator = JointEvaluator((50, 1), inputs=("theta", "x0"), paired=True)
+    clean, measured = evaluator.evaluate(draws, data, tests=False), evaluator.evaluate(draws, data, False, as_measured=noisy)
+    assert measured["abs_err"] == clean["abs_err"] and measured["nrmse"] == clean["nrmse"]
+    assert measured["energy"] != clean["energy"] and measured["mmd"] != clean["mmd"]
+
+
 def test_large_energy_distances_are_compiled_with_the_library_s_values_and_gradients(monkeypatch):
     """Distance matrices from COMPILED_ENTRIES entries on run compiled: the same means and gradients as cdist's."""
     torch.manual_seed(0)

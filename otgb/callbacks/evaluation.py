@@ -173,12 +173,14 @@ class Evaluation(Callback):
             raise TypeError("Evaluation: the model's validation/test step must return {'y_hat': (B, M, T, *obs)}")
         if next(iter(self.evaluators.values())).device != pl_module.device:  # the module moved after setup
             self.setup(pl_module.trainer, pl_module, "")
-        y_hat = self._as_measured(outputs["y_hat"], *key, pl_module.global_rank)
+        y_hat = outputs["y_hat"]
+        as_measured = self._as_measured(y_hat, *key, pl_module.global_rank)
         for evaluator in self.evaluators.values():
-            evaluator.update(y_hat, batch)
+            evaluator.update(y_hat, batch, as_measured=as_measured)
 
     def _as_measured(self, draws: Tensor, *key: object) -> Tensor:
-        """Draws with the measurements' noise (``data.measurement_noise``), the same on every run for a batch."""
+        """Draws with the measurements' noise (``data.measurement_noise``), the same on every run for a batch: what
+        the two-sample metrics compare with the measurements (the pointwise errors take the draws themselves)."""
         if self.noise == 0:
             return draws
         generator = torch.Generator(device=draws.device).manual_seed(derive_seed(self.seed, "measurement noise", *key))
@@ -261,9 +263,11 @@ class Evaluation(Callback):
     def _score_baselines(self, data: dict[str, Tensor]) -> dict[str, Tensor]:
         results = {}
         start = time.perf_counter()
-        fp_draws = self._as_measured(data["x"].unsqueeze(1).expand_as(data["y"]), "f_p")
+        fp_draws = data["x"].unsqueeze(1).expand_as(data["y"])
+        as_measured = self._as_measured(fp_draws, "f_p")
         for prefix, evaluator in self.baselines.items():
-            results.update({f"fp_{prefix}{k}": v for k, v in evaluator.evaluate(fp_draws, data, tests=True).items()})
+            scores = evaluator.evaluate(fp_draws, data, tests=True, as_measured=as_measured)
+            results.update({f"fp_{prefix}{k}": v for k, v in scores.items()})
         results["fp_eval_seconds"] = torch.tensor(time.perf_counter() - start)
         start = time.perf_counter()
         for prefix in self.plan:

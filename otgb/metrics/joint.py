@@ -98,11 +98,16 @@ class JointEvaluator:
         """ABS ERR and N-RMSE need pairs whose inputs determine the trajectory: theta and x0 both."""
         return paired and set(inputs) == {"theta", "x0"}
 
-    def update(self, y_hat: Tensor, batch: dict[str, Tensor], candidate: dict[str, Tensor] | None = None) -> None:
+    def update(
+        self, y_hat: Tensor, batch: dict[str, Tensor], candidate: dict[str, Tensor] | None = None,
+        as_measured: Tensor | None = None,
+    ) -> None:  # fmt: skip
         """Add draws y_hat (B, M, T, *obs) against ``batch["y"]`` (B', M', T, *obs).
 
         The rows of ``batch["y"]`` are conditioned on the batch's inputs, those of y_hat on
-        ``candidate``'s (default: the same batch, which a paired evaluation needs).
+        ``candidate``'s (default: the same batch, which a paired evaluation needs). ``as_measured``:
+        the draws as the two-sample metrics see them (with the measurements' noise; default y_hat);
+        the pointwise errors take y_hat itself, the best guess of a noisy measurement.
         """
         y = batch["y"]
         if self.paired and (candidate is not None or y_hat.shape != y.shape):
@@ -114,7 +119,8 @@ class JointEvaluator:
             self.errors.update(y_hat[:, 0], y[:, 0])
         cond = self._conditioning(batch)
         cond_hat = cond if candidate is None else self._conditioning(candidate)
-        self.two_sample.update(sample_rows(move(cond), y), sample_rows(move(cond_hat), y_hat))
+        compared = y_hat if as_measured is None else move(as_measured)
+        self.two_sample.update(sample_rows(move(cond), y), sample_rows(move(cond_hat), compared))
 
     def _conditioning(self, batch: dict[str, Tensor]) -> Tensor:
         parts = [batch[name].flatten(1) for name in self.inputs]
@@ -140,11 +146,12 @@ class JointEvaluator:
         self.one_to_one = None
 
     def evaluate(
-        self, y_hat: Tensor, data: dict[str, Tensor], tests: bool, candidate: dict[str, Tensor] | None = None
-    ) -> dict[str, Tensor]:
+        self, y_hat: Tensor, data: dict[str, Tensor], tests: bool, candidate: dict[str, Tensor] | None = None,
+        as_measured: Tensor | None = None,
+    ) -> dict[str, Tensor]:  # fmt: skip
         """All metrics of y_hat (inputs: ``candidate``, default ``data``) against ``data["y"]``, in one call."""
         self.reset()
-        self.update(y_hat, data, candidate)
+        self.update(y_hat, data, candidate, as_measured)
         results = self.compute(tests)
         self.reset()
         return results
