@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from otgb.data.measured import simulate_in_chunks
+from otgb.data.measured import CHUNK, simulate_in_chunks
 from otgb.data.seeding import generator_for
 from otgb.discovery.evidence import Comparison, weigh
 from otgb.discovery.intervals import Intervals, sandwich_intervals
@@ -60,8 +60,6 @@ from otgb.metrics.energy import energy_distance
 from otgb.metrics.mmd import mmd_multiscale
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
-
-CHUNK = 256
 
 
 class DiscoverySettings:
