@@ -46,7 +46,6 @@ class RunLoader(OTGBCLI):
         super().add_arguments_to_parser(parser)
         parser.add_argument("--ckpt_path", type=str | None, default=None, help="unused here: load_run's ckpt_path decides")
         parser.add_argument("--weights_only", type=bool | None, default=None, help="unused here")
-        parser.add_argument("--verbose", type=bool | None, default=None, help="unused here")
 
 
 @dataclass

@@ -12,7 +12,6 @@ import pytest
 
 from otgb.cli import main
 from otgb.command import logger_override
-from otgb.runs import load_run
 
 ROOT = Path(__file__).parents[1]
 CONFIG = str(ROOT / "configs" / "pendulum.yaml")
@@ -168,5 +167,3 @@ def test_a_perfect_model_of_noisy_measurements_is_at_the_floor_only_when_their_n
     assert reports[0.1]["model"]["energy"]["mean"] < energy["mean"] + 2 * energy["std"]
     assert reports[0.1]["model"]["mmdagg_reject"]["mean"] == 0
     assert reports[0.1]["run"]["measurement_noise"] == 0.1 and "white noise (sd 0.1)" in reports[0.1]["run"]["description"]
-    tested = load_run(tmp_path / "sd0.1" / "run" / "version_0" / "config.yaml")  # a test's saved config loads as a fit's
-    assert tested.datamodule.measurement_noise == 0.1
