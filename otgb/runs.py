@@ -39,13 +39,22 @@ from otgb.training import MapTraining
 
 class RunLoader(OTGBCLI):
     """The ``otgb`` parser without subcommands that also takes a run's saved ``config.yaml``, which holds its
-    command's ``ckpt_path`` and ``weights_only`` (and a test's or validation's ``verbose``): read and left unused
-    (:func:`load_run`'s ``ckpt_path`` decides)."""
+    command's ``ckpt_path`` and ``weights_only`` (and a test's or validation's ``verbose``): read and dropped
+    (:func:`load_run`'s ``ckpt_path`` decides), so that the config a loaded run saves is one ``otgb fit`` takes
+    as it is (a tuning trial's, say)."""
+
+    COMMAND_ONLY = ("ckpt_path", "weights_only", "verbose")
 
     def add_arguments_to_parser(self, parser) -> None:
         super().add_arguments_to_parser(parser)
         parser.add_argument("--ckpt_path", type=str | None, default=None, help="unused here: load_run's ckpt_path decides")
         parser.add_argument("--weights_only", type=bool | None, default=None, help="unused here")
+        parser.add_argument("--verbose", type=bool | None, default=None, help="unused here")
+
+    def before_instantiate_classes(self) -> None:
+        super().before_instantiate_classes()
+        for key in self.COMMAND_ONLY:
+            del self.config[key]
 
 
 @dataclass

@@ -340,7 +340,6 @@ class Study:
         config = yaml.safe_load(source.read_text())
         for logger in config.get("trainer", {}).get("logger") or []:
             logger.setdefault("init_args", {}).update(save_dir="runs", name=f"tune-{self.name}-best", version=None)
-        config.pop("ckpt_path", None)
         header = f"# Study {self.name}, best trial {best.number}: {self.monitor} {best.value:.6g}. otgb fit --config best.yaml\n"
         (self.directory / "best.yaml").write_text(header + yaml.safe_dump(config, sort_keys=False))
         return True

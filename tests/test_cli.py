@@ -558,6 +558,20 @@ def test_load_run_builds_the_model_and_data_of_a_run_quietly(tmp_path, capfd):
     assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["version_0"], "nothing written"
 
 
+def test_load_run_takes_a_test_runs_saved_config_and_keeps_its_command_options_out_of_the_config_it_saves(tmp_path):
+    main(["fit", *_args(tmp_path, "--trainer.max_steps=2")])
+    ckpt = tmp_path / "run" / "version_0" / "checkpoints" / "last.ckpt"
+    main(["test", *_args(tmp_path), f"--ckpt_path={ckpt}"])
+    tested = tmp_path / "run" / "version_1" / "config.yaml"
+    assert "verbose" in yaml.safe_load(tested.read_text()), "a test run's config holds the test command's verbose"
+    run = load_run(tested, logger_override(str(tmp_path / "again"), "run"), "--trainer.max_steps=2", ckpt_path=ckpt)
+    run.trainer.fit(run.model, run.datamodule)  # as otgb tune trains a trial: its saved config is one otgb fit takes
+    saved = Path(run.trainer.log_dir) / "config.yaml"
+    assert not {"verbose", "ckpt_path"} & set(yaml.safe_load(saved.read_text())), "the test's command-only options"
+    main(["fit", "--config", str(saved), logger_override(str(tmp_path / "refit"), "run"), "--trainer.max_steps=2"])
+    assert list((tmp_path / "refit" / "run").glob("version_*/checkpoints/last.ckpt"))
+
+
 def test_a_second_run_reads_f_p_and_the_reference_from_the_cache_and_gives_the_same_numbers(tmp_path, caplog):
     caplog.set_level(logging.INFO)
     logging.getLogger("lightning.pytorch.utilities.rank_zero").addHandler(caplog.handler)  # lightning's own does not propagate
