@@ -41,7 +41,7 @@ class RunLoader(OTGBCLI):
     """The ``otgb`` parser without subcommands that also takes a run's saved ``config.yaml``, which holds its
     command's ``ckpt_path`` and ``weights_only`` (and a test's or validation's ``verbose``): read and dropped
     (:func:`load_run`'s ``ckpt_path`` decides), so that the config a loaded run saves is one ``otgb fit`` takes
-    as it is (a tuning trial's, say)."""
+    as it is (a tuning trial's, say). Its loggers write to a new ``version_N`` (:func:`release_taken_versions`)."""
 
     COMMAND_ONLY = ("ckpt_path", "weights_only", "verbose")
 
@@ -52,9 +52,24 @@ class RunLoader(OTGBCLI):
         parser.add_argument("--verbose", type=bool | None, default=None, help="unused here")
 
     def before_instantiate_classes(self) -> None:
+        release_taken_versions(self.config.trainer.logger)
         super().before_instantiate_classes()
         for key in self.COMMAND_ONLY:
             del self.config[key]
+
+
+def release_taken_versions(loggers: object) -> None:
+    """Unpin each logger version whose folder already holds a run (a saved config.yaml pins its own): the loaded
+    run's trainer then writes to the next free ``version_N``, never into the run it was loaded from."""
+    for logger in loggers if isinstance(loggers, list) else []:
+        args = getattr(logger, "init_args", None)
+        version = getattr(args, "version", None)
+        if version is None or getattr(args, "save_dir", None) is None:
+            continue
+        folder = Path(args.save_dir) / (getattr(args, "name", None) or "lightning_logs")
+        folder /= f"version_{version}" if isinstance(version, int) else str(version)
+        if folder.is_dir() and any(folder.iterdir()):
+            args.version = None
 
 
 @dataclass

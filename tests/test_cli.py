@@ -558,18 +558,21 @@ def test_load_run_builds_the_model_and_data_of_a_run_quietly(tmp_path, capfd):
     assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["version_0"], "nothing written"
 
 
-def test_load_run_takes_a_test_runs_saved_config_and_keeps_its_command_options_out_of_the_config_it_saves(tmp_path):
+def test_load_run_takes_a_test_runs_saved_config_and_writes_neither_into_that_run_nor_its_options(tmp_path):
     main(["fit", *_args(tmp_path, "--trainer.max_steps=2")])
     ckpt = tmp_path / "run" / "version_0" / "checkpoints" / "last.ckpt"
     main(["test", *_args(tmp_path), f"--ckpt_path={ckpt}"])
     tested = tmp_path / "run" / "version_1" / "config.yaml"
     assert "verbose" in yaml.safe_load(tested.read_text()), "a test run's config holds the test command's verbose"
-    run = load_run(tested, logger_override(str(tmp_path / "again"), "run"), "--trainer.max_steps=2", ckpt_path=ckpt)
-    run.trainer.fit(run.model, run.datamodule)  # as otgb tune trains a trial: its saved config is one otgb fit takes
+    kept = {path: path.read_bytes() for path in tmp_path.joinpath("run").rglob("*") if path.is_file()}
+    run = load_run(tested, "--trainer.max_steps=2", ckpt_path=ckpt)
+    run.trainer.fit(run.model, run.datamodule)  # as otgb tune trains a trial, or a notebook goes on from a run
+    assert Path(run.trainer.log_dir) == tmp_path / "run" / "version_2", "the next free version, not the loaded run's"
+    assert {path: path.read_bytes() for path in kept} == kept, "the runs it was loaded from, as they were"
     saved = Path(run.trainer.log_dir) / "config.yaml"
     assert not {"verbose", "ckpt_path"} & set(yaml.safe_load(saved.read_text())), "the test's command-only options"
     main(["fit", "--config", str(saved), logger_override(str(tmp_path / "refit"), "run"), "--trainer.max_steps=2"])
-    assert list((tmp_path / "refit" / "run").glob("version_*/checkpoints/last.ckpt"))
+    assert list((tmp_path / "refit" / "run").glob("version_*/checkpoints/last.ckpt")), "otgb fit takes the saved config"
 
 
 def test_a_second_run_reads_f_p_and_the_reference_from_the_cache_and_gives_the_same_numbers(tmp_path, caplog):

@@ -229,3 +229,18 @@ def test_the_first_fit_tutorial_runs_as_written(tmp_path):
     runs = sorted(p.name for p in (tmp_path / "runs" / "pendulum").iterdir())
     assert runs == ["version_0", "version_1", "version_2"], runs
     assert (tmp_path / "runs" / "pendulum" / "version_1" / "metrics.md").is_file(), "otgb test wrote its report"
+
+
+def test_the_load_run_example_tests_a_saved_run_into_a_new_version(tmp_path):
+    """docs/runs.md's Python example on a run of the first-fit tutorial's command: the run it loads stays as it was."""
+    (tmp_path / "configs").symlink_to(ROOT / "configs")
+    assert _run("otgb fit --config configs/pendulum.yaml", tmp_path).returncode == 0
+    fitted = tmp_path / "runs" / "pendulum" / "version_0"
+    kept = {path: path.read_bytes() for path in fitted.rglob("*") if path.is_file()}
+    section = (ROOT / "docs" / "runs.md").read_text().split("## Load a run in Python", 1)[1]
+    example = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    done = subprocess.run([sys.executable, "-c", example], cwd=tmp_path, capture_output=True, text=True,
+                          env={**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)})  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert (tmp_path / "runs" / "pendulum" / "version_1" / "metrics.md").is_file(), "the test's report, in a new version"
+    assert {path: path.read_bytes() for path in kept} == kept
