@@ -36,6 +36,7 @@ from otgb.discovery.refine import (
 )
 from otgb.discovery.regression import SelectedTerm, Selection, design_matrix, regress
 from otgb.discovery.report import (
+    OUTSIDE_THE_LIBRARY,
     _family_section,
     augmented_config,
     confirmed,
@@ -47,7 +48,7 @@ from otgb.discovery.report import (
     verdict,
     write_report,
 )
-from otgb.discovery.search import best_subsets, subset_values
+from otgb.discovery.search import best_subsets, sparsest_kept, subset_values
 from otgb.discovery.variation import choose_family
 from otgb.discovery.workflow import (
     Discovery,
@@ -128,7 +129,7 @@ def test_locate_finds_when_and_how_samples_differ():
     pendulum = Pendulum()
     measured = _draws(pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))]), 200, 1)
     same = locate(_draws(pendulum, 200, 2), _draws(pendulum, 200, 3), pendulum.observation_times(), ("angle",), 199)
-    assert not same.any_significant and "agree everywhere" in describe(same)
+    assert not same.any_significant and describe(same).startswith("the tests see no difference between simulated and measured")
     found = locate(measured, _draws(pendulum, 200, 2), pendulum.observation_times(), ("angle",), 199)
     assert found.any_significant and not found.significant[0].any()  # t = 0: the same initial states
     assert "amplitude (mean |value|) is smaller" in describe(found) and "agree up to t =" in describe(found)
@@ -392,6 +393,34 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
     assert not said.confirmed, "a test part that cannot tell f_p apart confirms nothing"
 
 
+def test_terms_that_leave_the_test_part_no_closer_than_f_p_are_not_called_found_and_point_outside_the_library():
+    """A walk's forced pendulum (a torque that depends on time, outside the library): a term that fitted the validation
+    part better than f_p alone, then widened the gap on the test part, is named but not confirmed."""
+    coupling = Candidate("angle*velocity^2", "velocity")
+    result = Discovery(
+        before=SimpleNamespace(any_significant=True),
+        sentence_before="",
+        fitted=FittedTerms("constant", [coupling], [Constant(-0.54)], Scores([0.6]), []),
+        after=SimpleNamespace(any_significant=True),
+        sentence_after="augmented-physics and measured trajectories agree up to t = 2",
+        gap={"f_p": {"energy": 0.134}, "augmented": {"energy": 0.262}, "reference": {"c2st": 0.49, "c2st_std": 0.04}},
+        draws={"f_p": torch.zeros(150, 2)},
+    )
+    head, after, outside = verdict(result, Pendulum())
+    assert head.startswith("missing effect named, not confirmed: ") and "found" not in head, head
+    assert head.endswith(
+        "fit the validation part better than f_p alone, but on the 150 test trajectories, which no fit saw, the augmented "
+        "physics is no closer to the measurements than f_p (energy distance 0.262 against f_p's 0.134)"
+    ), head
+    assert after == result.sentence_after and outside == OUTSIDE_THE_LIBRARY and not confirmed(result)
+    nothing = Discovery(before=SimpleNamespace(any_significant=True), sentence_before="they differ")
+    assert verdict(nothing, Pendulum()) == [
+        "no missing effect found in the library: the measurements differ from f_p (they differ), but no candidate term "
+        "fits the validation part better than f_p alone by two standard errors",
+        OUTSIDE_THE_LIBRARY,
+    ]
+
+
 def test_intervals_contain_the_estimate_and_cover_the_truth_on_fresh_files():
     """The sandwich interval of a friction fit, on 6 files drawn anew: around its estimate, and covering -1.2."""
     pendulum = Pendulum()
@@ -615,6 +644,21 @@ def test_the_search_replaces_a_longer_model_the_data_cannot_tell_from_it():
     assert not replaces(much_worse, long) and replaces(long, much_worse)  # more terms, but better by far
 
 
+def test_the_search_keeps_nothing_when_no_library_model_beats_f_p_alone():
+    def fitted(features: list[str], draws: list[float]) -> FittedTerms:
+        candidates = [Candidate(f, "velocity") for f in features]
+        return FittedTerms("constant", candidates, [Constant(0.0)] * len(features), Scores(draws), [])
+
+    one = fitted(["angle*velocity^2"], [1.034, 1.036, 1.032, 1.035])  # the walk's size 1: f_p's score, within noise
+    two = fitted(["angle", "angle*velocity"], [0.667, 0.669, 0.665, 0.668])
+    three = fitted(["angle", "angle^2", "angle*velocity"], [0.666, 0.670, 0.663, 0.668])  # two's, within noise
+    f_p = Scores([1.037, 1.035, 1.039, 1.036])
+    assert sparsest_kept([one, two, three], f_p) is two, "the sparsest that beats f_p alone, not the size-1 model"
+    assert sparsest_kept([one], f_p) is None, "a model f_p alone fits as well is no finding"
+    assert sparsest_kept([], f_p) is None
+    assert sparsest_kept([one, two], Scores([0.66, 0.668, 0.664, 0.667])) is None, "f_p as good as the best"
+
+
 def test_best_subsets_tries_every_subset_where_forward_selection_fails():
     x = torch.linspace(0.05, 0.95, 400, dtype=torch.float64).numpy()
     X = np.stack([np.ones_like(x), x, x**2, x**3, x**4], 1)
@@ -652,7 +696,7 @@ def test_discover_negative_control_names_nothing(tmp_path):
     assert "otgb discover [" in done.stderr and "otgb discover [" not in done.stdout, "progress goes to stderr"
     run_dir = Path(done.stdout.strip().splitlines()[-1].split("report in ")[1])
     report = json.loads((tmp_path / run_dir / "report.json").read_text())
-    assert report["found"] is False and report["terms"] == [] and report["verdict"].startswith("no missing effect found")
+    assert report["found"] is False and report["terms"] == [] and report["verdict"].startswith("no missing effect detected")
     assert done.stdout.strip().splitlines()[-2] == f"otgb discover: {report['verdict']}", "a one-part verdict: one line"
     assert set(report["gap"]) == {"f_p", "reference"} and not (tmp_path / run_dir / "augmented.yaml").exists()
     assert (tmp_path / run_dir / "report.md").read_text().count("figures/") >= 2

@@ -197,10 +197,18 @@ def locate(
 def describe(result: DisagreementMap, a_name: str = "measured", b_name: str = "simulated") -> str:
     """A plain sentence: until when the samples agree, and how they differ afterwards, per component."""
     if not result.any_significant:
-        return (
-            f"{b_name} and {a_name} trajectories agree everywhere: neither the whole trajectories nor any time step, "
-            f"component or region differ at a false discovery rate of {result.alpha:g} ({result.n_permutations} permutations)"
+        measured, simulated = result.sizes
+        sentence = (
+            f"the tests see no difference between {b_name} and {a_name} trajectories ({simulated} and {measured}): "
+            f"neither the whole trajectories nor any time step, component or region differ at a false discovery rate of "
+            f"{result.alpha:g} ({result.n_permutations} permutations)"
         )
+        if result.whole_pvalue <= result.alpha:  # significant on its own, not with the cells' family beside it
+            sentence += (
+                f"; the whole trajectories come close (permutation p = {result.whole_pvalue:.2g}, threshold "
+                f"{result.alpha / 2:g}): a difference may be there that more measurements would show"
+            )
+        return sentence
     if not result.significant.any():
         return (
             f"{b_name} and {a_name} trajectories differ as a whole (energy distance of the z-scored trajectories "

@@ -50,17 +50,24 @@ def distribution_text(distribution: dict[str, Any] | None) -> str:
     return json.dumps(distribution)
 
 
+OUTSIDE_THE_LIBRARY = (
+    "what f_p lacks may lie outside the candidate library (a forcing that depends on time, an input the model does "
+    "not have): write it as a term of your own and compare again (docs/own-physics.md)"
+)
+
+
 def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
     """The verdict in parts, the answer first: one of four (the gap closed, named but not confirmed, partly closed,
-    nothing found) with its numbers; then how strongly the measurements prefer each named term over its closest
+    nothing found or detected) with its numbers; then how strongly the measurements prefer each named term over its closest
     alternative, and the flags of implausible terms. ``report.json``'s ``verdict`` joins them with "; "."""
     if not result.before.any_significant:
-        return ["no missing effect found: " + result.sentence_before]
+        return ["no missing effect detected: " + result.sentence_before]
     if not result.found:
         return [
             "no missing effect found in the library: the measurements differ from f_p ("
             + result.sentence_before
-            + "), but no candidate term closes the gap"
+            + "), but no candidate term fits the validation part better than f_p alone by two standard errors",
+            OUTSIDE_THE_LIBRARY,
         ]
     ambiguous: dict[tuple[str, str], list] = {}
     for c in sorted(result.evidence, key=lambda c: abs(c.standard_errors)):  # closest first
@@ -80,6 +87,15 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
             f"tell even f_p from the measurements ({blind}), so their agreeing with the augmented physics confirms "
             "nothing: more measurements are needed to confirm it"
         ]
+    elif gap_closed(result.gap) <= 0:
+        energy = {name: result.gap[name]["energy"] for name in ("augmented", "f_p")}
+        answer = [
+            f"missing effect named, not confirmed: {names} fit the validation part better than f_p alone, but on the "
+            f"{len(result.draws['f_p'])} test trajectories, which no fit saw, the augmented physics is no closer to the "
+            f"measurements than f_p (energy distance {energy['augmented']:.3g} against f_p's {energy['f_p']:.3g})",
+            result.sentence_after,
+            OUTSIDE_THE_LIBRARY,
+        ]
     elif closed:
         answer = [
             f"missing effect found, the gap is closed as far as the test part can tell: {names} {removes} "
@@ -91,6 +107,7 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
             f"missing effect partly found: {names} {closes} {share_removed(result)}",
             result.sentence_after,
             "no library term fits exactly, these are the best approximation",
+            OUTSIDE_THE_LIBRARY,
         ]
     parts = [*answer, *preferences(result, physics), *flags(result, physics), *([] if blind else low_power(result))]
     if named := named_divergences(result):

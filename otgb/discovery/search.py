@@ -20,11 +20,14 @@ measurements, this route:
 3. scores the ten best subsets of each size on the validation measurements with their
    least-squares coefficients (g's residual alone ranks near-collinear subsets by noise), fits
    the three best of them by distribution matching and scores them again; the subsets the best
-   one does not beat are kept as the step's alternatives (``report.json``'s ``search``). Sizes grow until two in a
-   row do not beat the leader (the last size that beat the leader before it) by two standard errors, as
-   f_phi's route does (a size that lowers the held-out score by less than its noise does not keep the
-   search going); the sparsest model that the best does not beat by two standard errors
-   (:func:`otgb.discovery.refine.beats`) is kept.
+   one does not beat are kept as the step's alternatives (``report.json``'s ``search``). f_p alone
+   is size 0. Sizes grow until two in a row do not beat the leader (the last size that beat the
+   leader before it) by two standard errors, as f_phi's route does (a size that lowers the
+   held-out score by less than its noise does not keep the search going); the sparsest model that
+   beats f_p alone and that the best does not beat, each by two standard errors
+   (:func:`otgb.discovery.refine.beats`), is kept, and nothing when the best does not beat f_p
+   alone: an effect outside the library is then not given the name of the library term that
+   happens to fit the validation part's noise best.
 """
 
 from __future__ import annotations
@@ -39,7 +42,7 @@ import torch
 from torch import Tensor
 
 from otgb.discovery.library import Candidate
-from otgb.discovery.refine import FittedTerms, Fitting, beats, centre, discrepancies
+from otgb.discovery.refine import FittedTerms, Fitting, Scores, beats, centre, discrepancies
 from otgb.discovery.regression import design_matrix
 from otgb.physics.base import PhysicsModel
 from otgb.physics.features import is_local
@@ -154,20 +157,29 @@ def search(
         return None, []
     states, theta, correction = fitted_correction(physics, dense, TRAJECTORIES, seed)
     X, y = stacked_design(physics, local, states, theta, correction, seed)
+    alone = discrepancies(physics, [], [], fitting.val, seed)  # f_p itself, size 0
+    report(f"search: f_p alone, held-out energy {alone.mean:.4g}")
     path: list[SearchStep] = []
-    leader = 0  # the last size that beat the leader before it
+    scores, leader = [alone], 0  # held-out scores by size; the last size that beat the leader before it
     for size in range(1, len(local) + 1):
         step = _best_of_size(physics, local, X, y, size, fitting.val, seed, fitting)
         if step is None:
             break
         path.append(step)
+        scores.append(step.fitted.heldout)
         names = [f"{c.feature} on d{c.component}/dt" for c in step.candidates]
         report(f"search: {size} term(s) {names}: held-out energy {step.fitted.heldout_energy:.4g}")
-        if beats(step.fitted.heldout, path[leader].fitted.heldout):
-            leader = size - 1
-        elif size - 1 - leader >= 2:
+        if beats(scores[size], scores[leader]):
+            leader = size
+        elif size - leader >= 2:
             break
-    best = min(path, key=lambda s: s.fitted.heldout_energy).fitted if path else None
-    if best is None or not best.heldout.finite:  # nothing fitted, or every fitted subset diverges
-        return None, path
-    return next(s.fitted for s in path if not beats(best.heldout, s.fitted.heldout)), path
+    return sparsest_kept([s.fitted for s in path], alone), path
+
+
+def sparsest_kept(fitted: list[FittedTerms], alone: Scores) -> FittedTerms | None:
+    """Of the search's models (sparsest first), the sparsest that beats f_p alone (``alone``) and that the best does
+    not beat, each by two standard errors; None when none is fitted, all diverged, or the best does not beat f_p."""
+    best = min(fitted, key=lambda f: f.heldout_energy, default=None)
+    if best is None or not beats(best.heldout, alone):
+        return None
+    return next(f for f in fitted if beats(f.heldout, alone) and not beats(best.heldout, f.heldout))

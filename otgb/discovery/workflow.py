@@ -4,7 +4,7 @@ Given f_p, a file of measured trajectories and an OT grey-box trained on them ("
 Generative Modeling for Incomplete Physics: Deep Grey-Box Meets Optimal Transport"):
 
 1. **Locate** (:mod:`otgb.discovery.locate`): where and when f_p's simulations and the
-   measured training trajectories disagree. Nothing significant: no missing effect found.
+   measured training trajectories disagree. Nothing significant: no missing effect detected.
 2. **Learn**: the grey-box T_phi (trained by ``otgb discover`` or loaded from a checkpoint).
 3. **Name** (:mod:`otgb.discovery.regression`): its correction f_phi, evaluated along generated
    trajectories, regressed on the candidate library (:mod:`otgb.discovery.library`).
