@@ -21,6 +21,7 @@ from otgb.discovery.intervals import sandwich_intervals
 from otgb.discovery.library import Candidate, build_library, physical_name
 from otgb.discovery.locate import describe, locate, permutation_energy
 from otgb.discovery.log import DivergenceLog, rounded, short
+from otgb.discovery.paired import paired_check
 from otgb.discovery.refine import (
     FAMILIES,
     FAMILY_REPEATS,
@@ -419,6 +420,28 @@ def test_terms_that_leave_the_test_part_no_closer_than_f_p_are_not_called_found_
         "fits the validation part better than f_p alone by two standard errors",
         OUTSIDE_THE_LIBRARY,
     ]
+
+
+def test_the_paired_check_holds_f_p_to_the_stated_noise_on_the_recorded_inputs():
+    """f_p on measurements' own inputs: a complete f_p leaves the noise (chi-square p not small); a friction of 0.1,
+    which 60 noisy trajectories hardly show as distributions, leaves residuals well above it."""
+    pendulum, g = Pendulum(), torch.Generator().manual_seed(11)
+    noisy = lambda y: y + 0.05 * torch.randn(y.shape, generator=g, dtype=y.dtype)  # noqa: E731
+    complete = generate_measured(pendulum, 60, 3)
+    right = paired_check(pendulum, noisy(complete["y"]), complete["x0"], complete["theta"], 0.05)
+    assert right.pvalue > 0.01 and abs(right.rms - 0.05) < 0.003 and right.values == complete["y"].numel()
+    lacking = generate_measured(pendulum.with_hidden_effect([ViscousFriction(Constant(0.1))]), 60, 3)
+    measured = noisy(lacking["y"])
+    check = paired_check(pendulum, measured, lacking["x0"], lacking["theta"], 0.05)
+    assert check.pvalue < 1e-6 and check.rms > 0.06
+    simulated = _draws(pendulum, 60, 4)
+    times, observed = pendulum.observation_times(), pendulum.observed
+    found = locate(measured, simulated, times, observed, n_permutations=199, paired=check)
+    assert found.any_significant and check.significant and found.whole_level == 0.05 / 4
+    assert "f_p solved on the measurements' recorded inputs misses them by an RMS of" in describe(found)
+    assert found.to_dict()["paired"]["significant"] is True
+    unpaired = locate(measured, simulated, times, observed, n_permutations=199)
+    assert unpaired.whole_level == 0.05 / 2 and unpaired.paired is None and "recorded inputs" not in describe(unpaired)
 
 
 def test_intervals_contain_the_estimate_and_cover_the_truth_on_fresh_files():

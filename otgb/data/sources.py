@@ -75,6 +75,10 @@ class MeasurementSource(ABC):
     def reference_on_same_inputs(self) -> bool:
         """Whether the Reference compares two draws on the same inputs (True) or two halves of the measurements."""
 
+    def training_inputs(self) -> tuple[Tensor, Tensor] | None:
+        """x0 and theta of each trajectory of :meth:`measured_set` where the measurements recorded both, else None."""
+        return None
+
     @property
     def draws_pair_with_inputs(self) -> bool:
         """Whether each measured draw belongs to its evaluation input (a figure per input) or not (distributions)."""
@@ -218,6 +222,12 @@ class FileMeasurements(MeasurementSource):
     @property
     def recorded_inputs(self) -> tuple[str, ...]:
         return self.file.recorded_inputs
+
+    def training_inputs(self) -> tuple[Tensor, Tensor] | None:
+        if self.recorded_inputs != ("theta", "x0"):
+            return None
+        part = self.file.subset(self.parts["train"])
+        return part.x0, part.theta
 
     @property
     def draws_per_input(self) -> int:

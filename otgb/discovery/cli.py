@@ -34,6 +34,7 @@ from otgb.data import SimulationDataModule
 from otgb.discovery.known import pointwise_errors
 from otgb.discovery.locate import describe
 from otgb.discovery.log import DivergenceLog, progress, show_on_stderr
+from otgb.discovery.paired import paired_check
 from otgb.discovery.report import augmented_config, write_augmented, write_report
 from otgb.discovery.workflow import (
     Discovery,
@@ -113,8 +114,11 @@ def discover_run(args: list[str]) -> Finished:
     def as_measured():  # simulations compared with the measurements carry their noise; the truth does not
         return physics.measured_with_noise(datamodule.measurement_noise, settings.seed + 7919)
 
+    paired = None  # f_p on the training part's recorded inputs, against the noise the user states
+    if data.train_inputs is not None and datamodule.measurement_noise > 0:
+        paired = paired_check(physics, data.train, *data.train_inputs, datamodule.measurement_noise)
     with as_measured():
-        before = locate_step(physics, data.train, settings)
+        before = locate_step(physics, data.train, settings, paired=paired)
     progress(describe(before))
     run_dir = Path(trainer.log_dir)
     components = None

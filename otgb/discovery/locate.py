@@ -19,6 +19,8 @@ import torch
 from scipy.stats import false_discovery_control
 from torch import Tensor
 
+from otgb.discovery.paired import PairedCheck
+
 CELLS_PER_BLOCK = 16  # cells whose distance matrices are held at once
 SPREAD_FLOOR = 1e-3  # of the features' RMS spread: a feature (nearly) constant in both samples is not blown up to unit spread
 
@@ -60,10 +62,16 @@ class DisagreementMap:
     whole_pvalue: float = 1.0
     whole_significant: bool = False
     sizes: tuple[int, int] = (0, 0)  # trajectories in a (the measurements) and in b (the model's)
+    whole_level: float = 0.025  # the level of the whole-trajectory test (and of the paired check, when there is one)
+    paired: PairedCheck | None = None  # f_p on the measurements' recorded inputs (otgb.discovery.paired)
 
     @property
     def any_significant(self) -> bool:
-        return bool(self.significant.any()) or self.whole_significant
+        return bool(self.significant.any()) or self.whole_significant or self.paired_significant
+
+    @property
+    def paired_significant(self) -> bool:
+        return self.paired is not None and self.paired.significant
 
     def to_dict(self) -> dict:
         return {
@@ -78,6 +86,8 @@ class DisagreementMap:
             "pvalue": self.pvalue.tolist(),
             "significant": self.significant.tolist(),
             "whole": {"statistic": self.whole_statistic, "pvalue": self.whole_pvalue, "significant": self.whole_significant},
+            "whole_level": self.whole_level,
+            "paired": None if self.paired is None else self.paired.to_dict(),
         }
 
 
@@ -152,12 +162,14 @@ def locate(
     alpha: float = 0.05,
     regions_per_axis: int = 4,
     seed: int = 0,
+    paired: PairedCheck | None = None,
 ) -> DisagreementMap:
     """Where samples ``a`` (n, T, C, *grid) and ``b`` (m, T, C, *grid) of trajectories disagree.
 
     Fields are split into ``regions_per_axis`` blocks per spatial axis; each (time, component,
     region) cell is tested. ``a`` is the reference side of the sentence (the measurements),
-    ``b`` the model (f_p or a corrected model).
+    ``b`` the model (f_p or a corrected model). With ``paired`` (f_p on a's recorded inputs), the
+    whole-trajectory half of alpha is split between the whole-trajectory test and that check.
     """
     if a.dim() < 3 or a.shape[1:] != b.shape[1:]:
         raise ValueError(f"locate: expected trajectories (n, T, C, ...) of one shape, got {tuple(a.shape)} and {tuple(b.shape)}")
@@ -170,7 +182,10 @@ def locate(
     # two families, alpha split between them (Bonferroni): one whole-trajectory p-value inside the cells'
     # Benjamini-Hochberg set would need p < alpha / (cells + 1), below what the permutations can give
     significant = false_discovery_control(pvalue.numpy()) <= alpha / 2
-    whole_significant = bool(whole_pvalue[0] <= alpha / 2)
+    whole_level = alpha / 4 if paired is not None else alpha / 2
+    whole_significant = bool(whole_pvalue[0] <= whole_level)
+    if paired is not None:
+        paired.significant = paired.pvalue <= whole_level
     shape = (steps, channels, len(regions))
     summary = {}
     for side, cells in (("a", cells_a), ("b", cells_b)):
@@ -191,22 +206,35 @@ def locate(
         whole_pvalue=float(whole_pvalue[0]),
         whole_significant=whole_significant,
         sizes=(len(a), len(b)),
+        whole_level=whole_level,
+        paired=paired,
     )
 
 
 def describe(result: DisagreementMap, a_name: str = "measured", b_name: str = "simulated") -> str:
-    """A plain sentence: until when the samples agree, and how they differ afterwards, per component."""
-    if not result.any_significant:
+    """A plain sentence: until when the samples agree, and how they differ afterwards, per component; and the paired
+    check's figures, where there is one."""
+    sentence = _distributions(result, a_name, b_name)
+    if result.paired is None:
+        return sentence
+    if result.paired_significant and not (result.significant.any() or result.whole_significant):
+        return f"{result.paired.sentence()}, though {sentence}"
+    return f"{sentence}; {result.paired.sentence()}"
+
+
+def _distributions(result: DisagreementMap, a_name: str, b_name: str) -> str:
+    """:func:`describe`'s sentence on the two-sample tests alone."""
+    if not (result.significant.any() or result.whole_significant):
         measured, simulated = result.sizes
         sentence = (
             f"the tests see no difference between {b_name} and {a_name} trajectories ({simulated} and {measured}): "
             f"neither the whole trajectories nor any time step, component or region differ at a false discovery rate of "
             f"{result.alpha:g} ({result.n_permutations} permutations)"
         )
-        if result.whole_pvalue <= result.alpha:  # significant on its own, not with the cells' family beside it
+        if result.whole_pvalue <= 2 * result.whole_level:  # significant on its own, not beside the other families
             sentence += (
                 f"; the whole trajectories come close (permutation p = {result.whole_pvalue:.2g}, threshold "
-                f"{result.alpha / 2:g}): a difference may be there that more measurements would show"
+                f"{result.whole_level:g}): a difference may be there that more measurements would show"
             )
         return sentence
     if not result.significant.any():

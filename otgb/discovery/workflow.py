@@ -38,6 +38,7 @@ from otgb.discovery.intervals import Intervals, sandwich_intervals
 from otgb.discovery.library import Candidate, build_library, physical_name
 from otgb.discovery.locate import DisagreementMap, describe, locate
 from otgb.discovery.log import DivergenceLog, diverged, progress, rounded, short
+from otgb.discovery.paired import PairedCheck
 from otgb.discovery.refine import (
     FAMILIES,
     FittedTerms,
@@ -115,17 +116,20 @@ class DiscoverySettings:
 
 @dataclass
 class Measurements:
-    """The measured trajectories (n, T, *obs) of each part of the split."""
+    """The measured trajectories (n, T, *obs) of each part of the split, and the training part's x0 and theta where
+    the measurements recorded both."""
 
     train: Tensor
     val: Tensor
     test: Tensor
+    train_inputs: tuple[Tensor, Tensor] | None = None
 
     @classmethod
     def from_datamodule(cls, datamodule: Any) -> Measurements:
         datamodule.setup("fit")
         datamodule.setup("test")
-        return cls(datamodule.measured, datamodule.val_set["y"].flatten(0, 1), datamodule.test_set["y"].flatten(0, 1))
+        val, test = datamodule.val_set["y"].flatten(0, 1), datamodule.test_set["y"].flatten(0, 1)
+        return cls(datamodule.measured, val, test, datamodule.source.training_inputs())
 
 
 @dataclass
@@ -218,14 +222,17 @@ def acting_components(physics: PhysicsModel) -> list[str]:
 
 
 # --- the steps ----------------------------------------------------------------------
-def locate_step(physics: PhysicsModel, measured: Tensor, settings: DiscoverySettings, model_name: str = "f_p") -> DisagreementMap:
+def locate_step(
+    physics: PhysicsModel, measured: Tensor, settings: DiscoverySettings, model_name: str = "f_p",
+    paired: PairedCheck | None = None,
+) -> DisagreementMap:  # fmt: skip
     """The disagreement map between ``measured`` and as many trajectories of ``physics`` (f_p, or a candidate
-    model whose diverged trajectories are dropped)."""
+    model whose diverged trajectories are dropped), with f_p's ``paired`` check on the measurements' inputs, if any."""
     simulate = simulate_candidate if isinstance(physics, Augmented) else simulate_from_priors
     simulated = simulate(physics, len(measured), settings.seed, model_name)
     return locate(
         measured, simulated, physics.observation_times(), physics.observed,
-        settings.n_permutations, settings.alpha, settings.regions_per_axis, settings.seed,
+        settings.n_permutations, settings.alpha, settings.regions_per_axis, settings.seed, paired,
     )  # fmt: skip
 
 
