@@ -439,6 +439,7 @@ def test_the_paired_check_holds_f_p_to_the_stated_noise_on_the_recorded_inputs()
     found = locate(measured, simulated, times, observed, n_permutations=199, paired=check)
     assert found.any_significant and check.significant and found.whole_level == 0.05 / 4
     assert "f_p solved on the measurements' recorded inputs misses them by an RMS of" in describe(found)
+    assert "leaves residuals of RMS 0.0" in right.sentence() and "consistent with their noise's sd 0.05" in right.sentence()
     assert found.to_dict()["paired"]["significant"] is True
     unpaired = locate(measured, simulated, times, observed, n_permutations=199)
     assert unpaired.whole_level == 0.05 / 2 and unpaired.paired is None and "recorded inputs" not in describe(unpaired)

@@ -39,9 +39,15 @@ class PairedCheck:
 
     def sentence(self) -> str:
         p = f"= {self.pvalue:.2g}" if self.pvalue > 0 else "< 1e-300"
+        test = f"(chi-square p {p} over {self.values} values)"
+        if self.significant:
+            return (
+                f"f_p solved on the measurements' recorded inputs misses them by an RMS of {self.rms:.3g}, more than "
+                f"their noise's sd {self.noise:.3g} {test}"
+            )
         return (
-            f"f_p solved on the measurements' recorded inputs misses them by an RMS of {self.rms:.3g} against their "
-            f"noise's sd {self.noise:.3g} (chi-square p {p} over {self.values} values)"
+            f"f_p solved on the measurements' recorded inputs leaves residuals of RMS {self.rms:.3g}, consistent with their "
+            f"noise's sd {self.noise:.3g} {test}"
         )
 
 
