@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from scipy.integrate import solve_ivp
 from torch import nn
 
 from otgb.data import generate_measured
@@ -725,6 +726,33 @@ def test_discover_negative_control_names_nothing(tmp_path):
     assert set(report["gap"]) == {"f_p", "reference"} and not (tmp_path / run_dir / "augmented.yaml").exists()
     assert (tmp_path / run_dir / "report.md").read_text().count("figures/") >= 2
     assert not (tmp_path / run_dir / "checkpoints").exists(), "nothing to learn: no training"
+
+
+def _forced_pendulum(path: Path, n: int = 200, noise: float = 0.05) -> Path:
+    """A newcomer's file from their own solver: the pendulum driven by a torque 0.6 cos(2t), an effect that depends on
+    time and is in no library; the angle with white noise, each trajectory's omega and x0 recorded (as in a walk)."""
+    rng, t = np.random.default_rng(7), np.arange(50) * 0.1
+    rows = ["trajectory,t,angle,omega,x0_angle,x0_velocity"]
+    field = lambda s, y, omega: [y[1], -(omega**2) * np.sin(y[0]) + 0.6 * np.cos(2.0 * s)]  # noqa: E731
+    for i in range(n):
+        angle, omega = rng.uniform(-1.57, 1.57), rng.uniform(0.785, 3.14)
+        solved = solve_ivp(field, (0, t[-1]), [angle, 0.0], t_eval=t, args=(omega,), rtol=1e-9, atol=1e-11, method="DOP853")
+        measured = solved.y[0] + rng.normal(0, noise, len(t))
+        rows += [f"{i},{time:.10g},{value:.9g},{omega:.9g},{angle:.9g},0" for time, value in zip(t, measured)]
+    path.write_text("\n".join(rows) + "\n")
+    return path
+
+
+@pytest.mark.slow
+def test_discover_finds_an_effect_outside_the_library_on_the_recorded_inputs_and_names_no_term_for_it(tmp_path):
+    done = _discover(tmp_path, _forced_pendulum(tmp_path / "forced.csv"), "--data.measurement_noise=0.05")
+    assert done.returncode == 0, done.stderr[-2000:]
+    run_dir = Path(done.stdout.strip().splitlines()[-1].split("report in ")[1])
+    report = json.loads((tmp_path / run_dir / "report.json").read_text())
+    paired = report["locate"]["before"]["paired"]
+    assert paired["significant"] and paired["rms"] > 0.2, paired
+    assert report["found"] is False and report["verdict"].startswith("no missing effect found in the library")
+    assert report["verdict_parts"][-1] == OUTSIDE_THE_LIBRARY and not (tmp_path / run_dir / "augmented.yaml").exists()
 
 
 def _bad_file(tmp_path: Path, kind: str) -> Path:
