@@ -421,6 +421,11 @@ def test_terms_that_leave_the_test_part_no_closer_than_f_p_are_not_called_found_
         "fits the validation part better than f_p alone by two standard errors",
         OUTSIDE_THE_LIBRARY,
     ]
+    nothing.undertrained = {"validation_trajectories": 150}
+    assert verdict(nothing, Pendulum())[-1] == (
+        "the OT grey-box does not beat f_p alone on the 150 validation trajectories by two standard errors (undertrained, "
+        "or too few to tell; the gap table is on the test part), and the library search named nothing"
+    )
 
 
 def test_the_paired_check_holds_f_p_to_the_stated_noise_on_the_recorded_inputs():
@@ -752,7 +757,7 @@ def test_discover_finds_an_effect_outside_the_library_on_the_recorded_inputs_and
     paired = report["locate"]["before"]["paired"]
     assert paired["significant"] and paired["rms"] > 0.2, paired
     assert report["found"] is False and report["verdict"].startswith("no missing effect found in the library")
-    assert report["verdict_parts"][-1] == OUTSIDE_THE_LIBRARY and not (tmp_path / run_dir / "augmented.yaml").exists()
+    assert OUTSIDE_THE_LIBRARY in report["verdict_parts"] and not (tmp_path / run_dir / "augmented.yaml").exists()
 
 
 def _bad_file(tmp_path: Path, kind: str) -> Path:

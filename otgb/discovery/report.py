@@ -68,6 +68,7 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
             + result.sentence_before
             + "), but no candidate term fits the validation part better than f_p alone by two standard errors",
             OUTSIDE_THE_LIBRARY,
+            *undertrained_note(result, "and the library search named nothing"),
         ]
     ambiguous: dict[tuple[str, str], list] = {}
     for c in sorted(result.evidence, key=lambda c: abs(c.standard_errors)):  # closest first
@@ -116,12 +117,18 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
             f"the named model's solve diverged in {len(named)} step(s), at worst on {worst['diverged']} of {worst['of']} "
             f"simulated trajectories ({worst['what']}): some inputs blow up with these coefficients"
         )
-    if result.undertrained:
-        parts.append(
-            "the OT grey-box does not beat f_p alone on the validation part (undertrained, or too few trajectories to "
-            "tell), the terms come from the library search"
-        )
-    return parts
+    return parts + undertrained_note(result, "the terms come from the library search")
+
+
+def undertrained_note(result: Discovery, so: str) -> list[str]:
+    """The verdict's part on a grey-box whose correction was not used (``so``: what followed), when it was not."""
+    if not result.undertrained:
+        return []
+    n = result.undertrained["validation_trajectories"]
+    return [
+        f"the OT grey-box does not beat f_p alone on the {n} validation trajectories by two standard errors "
+        f"(undertrained, or too few to tell; the gap table is on the test part), {so}"
+    ]
 
 
 def gap_closed(gap: dict[str, dict[str, float]]) -> float:
