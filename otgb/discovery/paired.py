@@ -6,9 +6,8 @@ the standard deviation sd given as ``data.measurement_noise``. The sum of the sq
 over sd^2 is then chi-square distributed with as many degrees of freedom as there are values; a
 larger sum says that f_p misses the measurements by more than their noise. The locate step's
 distribution tests cannot use the pairing, and need far more trajectories to see the same
-effect (a pendulum driven by a torque, 200 trajectories: the distributions came close, p = 0.03
-against 0.025; the residuals were five times the noise). An sd set too small reads as a missing
-effect too: the check compares f_p with the noise the user states.
+effect. An sd set too small reads as a missing effect too: the check compares f_p with the
+noise the user states.
 """
 
 from __future__ import annotations
