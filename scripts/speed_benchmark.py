@@ -494,17 +494,20 @@ def _median(results: dict, prefix: str, field: str) -> float:
     return values[0] if field == "warmup_s" else statistics.median(values)
 
 
+CONFIG_NAMES = sorted(path.stem for path in (ROOT / "configs").glob("*.yaml"))  # --config takes a name, not a path
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     commands = parser.add_subparsers(dest="command", required=True)
     steps = commands.add_parser("steps", help="training steps of each config, per solver")
-    steps.add_argument("--configs", nargs="+", default=["pendulum", "advdiff", "reactdiff"])
+    steps.add_argument("--configs", nargs="+", default=["pendulum", "advdiff", "reactdiff"], choices=CONFIG_NAMES)
     steps.add_argument("--steps", type=int, default=40)
     steps.add_argument("--warmup", type=int, default=5, help="first steps counted as warm-up (compilation)")
     steps.add_argument("--label", help="appended to each config's name in the results, for runs with overrides (e.g. gpu)")
     steps.add_argument("overrides", nargs="*", help="otgb overrides, after -- (e.g. --trainer.accelerator=gpu)")
     fit = commands.add_parser("fit", help="whole `otgb fit` commands, per solver")
-    fit.add_argument("--config", default="reactdiff")
+    fit.add_argument("--config", default="reactdiff", choices=CONFIG_NAMES)
     fit.add_argument("--label", help="the results' name for this config and these overrides (default: the config)")
     fit.add_argument("--cold-cache", action="store_true", help="each fit compiles into an empty torch compile cache")
     fit.add_argument("overrides", nargs="*", help="otgb overrides, after --")
@@ -516,14 +519,14 @@ def main() -> None:
     judges.add_argument("--precision", default="auto", help="the judge's arithmetic (otgb.metrics.classifiers)")
     judges.add_argument("--whole", action=argparse.BooleanOptionalAction, default=True, help="also one whole 5-fold C2ST")
     designs = commands.add_parser("designs", help="ways of compiling a solve, on a config's grey-box")
-    designs.add_argument("--config", default="pendulum")
+    designs.add_argument("--config", default="pendulum", choices=CONFIG_NAMES)
     designs.add_argument("--block", type=int, default=7, help="steps per compiled block (divides the solve's steps)")
     designs.add_argument("--repeats", type=int, default=20)
     designs.add_argument("--only", nargs="*", help="run only the designs whose name has one of these words (e.g. eager scan)")
     designs.add_argument("--device", default="cpu", help="where the solves run (cpu, cuda: adds the CUDA-graph designs)")
     designs.add_argument("--label", help="appended to the config's name in the results (e.g. gpu)")
     discover = commands.add_parser("discover", help="whole `otgb discover` runs on a measured file, per solver")
-    discover.add_argument("--config", default="pendulum")
+    discover.add_argument("--config", default="pendulum", choices=CONFIG_NAMES)
     discover.add_argument("--measured", required=True, help="the measured file")
     discover.add_argument("overrides", nargs="*", help="otgb overrides, after --")
     for sub in (steps, fit, discover):
