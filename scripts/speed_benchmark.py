@@ -31,9 +31,12 @@ pendulum-500-steps -- --data.simulation_budget=16000`` and the same at 1500 step
 draws' size: seconds per training epoch of one fold with otgb's convolution and with the library's
 (``torch.nn.Conv1d``, the reference), alternating ``--rounds`` times; the same for a 5-fold C2ST
 of ``--epochs`` epochs a fold with the folds in threads (otgb's default on a CPU) and one after
-the other (``n_jobs=1``), seconds per fold-epoch; then one whole 5-fold C2ST on otgb's path (wall
-time, epochs per fold), and writes ``judges.json``. The rows are Gaussian, the two samples 2 %
-apart in mean and 5 % in scale: close enough that the judge trains long.
+the other (``n_jobs=1``), seconds per fold-epoch. The rows are Gaussian, the two samples 2 %
+apart in mean and 5 % in scale: close enough that the judge trains long. Then, on these rows
+and on rows it separates (the second sample's mean shifted by a sine along the row), one fold
+trained with no tolerance on the held-out loss (up to ``--stop-cap`` epochs) and with the
+judge's own (the paper's 1e-4): epochs, wall time and accuracy on the fold's test rows. Last, whole 5-fold C2STs
+on otgb's path on both kinds of rows (wall time). It writes ``judges.json``.
 
 ``designs`` measures the ways a solve can be compiled, on the grey-box map of ``--config`` (its
 initial network, a batch of the config's size): the median time of one solve and its backward,
@@ -342,15 +345,40 @@ class LibraryConvJudge(PaperConvClassifier):
         return LibraryConvNet(n_features)
 
 
-def judge_rows(rows: int, features: int) -> tuple[np.ndarray, np.ndarray]:
+def judge_rows(rows: int, features: int, apart: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Gaussian rows, the second sample 2 % off in mean and 5 % in scale, or (``apart``) shifted by a sine of amplitude 1."""
     g = torch.Generator().manual_seed(0)
     p = torch.randn(rows // 2, features, generator=g)
-    q = torch.randn(rows - rows // 2, features, generator=g) * 1.05 + 0.02
+    q = torch.randn(rows - rows // 2, features, generator=g)
+    q = q + torch.sin(torch.arange(features) / 7.0) if apart else q * 1.05 + 0.02
     return torch.cat([p, q]).numpy(), np.r_[np.zeros(len(p)), np.ones(len(q))].astype(np.int64)
+
+
+def run_stopping(args: argparse.Namespace, path: Path, results: dict) -> None:
+    """One fold of close rows and one of rows the judge separates, each trained with no tolerance on its held-out loss
+    (up to ``--stop-cap`` epochs) and with its own."""
+    from otgb.runs import machine
+
+    for kind, apart in (("close", False), ("separable", True)):
+        features, labels = judge_rows(args.rows, args.features, apart)
+        order = np.random.default_rng(0).permutation(len(labels))
+        train, test = order[: len(labels) * 4 // 5], order[len(labels) * 4 // 5 :]
+        for tol, cap in ((0.0, args.stop_cap), (PaperConvClassifier().tol, PaperConvClassifier().max_epochs)):
+            key = f"stopping/{kind}/tol {tol:g}"
+            if key not in results:
+                estimator = PaperConvClassifier(tol=tol, max_epochs=cap, precision=args.precision)
+                start = time.perf_counter()
+                estimator.fit(features[train], labels[train])
+                wall = time.perf_counter() - start
+                accuracy = float((estimator.predict(features[test]) == labels[test]).mean())
+                results[key] = {"epochs": estimator.n_iter_, "max_epochs": cap, "wall_s": wall, "accuracy": accuracy}
+                results[key]["machine"] = machine()
+                path.write_text(json.dumps(results, indent=1))
 
 
 def run_judges(args: argparse.Namespace) -> None:
     from otgb.metrics.c2st import c2st
+    from otgb.runs import machine
 
     path, results = results_file(args, "judges.json")
     features, labels = judge_rows(args.rows, args.features)
@@ -375,18 +403,25 @@ def run_judges(args: argparse.Namespace) -> None:
                 c2st(p, q, folds=5, classifier=estimator, n_jobs=jobs)
                 results[key] = {"s_per_epoch": (time.perf_counter() - start) / (5 * args.epochs), "rows": list(features.shape)}
                 path.write_text(json.dumps(results, indent=1))
-    if args.whole and "paper/otgb/c2st" not in results:
-        start = time.perf_counter()
-        score = c2st(p, q, classifier="paper", precision=args.precision)
-        wall = time.perf_counter() - start
-        results["paper/otgb/c2st"] = {"wall_s": wall, "c2st": float(score["c2st"]), "rows": list(features.shape)}
-        path.write_text(json.dumps(results, indent=1))
+    run_stopping(args, path, results)
+    for key, apart in (("paper/otgb/c2st-apart", True), ("paper/otgb/c2st", False)):
+        if args.whole and key not in results:
+            rows, classes = judge_rows(args.rows, args.features, apart)
+            start = time.perf_counter()
+            score = c2st(*(torch.as_tensor(rows[classes == c]) for c in (0, 1)), classifier="paper", precision=args.precision)
+            wall = time.perf_counter() - start
+            results[key] = {"wall_s": wall, "c2st": float(score["c2st"]), "rows": list(rows.shape), "machine": machine()}
+            path.write_text(json.dumps(results, indent=1))
     for name in [*judges, *fold_jobs]:
         each = [v["s_per_epoch"] for k, v in results.items() if k.startswith(f"paper/{name}/") and "s_per_epoch" in v]
         print(f"paper judge, {name:15s} {statistics.median(each):6.3f} s per epoch (runs: {', '.join(f'{e:.3f}' for e in each)})")
-    if "paper/otgb/c2st" in results:
-        whole = results["paper/otgb/c2st"]
-        print(f"paper judge, whole 5-fold C2ST on otgb's path: {whole['wall_s'] / 60:.1f} min (C2ST {whole['c2st']:.3f})")
+    for key, run in results.items():
+        if key.startswith("stopping/"):
+            tried = f"{run['epochs']} epochs of {run['max_epochs']}, {run['wall_s']:.0f} s, accuracy {run['accuracy']:.4f}"
+            print(f"paper judge, {key[9:].replace('/', ' rows, ')}: {tried} (one fold)")
+        if key.startswith("paper/otgb/c2st"):
+            rows = "separable rows" if key.endswith("apart") else "close rows"
+            print(f"paper judge, whole 5-fold C2ST, {rows}: {run['wall_s'] / 60:.1f} min (C2ST {run['c2st']:.3f})")
     print(f"speed_benchmark: wrote {path}")
 
 
@@ -462,17 +497,30 @@ def judges_table(out: Path) -> list[str]:
         return []
     head = "| paper C2ST judge | convolution, or how the folds train | s per epoch of one fold | runs |"
     lines = ["", head, "|---|---|---|---|"]
-    names = dict.fromkeys(key.split("/")[1] for key in judges if not key.endswith("/c2st"))
+    names = dict.fromkeys(key.split("/")[1] for key, run in judges.items() if "s_per_epoch" in run)
     for name in names:
         runs = [v for k, v in judges.items() if k.startswith(f"paper/{name}/") and "s_per_epoch" in v]
         rows = " x ".join(map(str, runs[0]["rows"]))
         lines.append(f"| {rows} rows | {name} | {statistics.median(v['s_per_epoch'] for v in runs):.3f} | {len(runs)} |")
-    if "paper/otgb/c2st" in judges:
-        whole = judges["paper/otgb/c2st"]
-        rows = " x ".join(map(str, whole["rows"]))
-        lines.append(
-            f"| {rows} rows, whole 5-fold C2ST | otgb | {whole['wall_s'] / 60:.1f} min in all (C2ST {whole['c2st']:.3f}) | 1 |"
-        )
+    for key, kind in (("paper/otgb/c2st-apart", "separable"), ("paper/otgb/c2st", "close")):
+        if key in judges:
+            whole = judges[key]
+            rows = " x ".join(map(str, whole["rows"]))
+            lines.append(
+                f"| {rows} {kind} rows, whole 5-fold C2ST | otgb | {whole['wall_s'] / 60:.1f} min in all "
+                f"(C2ST {whole['c2st']:.3f}; {whole.get('machine', LOCAL_MACHINE)}) | 1 |"
+            )
+    stops = {key[9:].replace("/", " rows, "): run for key, run in judges.items() if key.startswith("stopping/")}
+    if stops:
+        lines += [
+            "",
+            "| paper judge, one fold: rows, tolerance | epochs run (of at most) | s | held-out accuracy | machine |",
+            "|---|---|---|---|---|",
+        ]
+        lines += [
+            f"| {name} | {r['epochs']} ({r['max_epochs']}) | {r['wall_s']:.0f} | {r['accuracy']:.4f} | {r['machine']} |"
+            for name, r in stops.items()
+        ]
     return lines
 
 
@@ -517,7 +565,8 @@ def main() -> None:
     judges.add_argument("--epochs", type=int, default=5, help="epochs per timed fit")
     judges.add_argument("--rounds", type=int, default=2)
     judges.add_argument("--precision", default="auto", help="the judge's arithmetic (otgb.metrics.classifiers)")
-    judges.add_argument("--whole", action=argparse.BooleanOptionalAction, default=True, help="also one whole 5-fold C2ST")
+    judges.add_argument("--whole", action=argparse.BooleanOptionalAction, default=True, help="also whole 5-fold C2STs")
+    judges.add_argument("--stop-cap", type=int, default=400, help="most epochs of the fold trained with no tolerance")
     designs = commands.add_parser("designs", help="ways of compiling a solve, on a config's grey-box")
     designs.add_argument("--config", default="pendulum", choices=CONFIG_NAMES)
     designs.add_argument("--block", type=int, default=7, help="steps per compiled block (divides the solve's steps)")

@@ -151,12 +151,14 @@ def test_the_committed_table_1_is_what_gather_writes_from_the_committed_result_f
 
 
 def test_gather_writes_both_judges_the_seeds_and_the_tasks_not_measured(tmp_path):
-    """A one-to-many task's table has C2ST with both judges; each row its seeds; tasks without files are named."""
+    """A one-to-many task's table has C2ST with both judges; each row its seeds; tasks without files are named; a
+    paper-judge figure from a run that does not record the judge's tolerance is marked, with the mark's note."""
     table = _table()
-    for seed, c2st in ((0, 0.8), (1, 0.9)):
+    for row, seed, c2st in (("OT-GB", 0, 0.8), ("OT-GB", 1, 0.9), ("OT-BB", 0, 0.95)):
         record = {"seed": seed, "fit_s": 60.0, "machine": "test machine", "command": []}
         record |= {"model": {"mmd": 0.01, "c2st": c2st, "c2st_paper": 0.7}, "reference": {}}
-        path = tmp_path / "runs" / "Pendulum-2-m" / "OT-GB" / f"seed{seed}.json"
+        record |= {"paper_judge_tol": 1e-4} if row == "OT-GB" else {}
+        path = tmp_path / "runs" / "Pendulum-2-m" / row / f"seed{seed}.json"
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(record))
     target = tmp_path / "results.md"
@@ -165,5 +167,7 @@ def test_gather_writes_both_judges_the_seeds_and_the_tasks_not_measured(tmp_path
     text = target.read_text()
     assert "| MMD | C2ST (strong judge) | C2ST (paper's judge) |" in text
     assert "| OT-GB | 2 | 0.01 +- 0 | 0.85 +- 0.071 | 0.7 +- 0 | 0.01 / 0.72 | 1.0 min |" in text
+    assert "| OT-BB | 1 | 0.01 | 0.95 | 0.7 † | 0.078 / 0.94 | 1.0 min |" in text
+    assert f"\n{table.UNTOLERANT} {table.UNTOLERANT_NOTE}\n" in text
     assert "| WGAN-GB | 0 | - | - | - |" in text and "measured on test machine" in text
     assert "Not measured at this version: Pendulum-1-m, Pendulum-m-m" in text and text.startswith("before\n")

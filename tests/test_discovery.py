@@ -1,6 +1,7 @@
 """Missing-effect discovery: the library term, the augmented physics, locate, name, add, and `otgb discover`."""
 
 import json
+import math
 import re
 import subprocess
 import sys
@@ -447,6 +448,11 @@ def test_the_paired_check_holds_f_p_to_the_stated_noise_on_the_recorded_inputs()
     assert "f_p solved on the measurements' recorded inputs misses them by an RMS of" in describe(found)
     assert "leaves residuals of RMS 0.0" in right.sentence() and "consistent with their noise's sd 0.05" in right.sentence()
     assert found.to_dict()["paired"]["significant"] is True
+    blown = measured.clone()
+    blown[0, 5:] = float("inf")  # residuals as a solve that diverges on the first trajectory's inputs leaves them
+    diverging = paired_check(pendulum, blown, lacking["x0"], lacking["theta"], 0.05)
+    assert diverging.diverged == 1 and diverging.pvalue == 0.0 and math.isfinite(diverging.rms)
+    assert "diverges on 1 of their trajectories (the others miss them by an RMS of 0." in diverging.sentence()
     unpaired = locate(measured, simulated, times, observed, n_permutations=199)
     assert unpaired.whole_level == 0.05 / 2 and unpaired.paired is None and "recorded inputs" not in describe(unpaired)
 

@@ -2,6 +2,7 @@
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from sklearn.neural_network import MLPClassifier
@@ -243,6 +244,19 @@ def test_paper_judge_finds_a_shifted_field_and_not_an_equal_one(generator):
     assert c2st(p, shifted, classifier=judge, folds=2)["c2st"] > 0.9
     assert abs(float(c2st(p, same, classifier=judge, folds=2)["c2st"]) - 0.5) <= 1.5 / math.sqrt(2 * n)
     assert isinstance(make_classifier("paper", 49, None, seed=0), PaperConvClassifier), "selectable by name"
+
+
+def test_the_paper_judge_stops_on_rows_it_separates_where_the_papers_tolerance_says(generator):
+    """Separated rows' held-out log loss falls for ever as the logits grow: without a tolerance the judge trains to its
+    last epoch; with the paper's 1e-4 it stops on its own, as accurate."""
+    n, features = 100, 30
+    p = torch.randn(n, features, generator=generator)
+    q = torch.randn(n, features, generator=generator) + 2 * torch.sin(torch.arange(features) / 3.0)
+    rows, labels = torch.cat([p, q]).numpy(), np.r_[np.zeros(n), np.ones(n)].astype(np.int64)
+    untolerant = PaperConvClassifier(batch_size=32, max_epochs=200, tol=0.0).fit(rows, labels)
+    judge = PaperConvClassifier(batch_size=32, max_epochs=200).fit(rows, labels)
+    assert judge.tol == 1e-4 and untolerant.n_iter_ == 200 and judge.n_iter_ < 200
+    assert (judge.predict(rows) == labels).mean() == 1.0
 
 
 def test_the_paper_judges_convolution_is_the_library_convolution_forward_and_backward(generator):

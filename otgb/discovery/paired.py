@@ -32,6 +32,7 @@ class PairedCheck:
     values: int
     pvalue: float
     significant: bool = False
+    diverged: int = 0  # trajectories on whose inputs f_p's solve left non-finite numbers (their residuals are not in rms)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -39,6 +40,12 @@ class PairedCheck:
     def sentence(self) -> str:
         p = f"= {self.pvalue:.2g}" if self.pvalue > 0 else "< 1e-300"
         test = f"(chi-square p {p} over {self.values} values)"
+        if self.diverged:
+            return (
+                f"f_p solved on the measurements' recorded inputs diverges on {self.diverged} of their trajectories "
+                f"(the others miss them by an RMS of {self.rms:.3g} against their noise's sd {self.noise:.3g}): check the "
+                "recorded inputs, or what f_p lacks makes it unstable there"
+            )
         if self.significant:
             return (
                 f"f_p solved on the measurements' recorded inputs misses them by an RMS of {self.rms:.3g}, more than "
@@ -53,7 +60,10 @@ class PairedCheck:
 @torch.no_grad()
 def paired_check(physics: PhysicsModel, measured: Tensor, x0: Tensor, theta: Tensor, noise: float) -> PairedCheck:
     """The check of the module docstring: ``measured`` (n, T, *obs), their inputs x0 (n, *state) and theta (n, P)."""
-    residuals = (measured.double() - simulate_in_chunks(physics, x0, theta).double()).flatten()
-    statistic = float(residuals.pow(2).sum()) / noise**2
-    pvalue = float(chi2.sf(statistic, residuals.numel())) if torch.isfinite(residuals).all() else 0.0
-    return PairedCheck(float(residuals.pow(2).mean().sqrt()), noise, residuals.numel(), pvalue)
+    residuals = (measured.double() - simulate_in_chunks(physics, x0, theta).double()).flatten(1)
+    finite = torch.isfinite(residuals).all(dim=1)
+    kept = residuals[finite].flatten()
+    statistic = float(kept.pow(2).sum()) / noise**2
+    pvalue = float(chi2.sf(statistic, kept.numel())) if bool(finite.all()) else 0.0  # a diverging solve is no noise
+    rms = float(kept.pow(2).mean().sqrt()) if kept.numel() else float("nan")
+    return PairedCheck(rms, noise, residuals.numel(), pvalue, diverged=int((~finite).sum()))
