@@ -32,6 +32,7 @@ from lightning import Trainer
 from otgb.command import OTGBCLI, logger_override
 from otgb.data import SimulationDataModule
 from otgb.errors import InputError
+from otgb.metrics.classifiers import native_bf16
 from otgb.parser_errors import ConciseParser
 from otgb.quiet import quiet_known_harmless
 from otgb.training import MapTraining
@@ -135,10 +136,22 @@ def newest(folder: Path, pattern: str) -> Path | None:
 
 
 def machine(gpu: bool = False) -> str:
-    """The machine a benchmark ran on, for its result files: the GPU's name when ``gpu``, else the CPU and its threads."""
+    """The machine a benchmark ran on, for its result files: the GPU's name when ``gpu``, else the CPU (its model, and
+    whether it multiplies bfloat16 natively: the judges' arithmetic depends on it) and its threads."""
     if gpu and torch.cuda.is_available():
         return f"{torch.cuda.get_device_name()}, torch {torch.__version__}"
-    return f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}"
+    cpu = " ".join(filter(None, [platform.processor() or platform.machine(), cpu_model()]))
+    cpu += ", native bf16" if native_bf16(torch.device("cpu")) else ""
+    return f"{cpu}, {torch.get_num_threads()} threads, torch {torch.__version__}"
+
+
+def cpu_model() -> str:
+    """The CPU's model name where the system tells it (Linux's /proc/cpuinfo), else ""."""
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        return ""
+    return next((line.split(":", 1)[1].strip() for line in lines if line.startswith("model name")), "")
 
 
 def run_otgb(args: Sequence[str], log: Path, cwd: Path | None = None) -> float:
