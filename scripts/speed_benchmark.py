@@ -372,7 +372,7 @@ def run_stopping(args: argparse.Namespace, path: Path, results: dict) -> None:
                 wall = time.perf_counter() - start
                 accuracy = float((estimator.predict(features[test]) == labels[test]).mean())
                 results[key] = {"epochs": estimator.n_iter_, "max_epochs": cap, "wall_s": wall, "accuracy": accuracy}
-                results[key]["machine"] = machine()
+                results[key] |= {"rows": list(features.shape), "machine": machine()}
                 path.write_text(json.dumps(results, indent=1))
 
 
@@ -403,7 +403,8 @@ def run_judges(args: argparse.Namespace) -> None:
                 c2st(p, q, folds=5, classifier=estimator, n_jobs=jobs)
                 results[key] = {"s_per_epoch": (time.perf_counter() - start) / (5 * args.epochs), "rows": list(features.shape)}
                 path.write_text(json.dumps(results, indent=1))
-    run_stopping(args, path, results)
+    if args.stopping:
+        run_stopping(args, path, results)
     for key, apart in (("paper/otgb/c2st-apart", True), ("paper/otgb/c2st", False)):
         if args.whole and key not in results:
             rows, classes = judge_rows(args.rows, args.features, apart)
@@ -514,7 +515,7 @@ def judges_table(out: Path) -> list[str]:
     if stops:
         lines += [
             "",
-            "| paper judge, one fold: rows, tolerance | epochs run (of at most) | s | held-out accuracy | machine |",
+            "| paper judge, one fold: rows, tolerance | epochs run (of at most) | s | accuracy, the fold's test rows | machine |",
             "|---|---|---|---|---|",
         ]
         lines += [
@@ -566,6 +567,7 @@ def main() -> None:
     judges.add_argument("--rounds", type=int, default=2)
     judges.add_argument("--precision", default="auto", help="the judge's arithmetic (otgb.metrics.classifiers)")
     judges.add_argument("--whole", action=argparse.BooleanOptionalAction, default=True, help="also whole 5-fold C2STs")
+    judges.add_argument("--stopping", action=argparse.BooleanOptionalAction, default=True, help="also the stopping rule")
     judges.add_argument("--stop-cap", type=int, default=400, help="most epochs of the fold trained with no tolerance")
     designs = commands.add_parser("designs", help="ways of compiling a solve, on a config's grey-box")
     designs.add_argument("--config", default="pendulum", choices=CONFIG_NAMES)

@@ -169,5 +169,8 @@ def test_gather_writes_both_judges_the_seeds_and_the_tasks_not_measured(tmp_path
     assert "| OT-GB | 2 | 0.01 +- 0 | 0.85 +- 0.071 | 0.7 +- 0 | 0.01 / 0.72 | 1.0 min |" in text
     assert "| OT-BB | 1 | 0.01 | 0.95 | 0.7 † | 0.078 / 0.94 | 1.0 min |" in text
     assert f"\n{table.UNTOLERANT} {table.UNTOLERANT_NOTE}\n" in text
+    (tmp_path / "runs" / "Pendulum-2-m" / "OT-BB" / "seed0.json").unlink()
+    table.gather(tmp_path / "runs", target)
+    assert table.UNTOLERANT not in target.read_text(), "every figure's judge had the tolerance: no mark, no note"
     assert "| WGAN-GB | 0 | - | - | - |" in text and "measured on test machine" in text
     assert "Not measured at this version: Pendulum-1-m, Pendulum-m-m" in text and text.startswith("before\n")

@@ -59,6 +59,7 @@ from otgb.discovery.workflow import (
     Measurements,
     family_step,
     locate_step,
+    paired_after,
     replaces,
     run,
     simulate_candidate,
@@ -427,6 +428,40 @@ def test_terms_that_leave_the_test_part_no_closer_than_f_p_are_not_called_found_
         "the OT grey-box does not beat f_p alone on the 150 validation trajectories by two standard errors (undertrained, "
         "or too few to tell; the gap table is on the test part), and the library search named nothing"
     )
+
+
+def test_constant_terms_are_checked_on_the_test_parts_recorded_inputs_and_an_inexact_fit_is_not_called_closed():
+    """A friction of 0.5 named with its coefficient leaves the noise on the test part's recorded inputs; named 40 %
+    too weak, it misses them, and though the distributions agree the verdict says found, not exactly."""
+    pendulum, g = Pendulum(), torch.Generator().manual_seed(5)
+    truth = generate_measured(pendulum.with_hidden_effect([ViscousFriction(Constant(0.5))]), 60, 4)
+    test = truth["y"] + 0.05 * torch.randn(truth["y"].shape, generator=g, dtype=truth["y"].dtype)
+    inputs = (truth["x0"], truth["theta"])
+    data = Measurements(test, test, test, train_inputs=inputs, test_inputs=inputs, noise=0.05)
+    friction = Candidate("velocity", "velocity")
+    named = lambda value: FittedTerms("constant", [friction], [Constant(value)], Scores([0.1]), [])  # noqa: E731
+    exact, weak = (paired_after(named(v), pendulum, data, alpha=0.05) for v in (-0.5, -0.3))
+    assert not exact.significant and abs(exact.rms - 0.05) < 0.005, exact
+    assert weak.significant and weak.rms > 0.06, weak
+    assert weak.sentence().startswith("the augmented physics solved on the test part's recorded inputs misses them by")
+    spread = FittedTerms("uniform", [friction], [Uniform(-0.6, -0.4)], Scores([0.1]), [])
+    assert paired_after(spread, pendulum, data, 0.05) is None, "a coefficient per trajectory is unknown: nothing pairs"
+    assert paired_after(named(-0.5), pendulum, Measurements(test, test, test), 0.05) is None, "no inputs, no check"
+    result = Discovery(
+        before=SimpleNamespace(any_significant=True),
+        sentence_before="",
+        fitted=named(-0.3),
+        after=SimpleNamespace(any_significant=False),
+        sentence_after="no test tells them apart; " + weak.sentence(),
+        paired_after=weak,
+        gap={"f_p": {"energy": 0.3}, "augmented": {"energy": 0.01}, "reference": {"c2st": 0.5, "c2st_std": 0.01}},
+        draws={"f_p": torch.zeros(60, 2)},
+    )
+    head, after = verdict(result, Pendulum())[:2]
+    assert head.startswith("missing effect found, not exactly: viscous friction") and after == result.sentence_after, head
+    assert not confirmed(result)
+    result.paired_after = exact
+    assert verdict(result, Pendulum())[0].startswith("missing effect found, the gap is closed") and confirmed(result)
 
 
 def test_the_paired_check_holds_f_p_to_the_stated_noise_on_the_recorded_inputs():

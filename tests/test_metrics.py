@@ -250,13 +250,18 @@ def test_the_paper_judge_stops_on_rows_it_separates_where_the_papers_tolerance_s
     """Separated rows' held-out log loss falls for ever as the logits grow: without a tolerance the judge trains to its
     last epoch; with the paper's 1e-4 it stops on its own, as accurate."""
     n, features = 100, 30
-    p = torch.randn(n, features, generator=generator)
-    q = torch.randn(n, features, generator=generator) + 2 * torch.sin(torch.arange(features) / 3.0)
-    rows, labels = torch.cat([p, q]).numpy(), np.r_[np.zeros(n), np.ones(n)].astype(np.int64)
+
+    def rows_and_labels():
+        p = torch.randn(n, features, generator=generator)
+        q = torch.randn(n, features, generator=generator) + 2 * torch.sin(torch.arange(features) / 3.0)
+        return torch.cat([p, q]).numpy(), np.r_[np.zeros(n), np.ones(n)].astype(np.int64)
+
+    (rows, labels), (fresh, truth) = rows_and_labels(), rows_and_labels()
     untolerant = PaperConvClassifier(batch_size=32, max_epochs=200, tol=0.0).fit(rows, labels)
     judge = PaperConvClassifier(batch_size=32, max_epochs=200).fit(rows, labels)
     assert judge.tol == 1e-4 and untolerant.n_iter_ == 200 and judge.n_iter_ < 200
-    assert (judge.predict(rows) == labels).mean() == 1.0
+    accuracy = [(classifier.predict(fresh) == truth).mean() for classifier in (judge, untolerant)]
+    assert accuracy[0] >= accuracy[1] - 0.01 and accuracy[0] > 0.98, accuracy
 
 
 def test_the_paper_judges_convolution_is_the_library_convolution_forward_and_backward(generator):

@@ -115,8 +115,8 @@ def discover_run(args: list[str]) -> Finished:
         return physics.measured_with_noise(datamodule.measurement_noise, settings.seed + 7919)
 
     paired = None  # f_p on the training part's recorded inputs, against the noise the user states
-    if data.train_inputs is not None and datamodule.measurement_noise > 0:
-        paired = paired_check(physics, data.train, *data.train_inputs, datamodule.measurement_noise)
+    if data.pairable():
+        paired = paired_check(physics, data.train, *data.train_inputs, data.noise)
     with as_measured():
         before = locate_step(physics, data.train, settings, paired=paired)
     progress(describe(before))

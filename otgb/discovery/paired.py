@@ -8,6 +8,11 @@ larger sum says that f_p misses the measurements by more than their noise. The l
 distribution tests cannot use the pairing, and need far more trajectories to see the same
 effect. An sd set too small reads as a missing effect too: the check compares f_p with the
 noise the user states.
+
+Once terms with constant coefficients are named, the augmented physics is checked the same way
+on the test part's recorded inputs, which no fit saw: residuals at the noise say the fix is
+exact there; a larger RMS says the terms or their coefficients are not, even where the
+distribution tests see no difference.
 """
 
 from __future__ import annotations
@@ -32,7 +37,9 @@ class PairedCheck:
     values: int
     pvalue: float
     significant: bool = False
-    diverged: int = 0  # trajectories on whose inputs f_p's solve left non-finite numbers (their residuals are not in rms)
+    model: str = "f_p"  # what was solved, as the sentence names it
+    part: str = "the measurements'"  # whose recorded inputs, as the sentence names them
+    diverged: int = 0  # trajectories whose solve left non-finite numbers (not in values, rms or the test)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -40,30 +47,36 @@ class PairedCheck:
     def sentence(self) -> str:
         p = f"= {self.pvalue:.2g}" if self.pvalue > 0 else "< 1e-300"
         test = f"(chi-square p {p} over {self.values} values)"
+        if self.diverged and not self.values:
+            return (
+                f"{self.model} solved on {self.part} recorded inputs diverges on every trajectory ({self.diverged}): check "
+                "the recorded inputs, or what f_p lacks makes it unstable there"
+            )
         if self.diverged:
             return (
-                f"f_p solved on the measurements' recorded inputs diverges on {self.diverged} of their trajectories "
+                f"{self.model} solved on {self.part} recorded inputs diverges on {self.diverged} of their trajectories "
                 f"(the others miss them by an RMS of {self.rms:.3g} against their noise's sd {self.noise:.3g}): check the "
                 "recorded inputs, or what f_p lacks makes it unstable there"
             )
         if self.significant:
             return (
-                f"f_p solved on the measurements' recorded inputs misses them by an RMS of {self.rms:.3g}, more than "
+                f"{self.model} solved on {self.part} recorded inputs misses them by an RMS of {self.rms:.3g}, more than "
                 f"their noise's sd {self.noise:.3g} {test}"
             )
         return (
-            f"f_p solved on the measurements' recorded inputs leaves residuals of RMS {self.rms:.3g}, consistent with their "
+            f"{self.model} solved on {self.part} recorded inputs leaves residuals of RMS {self.rms:.3g}, consistent with their "
             f"noise's sd {self.noise:.3g} {test}"
         )
 
 
 @torch.no_grad()
-def paired_check(physics: PhysicsModel, measured: Tensor, x0: Tensor, theta: Tensor, noise: float) -> PairedCheck:
-    """The check of the module docstring: ``measured`` (n, T, *obs), their inputs x0 (n, *state) and theta (n, P)."""
+def paired_check(physics: PhysicsModel, measured: Tensor, x0: Tensor, theta: Tensor, noise: float, **names: str) -> PairedCheck:
+    """The check of the module docstring: ``measured`` (n, T, *obs), their inputs x0 (n, *state) and theta (n, P);
+    ``names``: the :class:`PairedCheck`'s ``model`` and ``part``, for its sentence."""
     residuals = (measured.double() - simulate_in_chunks(physics, x0, theta).double()).flatten(1)
     finite = torch.isfinite(residuals).all(dim=1)
     kept = residuals[finite].flatten()
     statistic = float(kept.pow(2).sum()) / noise**2
     pvalue = float(chi2.sf(statistic, kept.numel())) if bool(finite.all()) else 0.0  # a diverging solve is no noise
     rms = float(kept.pow(2).mean().sqrt()) if kept.numel() else float("nan")
-    return PairedCheck(rms, noise, residuals.numel(), pvalue, diverged=int((~finite).sum()))
+    return PairedCheck(rms, noise, kept.numel(), pvalue, diverged=int((~finite).sum()), **names)

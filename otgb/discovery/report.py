@@ -57,9 +57,10 @@ OUTSIDE_THE_LIBRARY = (
 
 
 def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
-    """The verdict in parts, the answer first: one of four (the gap closed, named but not confirmed, partly closed,
-    nothing found or detected) with its numbers; then how strongly the measurements prefer each named term over its closest
-    alternative, and the flags of implausible terms. ``report.json``'s ``verdict`` joins them with "; "."""
+    """The verdict in parts, the answer first: one of five (the gap closed, found but not exact on the recorded
+    inputs, named but not confirmed, partly closed, nothing found or detected) with its numbers; then how strongly
+    the measurements prefer each named term over its closest alternative, and the flags of implausible terms.
+    ``report.json``'s ``verdict`` joins them with "; "."""
     if not result.before.any_significant:
         return ["no missing effect detected: " + result.sentence_before]
     if not result.found:
@@ -80,7 +81,8 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
         for c, p in _terms(result)
     )
     removes, closes = ("removes", "closes") if len(_terms(result)) == 1 else ("remove", "close")
-    closed = result.after is not None and not result.after.any_significant
+    agree = result.after is not None and not result.after.any_significant
+    closed = agree and not inexact(result)
     blind = test_part_blind(result) if closed else None
     if blind:
         answer = [
@@ -101,6 +103,14 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
         answer = [
             f"missing effect found, the gap is closed as far as the test part can tell: {names} {removes} "
             f"{share_removed(result)}, and no test tells the augmented physics from them",
+            result.sentence_after,
+        ]
+    elif agree:  # the distributions agree, the recorded inputs do not
+        answer = [
+            f"missing effect found, not exactly: {names} {removes} {share_removed(result)} and the distribution tests "
+            "see no difference on the test part, but solved on its recorded inputs the augmented physics misses the "
+            "measurements by more than their noise: the coefficients (fitted to distributions) or the terms' form are "
+            "off",
             result.sentence_after,
         ]
     else:
@@ -149,8 +159,13 @@ def share_removed(result: Discovery) -> str:
 
 def confirmed(result: Discovery) -> bool:
     """Whether the test part confirms the named terms: the gap closed there, on a part that tells f_p apart."""
-    closed = result.found and result.after is not None and not result.after.any_significant
+    closed = result.found and result.after is not None and not result.after.any_significant and not inexact(result)
     return bool(closed and not test_part_blind(result))
+
+
+def inexact(result: Discovery) -> bool:
+    """Whether the named terms, solved on the test part's recorded inputs, miss those measurements beyond their noise."""
+    return result.paired_after is not None and result.paired_after.significant
 
 
 def test_part_blind(result: Discovery) -> str | None:
@@ -278,6 +293,7 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
             "sentence_before": result.sentence_before,
             "after": result.after.to_dict() if result.after else None,
             "sentence_after": result.sentence_after,
+            "paired_after": result.paired_after.to_dict() if result.paired_after else None,
         },  # fmt: skip
         "regression": [_selection_dict(s) for s in result.selections],
         "cross_check": result.cross_check,

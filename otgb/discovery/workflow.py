@@ -38,7 +38,7 @@ from otgb.discovery.intervals import Intervals, sandwich_intervals
 from otgb.discovery.library import Candidate, build_library, physical_name
 from otgb.discovery.locate import DisagreementMap, describe, locate
 from otgb.discovery.log import DivergenceLog, diverged, progress, rounded, short
-from otgb.discovery.paired import PairedCheck
+from otgb.discovery.paired import PairedCheck, paired_check
 from otgb.discovery.refine import (
     FAMILIES,
     FittedTerms,
@@ -116,20 +116,28 @@ class DiscoverySettings:
 
 @dataclass
 class Measurements:
-    """The measured trajectories (n, T, *obs) of each part of the split, and the training part's x0 and theta where
-    the measurements recorded both."""
+    """The measured trajectories (n, T, *obs) of each part of the split, the training and test parts' x0 and theta
+    where the measurements recorded both, and the sd of their noise (0: noise-free or not given)."""
 
     train: Tensor
     val: Tensor
     test: Tensor
     train_inputs: tuple[Tensor, Tensor] | None = None
+    test_inputs: tuple[Tensor, Tensor] | None = None
+    noise: float = 0.0
 
     @classmethod
     def from_datamodule(cls, datamodule: Any) -> Measurements:
         datamodule.setup("fit")
         datamodule.setup("test")
         val, test = datamodule.val_set["y"].flatten(0, 1), datamodule.test_set["y"].flatten(0, 1)
-        return cls(datamodule.measured, val, test, datamodule.source.training_inputs())
+        train_inputs = datamodule.source.training_inputs()
+        test_inputs = None if train_inputs is None else (datamodule.test_set["x0"], datamodule.test_set["theta"])
+        return cls(datamodule.measured, val, test, train_inputs, test_inputs, datamodule.measurement_noise)
+
+    def pairable(self) -> bool:
+        """Whether the paired check (:mod:`otgb.discovery.paired`) applies: inputs recorded and the noise given."""
+        return self.train_inputs is not None and self.noise > 0
 
 
 @dataclass
@@ -150,6 +158,7 @@ class Discovery:
     before_on_test: DisagreementMap | None = None  # f_p on the test part: what ``after`` is compared with
     after: DisagreementMap | None = None
     sentence_after: str | None = None
+    paired_after: PairedCheck | None = None  # constant named terms on the test part's recorded inputs (.paired)
     gap: dict[str, dict[str, float]] = field(default_factory=dict)
     correction_share: float | None = None
     pointwise: dict[str, dict[str, float]] = field(default_factory=dict)  # against a known DGP (otgb.discovery.known)
@@ -511,9 +520,25 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
         result.before_on_test = locate_step(physics, data.test, settings, "f_p-test")
         result.after = locate_step(result.fitted.model(physics), data.test, settings, "augmented")
         result.sentence_after = describe(result.after, b_name="augmented-physics") + " (on the test part, which no fit saw)"
+        result.paired_after = paired_after(result.fitted, physics, data, settings.alpha)
+        if result.paired_after is not None:
+            result.sentence_after += f"; {result.paired_after.sentence()}"
     progress("verifying on the test part")
     result.gap, result.draws = gap_step(sources, data.test, settings), sources
     return result
+
+
+def paired_after(fitted: FittedTerms, physics: PhysicsModel, data: Measurements, alpha: float) -> PairedCheck | None:
+    """The named terms' paired check on the test part at level ``alpha``, where it applies: recorded inputs, a given
+    noise and constant coefficients (with a spread, a coefficient per trajectory is unknown and nothing pairs)."""
+    if not data.pairable() or fitted.family != "constant":
+        return None
+    model, (x0, theta) = fitted.model(physics), data.test_inputs
+    coefficients = model.sample_theta(len(theta), torch.Generator())[:, theta.shape[1] :]  # constants: the same each row
+    names = {"model": "the augmented physics", "part": "the test part's"}
+    check = paired_check(model, data.test, x0, torch.cat([theta, coefficients], dim=1), data.noise, **names)
+    check.significant = check.pvalue < alpha
+    return check
 
 
 def search_reason(

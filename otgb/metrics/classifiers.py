@@ -348,11 +348,12 @@ class PaperConvClassifier(_TorchClassifier):
     mapped to one logit: it sees local patterns along the vector, not the trajectory's shape. It
     is here to place otgb's figures on the scale of the paper's Table 1, next to the strong
     judges ("mlp", "conv"). It trains as the paper's code does (mini-batches of 512, Adam 1e-3,
-    stopping once the loss has not improved by 1e-4 for 50 epochs) but watches the held-out log
-    loss (at most 2000 epochs), not the training loss (at most 10,000), and is scored on otgb's
-    folds, not on random 25 % splits. The tolerance matters on rows it separates: their log loss
-    falls for ever as the logits grow, so without it the judge trains to its last epoch for the
-    accuracy it had at its 70th (``scripts/speed_benchmark.py judges`` measures it).
+    stopping once the loss has not improved by 1e-4 for more than 50 epochs) but watches the
+    held-out log loss (at most 2000 epochs), not the training loss (at most 10,000), and is scored
+    on otgb's folds, not on random 25 % splits. The tolerance matters on rows it separates: their
+    log loss falls for ever as the logits grow, so without it the judge trains to its last epoch,
+    no more accurate than where the tolerance stops it (``scripts/speed_benchmark.py judges``
+    measures both).
 
     Args:
         tol: the least improvement of the held-out log loss that restarts the patience.
