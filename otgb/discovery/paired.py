@@ -50,13 +50,13 @@ class PairedCheck:
         if self.diverged and not self.values:
             return (
                 f"{self.model} solved on {self.part} recorded inputs diverges on every trajectory ({self.diverged}): check "
-                "the recorded inputs, or what f_p lacks makes it unstable there"
+                f"the recorded inputs, or what {self.model} lacks makes it unstable there"
             )
         if self.diverged:
             return (
                 f"{self.model} solved on {self.part} recorded inputs diverges on {self.diverged} of their trajectories "
                 f"(the others miss them by an RMS of {self.rms:.3g} against their noise's sd {self.noise:.3g}): check the "
-                "recorded inputs, or what f_p lacks makes it unstable there"
+                f"recorded inputs, or what {self.model} lacks makes it unstable there"
             )
         if self.significant:
             return (
