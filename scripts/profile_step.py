@@ -1,14 +1,15 @@
 """Where the time of one training step goes: simulation, map solve, critic, backward.
 
     python scripts/profile_step.py --config configs/pendulum.yaml [--steps 20] [--batch-size 64] [--solver compiled]
-        [--device cuda] [--trace 25]
+        [--device cuda] [--trace 25] [--model.critic.init_args.channels=[8,16] ...]
 
 Builds the model and data module from the config (as `otgb fit` would), then times the
 parts of Algorithm 1 on real batches: the f_p simulation of a step's source batches, the
 grey-box forward solves, the map backward passes, and the critic update (forward, penalty,
 backward). Prints mean milliseconds per training step, each part's share (the share of
 "simulate f_p" is the fraction of a step spent simulating) and f_p's simulations per second.
-The first two steps (where a compiled solve compiles) are timed apart, as the warm-up.
+The first two steps (where a compiled solve compiles) are timed apart, as the warm-up. Other
+arguments are the run's config overrides, as ``otgb fit`` takes them.
 ``--device cuda`` runs on the GPU, each part timed to the end of its kernels. ``--trace N``
 then profiles two more steps with ``torch.profiler`` (without those timing synchronisations)
 and prints its N operators of most time (on the device where there is one, else on the host),
@@ -45,8 +46,8 @@ def main() -> None:
     parser.add_argument("--solver", choices=SOLVERS, default="compiled", help="the solve path (otgb fit's --solver)")
     parser.add_argument("--device", default="cpu", help="where the model and its batches live (cpu, cuda)")
     parser.add_argument("--trace", type=int, default=0, help="profile two more steps and print this many operators")
-    args = parser.parse_args()
-    overrides = [f"--solver={args.solver}"] + ([] if args.batch_size is None else [f"--data.batch_size={args.batch_size}"])
+    args, config_overrides = parser.parse_known_args()
+    overrides = [f"--solver={args.solver}", *config_overrides] + ([] if args.batch_size is None else [f"--data.batch_size={args.batch_size}"])
     model, dm = build(args.config, overrides)  # the run's --solver is set as `otgb fit` sets it
     dm.setup("fit")
     device = torch.device(args.device)
