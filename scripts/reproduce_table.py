@@ -201,12 +201,19 @@ class Grid:
             metrics = ("c2st",) if judge else ("nrmse", "abs_err") if self.one_to_one else ("mmd", "c2st")
             for source in figures:
                 figures[source] |= {f"{m}_{judge}" if judge else m: report[source][m]["mean"] for m in metrics}
-        command = [arg.replace(str(ROOT) + "/", "") for arg in common if not arg.startswith("--data.cache_dir")]
+        command = [portable(arg, self.out.parent) for arg in common if not arg.startswith("--data.cache_dir")]
         record = {"task": self.task, "row": row, "seed": seed, **figures, "fit_s": fit_s, "command": command, **more}
         record |= {"paper_judge_tol": PaperConvClassifier().tol} if "paper" in tested_now else {}
         path = self.result_path(row, seed)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps({**record, "machine": machine(asks_for_gpu(self.extra))}, indent=1) + "\n")
+
+
+def portable(arg: str, out: Path) -> str:
+    """``arg`` with this machine's paths made relative: the repository's to the repository, ``--out``'s to ``OUT/``."""
+    for place, relative in ((ROOT, ""), (ROOT.resolve(), ""), (out.absolute(), "OUT/"), (out.resolve(), "OUT/")):
+        arg = arg.replace(f"{place}/", relative)
+    return arg
 
 
 def folder_of(row: str) -> str:

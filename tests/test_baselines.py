@@ -99,6 +99,9 @@ def test_reproduce_table_quick_runs_the_grid_resumes_and_writes_the_table(tmp_pa
     assert f_p > 0.1 and complete < 0.01, "f_p alone is the gap (N-RMSE ~0.15); the complete physics sits near the floor"
     record = json.loads((tmp_path / "results" / "Pendulum-1-m" / "OT-GB" / "seed0.json").read_text())
     assert record["model"]["abs_err"] > 0 and record["fit_s"] > 0 and "--seed_everything=0" in record["command"]
+    checkpoint = next(arg for arg in record["command"] if arg.startswith("--ckpt_path="))
+    assert checkpoint.startswith("--ckpt_path=OUT/Pendulum-1-m/OT-GB/seed0/"), "no path of this machine in a result file"
+    assert not any(str(tmp_path) in arg or str(ROOT) in arg for arg in record["command"])
     again = subprocess.run(args, check=True, capture_output=True, text=True)
     assert "fitting" not in again.stdout and "discovering" not in again.stdout, "finished runs are skipped"
 
