@@ -47,7 +47,8 @@ def main() -> None:
     parser.add_argument("--device", default="cpu", help="where the model and its batches live (cpu, cuda)")
     parser.add_argument("--trace", type=int, default=0, help="profile two more steps and print this many operators")
     args, config_overrides = parser.parse_known_args()
-    overrides = [f"--solver={args.solver}", *config_overrides] + ([] if args.batch_size is None else [f"--data.batch_size={args.batch_size}"])
+    overrides = [f"--solver={args.solver}", *config_overrides]
+    overrides += [] if args.batch_size is None else [f"--data.batch_size={args.batch_size}"]
     model, dm = build(args.config, overrides)  # the run's --solver is set as `otgb fit` sets it
     dm.setup("fit")
     device = torch.device(args.device)

@@ -28,8 +28,9 @@ pendulum-500-steps -- --data.simulation_budget=16000`` and the same at 1500 step
 ``auto``'s compile pays for itself (``COMPILE_AFTER`` in otgb.physics.solvers).
 
 ``judges`` times the paper's C2ST judge (``classifier="paper"``) on rows of the Adv-diff-m-m test
-draws' size: seconds per training epoch of one fold with otgb's convolution and with the library's
-(``torch.nn.Conv1d``, the reference), alternating ``--rounds`` times; the same for a 5-fold C2ST
+draws' size: seconds per training epoch of one fold on otgb's path (on a CPU, the fused loops of
+``otgb.metrics.fused_judge``), on otgb's torch operations (its path on a GPU or without numba) and
+on the library's convolution (``torch.nn.Conv1d``, the reference), alternating ``--rounds`` times; the same for a 5-fold C2ST
 of ``--epochs`` epochs a fold with the folds in threads (otgb's default on a CPU) and one after
 the other (``n_jobs=1``), seconds per fold-epoch. The rows are Gaussian, the two samples 2 %
 apart in mean and 5 % in scale: close enough that the judge trains long. Then, on these rows
@@ -345,6 +346,17 @@ class LibraryConvJudge(PaperConvClassifier):
         return LibraryConvNet(n_features)
 
 
+class TorchOpsNet(PaperConvNet):
+    """The paper's judge network on otgb's torch operations (its path on a GPU or without numba), not the fused loops."""
+
+    forward = PaperConvNet.torch_forward
+
+
+class TorchOpsJudge(PaperConvClassifier):
+    def _network(self, n_features: int) -> torch.nn.Module:
+        return TorchOpsNet(n_features)
+
+
 def judge_rows(rows: int, features: int, apart: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Gaussian rows, the second sample 2 % off in mean and 5 % in scale, or (``apart``) shifted by a sine of amplitude 1."""
     g = torch.Generator().manual_seed(0)
@@ -383,7 +395,7 @@ def run_judges(args: argparse.Namespace) -> None:
     path, results = results_file(args, "judges.json")
     features, labels = judge_rows(args.rows, args.features)
     fold = np.random.default_rng(0).permutation(len(labels))[: len(labels) * 4 // 5]  # one fold's training rows
-    judges = {"library-conv1d": LibraryConvJudge, "otgb": PaperConvClassifier}
+    judges = {"library-conv1d": LibraryConvJudge, "torch-ops": TorchOpsJudge, "otgb": PaperConvClassifier}
     p, q = (torch.as_tensor(features[labels == c]) for c in (0, 1))
     fold_jobs = {"5 folds in turn": 1, "5 folds in threads": None}
     for round_ in range(args.rounds):
@@ -394,6 +406,7 @@ def run_judges(args: argparse.Namespace) -> None:
                 start = time.perf_counter()
                 estimator.fit(features[fold], labels[fold])
                 results[key] = {"s_per_epoch": (time.perf_counter() - start) / estimator.n_iter_, "rows": list(features.shape)}
+                results[key]["machine"] = machine()
                 path.write_text(json.dumps(results, indent=1))
         for name, jobs in fold_jobs.items():
             key = f"paper/{name}/{round_}"
@@ -402,6 +415,7 @@ def run_judges(args: argparse.Namespace) -> None:
                 start = time.perf_counter()
                 c2st(p, q, folds=5, classifier=estimator, n_jobs=jobs)
                 results[key] = {"s_per_epoch": (time.perf_counter() - start) / (5 * args.epochs), "rows": list(features.shape)}
+                results[key]["machine"] = machine()
                 path.write_text(json.dumps(results, indent=1))
     if args.stopping:
         run_stopping(args, path, results)
@@ -496,20 +510,22 @@ def judges_table(out: Path) -> list[str]:
     judges = _read(out / "judges.json")
     if not judges:
         return []
-    head = "| paper C2ST judge | convolution, or how the folds train | s per epoch of one fold | runs |"
-    lines = ["", head, "|---|---|---|---|"]
+    head = "| paper C2ST judge | network, or how the folds train | s per epoch of one fold | of the library's | runs | machine |"
+    lines = ["", head, "|---|---|---|---|---|---|"]
     names = dict.fromkeys(key.split("/")[1] for key, run in judges.items() if "s_per_epoch" in run)
-    for name in names:
-        runs = [v for k, v in judges.items() if k.startswith(f"paper/{name}/") and "s_per_epoch" in v]
-        rows = " x ".join(map(str, runs[0]["rows"]))
-        lines.append(f"| {rows} rows | {name} | {statistics.median(v['s_per_epoch'] for v in runs):.3f} | {len(runs)} |")
+    runs_of = {name: [v for k, v in judges.items() if k.startswith(f"paper/{name}/") and "s_per_epoch" in v] for name in names}
+    epoch = {name: statistics.median(v["s_per_epoch"] for v in runs) for name, runs in runs_of.items()}
+    for name, runs in runs_of.items():
+        rows, ratio = " x ".join(map(str, runs[0]["rows"])), epoch["library-conv1d"] / epoch[name]
+        machines = ", ".join(sorted({v.get("machine", LOCAL_MACHINE) for v in runs}))
+        lines.append(f"| {rows} rows | {name} | {epoch[name]:.3f} | {ratio:.2f}x | {len(runs)} | {machines} |")
     for key, kind in (("paper/otgb/c2st-apart", "separable"), ("paper/otgb/c2st", "close")):
         if key in judges:
             whole = judges[key]
             rows = " x ".join(map(str, whole["rows"]))
             lines.append(
-                f"| {rows} {kind} rows, whole 5-fold C2ST | otgb | {whole['wall_s'] / 60:.1f} min in all "
-                f"(C2ST {whole['c2st']:.3f}; {whole.get('machine', LOCAL_MACHINE)}) | 1 |"
+                f"| {rows} {kind} rows, whole 5-fold C2ST | otgb | {whole['wall_s'] / 60:.2f} min in all "
+                f"(C2ST {whole['c2st']:.3f}) | - | 1 | {whole.get('machine', LOCAL_MACHINE)} |"
             )
     stops = {key[9:].replace("/", " rows, "): run for key, run in judges.items() if key.startswith("stopping/")}
     if stops:

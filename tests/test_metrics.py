@@ -8,9 +8,9 @@ import torch
 from sklearn.neural_network import MLPClassifier
 
 from otgb.data import generate_joint
-from otgb.metrics import C2ST, MMD, NRMSE, AbsErr, MMDAgg, abs_err, c2st, energy, joint_samples, mmd2, mmdagg, nrmse
+from otgb.metrics import C2ST, MMD, NRMSE, AbsErr, MMDAgg, abs_err, c2st, energy, fused_judge, joint_samples, mmd2, mmdagg, nrmse
 from otgb.metrics.c2st import make_classifier
-from otgb.metrics.classifiers import PRECISIONS, PaperConvClassifier, few_channel_conv
+from otgb.metrics.classifiers import PRECISIONS, PaperConvClassifier, PaperConvNet, few_channel_conv
 from otgb.metrics.classifiers import MLPClassifier as TorchMLP
 from otgb.metrics.joint import JointEvaluator, reference_scores
 from otgb.metrics.mmd import PAPER_MULTIPLIERS, mmd_median, mmd_multiscale, standardise
@@ -274,6 +274,37 @@ def test_the_paper_judges_convolution_is_the_library_convolution_forward_and_bac
         grads = [torch.autograd.grad((out * weights).sum(), (x, conv.weight, conv.bias)) for out in (fast, library)]
         for fast_grad, library_grad in zip(*grads):
             torch.testing.assert_close(fast_grad, library_grad, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.skipif(bool(fused_judge.UNAVAILABLE), reason="numba does not import here")
+@pytest.mark.parametrize("features", [7, 41, 1041])
+def test_the_paper_judges_fused_loops_are_its_torch_network_forward_and_backward(generator, features):
+    """The CPU's fused loops and the network on torch's operations: the same logits and parameter gradients (float32),
+    also where pooling by 3 leaves the row's last features out."""
+    net = PaperConvNet(features)
+    rows, weights = torch.randn(37, features, generator=generator), torch.randn(37, generator=generator)
+    fused, torch_ops = net(rows), net.torch_forward(rows)
+    assert fused.grad_fn is not None and "Fused" in type(fused.grad_fn).__name__, "the fused loops ran"
+    torch.testing.assert_close(fused, torch_ops, rtol=1e-5, atol=1e-6)
+    grads = [torch.autograd.grad((logits * weights).sum(), list(net.parameters())) for logits in (fused, torch_ops)]
+    for fused_grad, torch_grad in zip(*grads):
+        torch.testing.assert_close(fused_grad, torch_grad, rtol=1e-4, atol=1e-6)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        in_bfloat16 = net(rows)
+    assert "Fused" not in type(in_bfloat16.grad_fn).__name__, "bfloat16 runs on torch's operations"
+
+
+def test_the_paper_judge_without_numba_trains_on_torch_after_one_line(generator, monkeypatch, caplog):
+    monkeypatch.setattr(fused_judge, "UNAVAILABLE", "ModuleNotFoundError: No module named 'numba'")
+    monkeypatch.setattr(fused_judge, "_said_why", False)
+    rows = torch.cat([torch.randn(60, 20, generator=generator), torch.randn(60, 20, generator=generator) + 1]).numpy()
+    labels = np.r_[np.zeros(60), np.ones(60)].astype(np.int64)
+    with caplog.at_level("WARNING", logger="otgb.metrics"):
+        judge = PaperConvClassifier(max_epochs=3).fit(rows, labels)
+        judge.predict(rows)
+    lines = [record.getMessage() for record in caplog.records]
+    assert len(lines) == 1 and "numba did not import (ModuleNotFoundError" in lines[0], lines
+    assert judge.n_iter_ == 3
 
 
 def test_c2st_permutation_pvalue(generator):

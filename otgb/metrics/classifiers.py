@@ -41,6 +41,8 @@ import torch
 from sklearn.base import BaseEstimator, ClassifierMixin
 from torch import Tensor, nn
 
+from otgb.metrics import fused_judge
+
 PRECISIONS = ("auto", "32-true", "bf16-mixed")
 _GLOBAL_RNG = threading.Lock()  # held while a network is initialised from a reseeded global generator
 CONV = {1: nn.Conv1d, 2: nn.Conv2d, 3: nn.Conv3d}
@@ -319,8 +321,15 @@ class PaperConvNet(nn.Sequential):
         for channels_in in (1, filters, filters):
             layers += [nn.Conv1d(channels_in, filters, 3, padding=1), nn.LeakyReLU()]
         super().__init__(*layers, nn.AvgPool1d(3), nn.Flatten(), nn.Linear(filters * (n_features // 3), 1))
+        self.filters = filters
 
     def forward(self, rows: Tensor) -> Tensor:
+        if self.filters == 3 and fused_judge.available(rows) and not rows.requires_grad:  # its fused loops, on a CPU
+            return fused_judge.FusedPaperConvNet.apply(rows, *self.parameters())
+        return self.torch_forward(rows)
+
+    def torch_forward(self, rows: Tensor) -> Tensor:
+        """The logits on torch's operations (any device, autocast): where the fused loops do not run."""
         h = rows.unsqueeze(1)
         for layer in self:
             h = few_channel_conv(h, layer) if isinstance(layer, nn.Conv1d) else layer(h)
@@ -353,7 +362,8 @@ class PaperConvClassifier(_TorchClassifier):
     on otgb's folds, not on random 25 % splits. The tolerance matters on rows it separates: their
     log loss falls for ever as the logits grow, so without it the judge trains to its last epoch,
     no more accurate than where the tolerance stops it (``scripts/speed_benchmark.py judges``
-    measures both).
+    measures both). On a CPU, in float32 (what ``precision="auto"`` means here), the network runs
+    as the fused loops of :mod:`otgb.metrics.fused_judge`; elsewhere on torch's operations.
 
     Args:
         tol: the least improvement of the held-out log loss that restarts the patience.
@@ -378,3 +388,9 @@ class PaperConvClassifier(_TorchClassifier):
 
     def _network(self, n_features: int) -> nn.Module:
         return PaperConvNet(n_features)
+
+    def _autocast(self, device: torch.device) -> torch.autocast:
+        """ "auto" on a CPU is float32 where the fused loops run: faster there than bfloat16 on torch's operations."""
+        if self.precision == "auto" and device.type == "cpu" and not fused_judge.UNAVAILABLE:
+            return torch.autocast("cpu", enabled=False)
+        return super()._autocast(device)
