@@ -77,82 +77,105 @@ def _arrays(rows: Tensor, parameters: tuple[Tensor, ...]) -> list[np.ndarray]:
 
 
 # --- the loops (compiled by numba at first call, or loaded from its cache) ----------------------
+# Activations and their gradients live in buffers padded by one zero at each end (the convolutions'
+# zero padding), so every loop runs over the whole row with no bounds to test and vectorises.
 FAST = {"reassoc", "contract", "nsz"}  # vectorised sums (another order of float32 additions), fused multiply-adds
 SLOPE = 0.01  # LeakyReLU's default negative slope, as in PaperConvNet
 
 
 @njit(inline="always", fastmath=FAST)
-def conv_layer(src, w, b, z, a, length):
-    """z = conv(src) (kernel 3, zero padding 1), a = LeakyReLU(z)."""
-    for o in range(w.shape[0]):
-        z[o, :length] = b[o]
-        for c in range(w.shape[1]):
-            for i in range(length):
-                z[o, i] += w[o, c, 1] * src[c, i]
-            for i in range(1, length):
-                z[o, i] += w[o, c, 0] * src[c, i - 1]
-            for i in range(length - 1):
-                z[o, i] += w[o, c, 2] * src[c, i + 1]
+def conv_from_one(src, w, b, z, a, length):
+    """The first layer: z = conv(src) of one padded channel (1, L + 2) into (3, L); a[:, 1:-1] = LeakyReLU(z)."""
+    s = src[0]
+    for o in range(3):
+        w0, w1, w2, bias = w[o, 0, 0], w[o, 0, 1], w[o, 0, 2], b[o]
+        zo, ao = z[o], a[o]
         for i in range(length):
-            a[o, i] = z[o, i] if z[o, i] > 0 else z[o, i] * np.float32(SLOPE)
+            v = bias + w0 * s[i] + w1 * s[i + 1] + w2 * s[i + 2]
+            zo[i] = v
+            ao[i + 1] = v if v > 0 else v * np.float32(SLOPE)
 
 
 @njit(inline="always", fastmath=FAST)
-def row_logit(x, w1, b1, w2, b2, w3, b3, wl, bl, z, a, pooled):
-    """One row's logit; leaves the pre-activations z (3, 3, L), activations a and pooled values behind."""
-    length, n = x.shape[1], x.shape[1] // 3
-    conv_layer(x, w1, b1, z[0], a[0], length)
-    conv_layer(a[0], w2, b2, z[1], a[1], length)
-    conv_layer(a[1], w3, b3, z[2], a[2], length)
+def conv_from_three(src, w, b, z, a, length):
+    """The second and third layers: as :func:`conv_from_one`, from three padded channels."""
+    s0, s1, s2 = src[0], src[1], src[2]
+    for o in range(3):
+        u0, u1, u2, v0, v1, v2 = w[o, 0, 0], w[o, 0, 1], w[o, 0, 2], w[o, 1, 0], w[o, 1, 1], w[o, 1, 2]
+        x0, x1, x2, bias = w[o, 2, 0], w[o, 2, 1], w[o, 2, 2], b[o]
+        zo, ao = z[o], a[o]
+        for i in range(length):
+            v = bias + u0 * s0[i] + u1 * s0[i + 1] + u2 * s0[i + 2] + v0 * s1[i] + v1 * s1[i + 1] + v2 * s1[i + 2]
+            v += x0 * s2[i] + x1 * s2[i + 1] + x2 * s2[i + 2]
+            zo[i] = v
+            ao[i + 1] = v if v > 0 else v * np.float32(SLOPE)
+
+
+@njit(inline="always", fastmath=FAST)
+def row_logit(row, w1, b1, w2, b2, w3, b3, wl, bl, padded_row, z, a, pooled):
+    """One row's logit; leaves its pre-activations z (3 layers, 3, L), padded activations a and pooled values."""
+    length, n = row.shape[0], row.shape[0] // 3
+    padded_row[0, 1 : length + 1] = row
+    conv_from_one(padded_row, w1, b1, z[0], a[0], length)
+    conv_from_three(a[0], w2, b2, z[1], a[1], length)
+    conv_from_three(a[1], w3, b3, z[2], a[2], length)
     logit = bl[0]
     for c in range(3):
+        last = a[2, c]
         for j in range(n):
-            pooled[c, j] = (a[2, c, 3 * j] + a[2, c, 3 * j + 1] + a[2, c, 3 * j + 2]) * np.float32(1 / 3)
-            logit += wl[c * n + j] * pooled[c, j]
+            mean = (last[3 * j + 1] + last[3 * j + 2] + last[3 * j + 3]) * np.float32(1 / 3)
+            pooled[c, j] = mean
+            logit += wl[c * n + j] * mean
     return logit
 
 
 @njit(inline="always", fastmath=FAST)
-def leaky_backward(grad, z, length):
-    for c in range(grad.shape[0]):
-        for i in range(length):
-            grad[c, i] *= np.float32(1) if z[c, i] > 0 else np.float32(SLOPE)
-
-
-@njit(inline="always", fastmath=FAST)
-def conv_backward(dz, src, w, dw, db, dsrc, length):
-    """Adds the layer's weight and bias gradients; writes the gradient of its input into dsrc (if it has rows)."""
-    for o in range(w.shape[0]):
-        db[o] += dz[o, :length].sum()
-        for c in range(w.shape[1]):
+def add_weight_gradients(dz, src, dw, db, length):
+    """Adds a layer's weight and bias gradients from dz (its pre-activations' gradient, padded) and its padded input."""
+    for o in range(3):
+        d = dz[o]
+        total = np.float32(0)
+        for i in range(1, length + 1):
+            total += d[i]
+        db[o] += total
+        for c in range(src.shape[0]):
+            s = src[c]
             g0, g1, g2 = np.float32(0), np.float32(0), np.float32(0)
             for i in range(length):
-                g1 += dz[o, i] * src[c, i]
-            for i in range(1, length):
-                g0 += dz[o, i] * src[c, i - 1]
-            for i in range(length - 1):
-                g2 += dz[o, i] * src[c, i + 1]
+                di = d[i + 1]
+                g0 += di * s[i]
+                g1 += di * s[i + 1]
+                g2 += di * s[i + 2]
             dw[o, c, 0] += g0
             dw[o, c, 1] += g1
             dw[o, c, 2] += g2
-    for c in range(dsrc.shape[0]):
-        dsrc[c, :length] = 0
-        for o in range(w.shape[0]):
-            for i in range(length):
-                dsrc[c, i] += w[o, c, 1] * dz[o, i]
-            for i in range(length - 1):
-                dsrc[c, i] += w[o, c, 0] * dz[o, i + 1]
-            for i in range(1, length):
-                dsrc[c, i] += w[o, c, 2] * dz[o, i - 1]
+
+
+@njit(inline="always", fastmath=FAST)
+def input_gradient(dz, w, z_below, out, length):
+    """The gradient of the layer below's pre-activations z_below: the transposed convolution of dz, times LeakyReLU'."""
+    d0, d1, d2 = dz[0], dz[1], dz[2]
+    for c in range(3):
+        u0, u1, u2, v0, v1, v2 = w[0, c, 0], w[0, c, 1], w[0, c, 2], w[1, c, 0], w[1, c, 1], w[1, c, 2]
+        x0, x1, x2 = w[2, c, 0], w[2, c, 1], w[2, c, 2]
+        zc, oc = z_below[c], out[c]
+        for i in range(length):
+            v = (
+                u0 * d0[i + 2] + u1 * d0[i + 1] + u2 * d0[i]
+                + v0 * d1[i + 2] + v1 * d1[i + 1] + v2 * d1[i]
+                + x0 * d2[i + 2] + x1 * d2[i + 1] + x2 * d2[i]
+            )  # fmt: skip
+            oc[i + 1] = v if zc[i] > 0 else v * np.float32(SLOPE)
 
 
 @njit(nogil=True, cache=True, fastmath=FAST)
 def logits(rows, w1, b1, w2, b2, w3, b3, wl, bl):
     length = rows.shape[1]
-    z, a = np.empty((3, 3, length), np.float32), np.empty((3, 3, length), np.float32)
-    pooled, out = np.empty((3, length // 3), np.float32), np.empty(rows.shape[0], np.float32)
+    padded_row, a = np.zeros((1, length + 2), np.float32), np.zeros((3, 3, length + 2), np.float32)
+    z, pooled = np.empty((3, 3, length), np.float32), np.empty((3, length // 3), np.float32)
+    out = np.empty(rows.shape[0], np.float32)
     for r in range(rows.shape[0]):
-        out[r] = row_logit(rows[r : r + 1], w1, b1, w2, b2, w3, b3, wl, bl, z, a, pooled)
+        out[r] = row_logit(rows[r], w1, b1, w2, b2, w3, b3, wl, bl, padded_row, z, a, pooled)
     return out
 
 
@@ -163,23 +186,25 @@ def gradients(rows, dlogits, w1, b1, w2, b2, w3, b3, wl, bl):
     g1, g2, g3 = np.zeros_like(w1), np.zeros_like(w2), np.zeros_like(w3)
     gb1, gb2, gb3 = np.zeros_like(b1), np.zeros_like(b2), np.zeros_like(b3)
     gl, gbl = np.zeros_like(wl), np.zeros_like(bl)
-    z, a = np.empty((3, 3, length), np.float32), np.empty((3, 3, length), np.float32)
-    pooled = np.empty((3, n), np.float32)
-    d, e, no_input = np.empty((3, length), np.float32), np.empty((3, length), np.float32), np.empty((0, length), np.float32)
+    padded_row, a = np.zeros((1, length + 2), np.float32), np.zeros((3, 3, length + 2), np.float32)
+    z, pooled = np.empty((3, 3, length), np.float32), np.empty((3, n), np.float32)
+    d, e = np.zeros((3, length + 2), np.float32), np.zeros((3, length + 2), np.float32)  # the padding stays 0
     for r in range(rows.shape[0]):
-        x = rows[r : r + 1]
-        row_logit(x, w1, b1, w2, b2, w3, b3, wl, bl, z, a, pooled)
+        row_logit(rows[r], w1, b1, w2, b2, w3, b3, wl, bl, padded_row, z, a, pooled)
         g = dlogits[r]
         gbl[0] += g
         for c in range(3):
+            top, dc = z[2, c], d[c]
             for j in range(n):
                 gl[c * n + j] += g * pooled[c, j]
-                d[c, 3 * j : 3 * j + 3] = g * wl[c * n + j] * np.float32(1 / 3)
-            d[c, 3 * n :] = 0  # the features average pooling leaves out
-        leaky_backward(d, z[2], length)
-        conv_backward(d, a[1], w3, g3, gb3, e, length)
-        leaky_backward(e, z[1], length)
-        conv_backward(e, a[0], w2, g2, gb2, d, length)
-        leaky_backward(d, z[0], length)
-        conv_backward(d, x, w1, g1, gb1, no_input, length)
+                v = g * wl[c * n + j] * np.float32(1 / 3)
+                for k in range(3):
+                    dc[3 * j + k + 1] = v if top[3 * j + k] > 0 else v * np.float32(SLOPE)
+            for i in range(3 * n, length):  # the features average pooling leaves out
+                dc[i + 1] = 0
+        add_weight_gradients(d, a[1], g3, gb3, length)
+        input_gradient(d, w3, z[1], e, length)
+        add_weight_gradients(e, a[0], g2, gb2, length)
+        input_gradient(e, w2, z[0], d, length)
+        add_weight_gradients(d, padded_row, g1, gb1, length)
     return g1, gb1, g2, gb2, g3, gb3, gl, gbl
