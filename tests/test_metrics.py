@@ -277,30 +277,58 @@ def test_the_paper_judges_convolution_is_the_library_convolution_forward_and_bac
 
 
 @pytest.mark.skipif(bool(fused_judge.UNAVAILABLE), reason="numba does not import here")
-@pytest.mark.parametrize("features", [7, 41, 1041])
-def test_the_paper_judges_fused_loops_are_its_torch_network_forward_and_backward(generator, features):
+@pytest.mark.parametrize("rows, features", [(1, 3), (2, 4), (37, 7), (37, 41), (37, 1041)])
+def test_the_paper_judges_fused_loops_are_its_torch_network_forward_and_backward(generator, rows, features):
     """The CPU's fused loops and the network on torch's operations: the same logits and parameter gradients (float32),
-    also where pooling by 3 leaves the row's last features out."""
+    also where pooling by 3 leaves the row's last features out and where pre-activations are exactly 0 (LeakyReLU's
+    slope, as torch's backward)."""
     net = PaperConvNet(features)
-    rows, weights = torch.randn(37, features, generator=generator), torch.randn(37, generator=generator)
-    fused, torch_ops = net(rows), net.torch_forward(rows)
-    assert fused.grad_fn is not None and "Fused" in type(fused.grad_fn).__name__, "the fused loops ran"
-    torch.testing.assert_close(fused, torch_ops, rtol=1e-5, atol=1e-6)
-    grads = [torch.autograd.grad((logits * weights).sum(), list(net.parameters())) for logits in (fused, torch_ops)]
-    for fused_grad, torch_grad in zip(*grads):
-        torch.testing.assert_close(fused_grad, torch_grad, rtol=1e-4, atol=1e-6)
+    x, weights = torch.randn(rows, features, generator=generator), torch.randn(rows, generator=generator)
+    x[0, : features // 2] = 0
+    for net_ in (net, _zero_first_layer(PaperConvNet(features))):
+        fused, torch_ops = net_(x), net_.torch_forward(x)
+        assert "Fused" in type(fused.grad_fn).__name__, "the fused loops ran"
+        torch.testing.assert_close(fused, torch_ops, rtol=1e-5, atol=1e-6)
+        grads = [torch.autograd.grad((logits * weights).sum(), list(net_.parameters())) for logits in (fused, torch_ops)]
+        for fused_grad, torch_grad in zip(*grads):
+            torch.testing.assert_close(fused_grad, torch_grad, rtol=1e-4, atol=1e-6)
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        in_bfloat16 = net(rows)
+        in_bfloat16 = net(x)
     assert "Fused" not in type(in_bfloat16.grad_fn).__name__, "bfloat16 runs on torch's operations"
+    assert "Fused" not in type(net(x.clone().requires_grad_()).grad_fn).__name__, "a gradient of the rows: torch's"
+    assert "Fused" not in type(net.double()(x.double()).grad_fn).__name__, "float64: torch's"
+
+
+def _zero_first_layer(net: PaperConvNet) -> PaperConvNet:
+    with torch.no_grad():
+        net[0].weight.zero_()
+        net[0].bias.zero_()
+    return net
+
+
+@pytest.mark.skipif(bool(fused_judge.UNAVAILABLE), reason="numba does not import here")
+def test_a_paper_judge_fit_on_the_fused_loops_is_its_fit_on_torchs_operations(generator, monkeypatch):
+    """precision "auto" on a CPU trains on the fused loops, epoch by epoch as on torch's operations in float32."""
+    p, q = torch.randn(80, 30, generator=generator), torch.randn(80, 30, generator=generator) * 1.2 + 0.3
+    rows, labels = torch.cat([p, q]).numpy(), np.r_[np.zeros(80), np.ones(80)].astype(np.int64)
+    calls = []
+    apply = fused_judge.FusedPaperConvNet.apply
+    monkeypatch.setattr(fused_judge.FusedPaperConvNet, "apply", lambda *a: calls.append(1) or apply(*a))
+    fused = PaperConvClassifier(batch_size=32, max_epochs=30).fit(rows, labels)
+    assert calls, "the fused loops trained it"
+    monkeypatch.setattr(PaperConvNet, "forward", PaperConvNet.torch_forward)
+    torch_ops = PaperConvClassifier(batch_size=32, max_epochs=30, precision="32-true").fit(rows, labels)
+    assert fused.n_iter_ == torch_ops.n_iter_
+    np.testing.assert_allclose(fused.validation_scores_, torch_ops.validation_scores_, rtol=1e-4, atol=1e-6)
 
 
 def test_the_paper_judge_without_numba_trains_on_torch_after_one_line(generator, monkeypatch, caplog):
-    monkeypatch.setattr(fused_judge, "UNAVAILABLE", "ModuleNotFoundError: No module named 'numba'")
-    monkeypatch.setattr(fused_judge, "_said_why", False)
+    monkeypatch.setitem(fused_judge._state, "why", "numba did not import (ModuleNotFoundError: No module named 'numba')")
+    monkeypatch.setitem(fused_judge._state, "said", False)
     rows = torch.cat([torch.randn(60, 20, generator=generator), torch.randn(60, 20, generator=generator) + 1]).numpy()
     labels = np.r_[np.zeros(60), np.ones(60)].astype(np.int64)
     with caplog.at_level("WARNING", logger="otgb.metrics"):
-        judge = PaperConvClassifier(max_epochs=3).fit(rows, labels)
+        judge = PaperConvClassifier(max_epochs=3, precision="32-true").fit(rows, labels)
         judge.predict(rows)
     lines = [record.getMessage() for record in caplog.records]
     assert len(lines) == 1 and "numba did not import (ModuleNotFoundError" in lines[0], lines

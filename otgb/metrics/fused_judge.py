@@ -20,10 +20,13 @@ use on a machine compiles them (seconds), later processes load them.
 from __future__ import annotations
 
 import logging
+import threading
+from collections.abc import Sequence
 
 import numpy as np
 import torch
 from torch import Tensor
+from torch.autograd.function import once_differentiable
 
 log = logging.getLogger("otgb.metrics")
 
@@ -37,18 +40,45 @@ except Exception as error:  # numba missing or broken on this platform: the torc
 else:
     UNAVAILABLE = ""
 
-_said_why = False
+_state = {"why": f"numba did not import ({UNAVAILABLE})" if UNAVAILABLE else "", "said": False, "compiled": False}
+_lock = threading.Lock()  # folds train in threads: one compiles, one says why
 
 
-def available(rows: Tensor) -> bool:
-    """Whether the fused loops can run the network on ``rows`` (float32 on the CPU, outside autocast, numba)."""
-    global _said_why
-    if rows.device.type != "cpu" or rows.dtype != torch.float32 or torch.is_autocast_enabled("cpu"):
+def available(rows: Tensor, parameters: Sequence[Tensor]) -> bool:
+    """Whether the fused loops can run the network: float32 rows and parameters on the CPU, outside autocast, no gradient
+    of the rows wanted, numba imported and its loops compiled (at the first call; a failure is said once)."""
+    on_cpu = all(t.device.type == "cpu" and t.dtype == torch.float32 for t in (rows, *parameters))
+    if not on_cpu or rows.requires_grad or _autocast_on_cpu():
         return False
-    if UNAVAILABLE and not _said_why:
-        log.warning(f"otgb: the paper's C2ST judge runs on torch's convolutions, slower: numba did not import ({UNAVAILABLE})")
-        _said_why = True
-    return not UNAVAILABLE
+    with _lock:
+        if not _state["why"] and not _state["compiled"]:
+            _compile()
+        if _state["why"] and not _state["said"]:
+            log.warning(f"otgb: the paper's C2ST judge runs on torch's operations, slower: {_state['why']}")
+            _state["said"] = True
+    return not _state["why"]
+
+
+def _autocast_on_cpu() -> bool:
+    try:
+        return torch.is_autocast_enabled("cpu")
+    except TypeError:  # torch < 2.4
+        return torch.is_autocast_cpu_enabled()
+
+
+def _compile() -> None:
+    """Compile (or load from numba's cache) both loops on a one-row network; a failure leaves the reason in ``_state``."""
+    weights = [
+        np.zeros((3, c, 3), np.float32) if i % 2 == 0 else np.zeros(3, np.float32) for i, c in enumerate((1, 1, 3, 3, 3, 3))
+    ]
+    arrays = [np.zeros((1, 3), np.float32), *weights, np.zeros(3, np.float32), np.zeros(1, np.float32)]
+    try:
+        logits(*arrays)
+        gradients(arrays[0], np.zeros(1, np.float32), *arrays[1:])
+    except Exception as error:  # an unsupported CPU, an LLVM failure: the torch path runs
+        _state["why"] = f"its loops did not compile ({type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''})"
+    else:
+        _state["compiled"] = True
 
 
 class FusedPaperConvNet(torch.autograd.Function):
@@ -61,6 +91,7 @@ class FusedPaperConvNet(torch.autograd.Function):
         return torch.from_numpy(logits(*arrays))
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, grad_logits: Tensor) -> tuple[Tensor | None, ...]:
         rows, *parameters = ctx.saved_tensors
         arrays = _arrays(rows, parameters)
