@@ -68,10 +68,9 @@ def _autocast_on_cpu() -> bool:
 
 def _compile() -> None:
     """Compile (or load from numba's cache) both loops on a one-row network; a failure leaves the reason in ``_state``."""
-    weights = [
-        np.zeros((3, c, 3), np.float32) if i % 2 == 0 else np.zeros(3, np.float32) for i, c in enumerate((1, 1, 3, 3, 3, 3))
-    ]
-    arrays = [np.zeros((1, 3), np.float32), *weights, np.zeros(3, np.float32), np.zeros(1, np.float32)]
+    first, second, third = (np.zeros((3, channels, 3), np.float32) for channels in (1, 3, 3))
+    bias, row = np.zeros(3, np.float32), np.zeros((1, 3), np.float32)
+    arrays = [row, first, bias, second, bias, third, bias, np.zeros(3, np.float32), np.zeros(1, np.float32)]
     try:
         logits(*arrays)
         gradients(arrays[0], np.zeros(1, np.float32), *arrays[1:])
