@@ -37,7 +37,8 @@ apart in mean and 5 % in scale: close enough that the judge trains long. Then, o
 and on rows it separates (the second sample's mean shifted by a sine along the row), one fold
 trained with no tolerance on the held-out loss (up to ``--stop-cap`` epochs) and with the
 judge's own (the paper's 1e-4): epochs, wall time and accuracy on the fold's test rows. Last, whole 5-fold C2STs
-on otgb's path on both kinds of rows (wall time). It writes ``judges.json``.
+on otgb's path on both kinds of rows and on the Adv-diff-m-m test set's rows as ``otgb test`` scores f_p alone
+(its draws generated into ``--out``/cache) (wall time). It writes ``judges.json``.
 
 ``designs`` measures the ways a solve can be compiled, on the grey-box map of ``--config`` (its
 initial network, a batch of the config's size): the median time of one solve and its backward,
@@ -370,6 +371,24 @@ def judge_rows(rows: int, features: int, apart: bool = False) -> tuple[np.ndarra
     return torch.cat([p, q]).numpy(), np.r_[np.zeros(len(p)), np.ones(len(q))].astype(np.int64)
 
 
+def split_rows(rows: np.ndarray, labels: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    return torch.as_tensor(rows[labels == 0]), torch.as_tensor(rows[labels == 1])
+
+
+def advdiff_mm_test_rows(out: Path) -> tuple[torch.Tensor, torch.Tensor, tuple[int, ...]]:
+    """The Adv-diff-m-m test set's joint rows as ``otgb test`` scores f_p alone: the process's draws, and f_p's
+    trajectory of each input in their place; the folds keep each input's rows together, as there."""
+    from otgb.metrics import joint_samples
+    from otgb.runs import load_run
+
+    config = str(ROOT / "configs" / "advdiff_mm.yaml")
+    data_module = load_run(config, "--trainer.logger=false", f"--data.cache_dir={out / 'cache'}").datamodule
+    data = data_module.source.evaluation_set("test", data_module.n_test)
+    f_p = data["x"].unsqueeze(1).expand_as(data["y"])
+    rows = [joint_samples(data["theta"], data["x0"], y) for y in (data["y"], f_p)]
+    return rows[0], rows[1], tuple(data["y"].shape[2:])
+
+
 def run_stopping(args: argparse.Namespace, path: Path, results: dict) -> None:
     """One fold of close rows and one of rows the judge separates, each trained with no tolerance on its held-out loss
     (up to ``--stop-cap`` epochs) and with its own."""
@@ -423,13 +442,19 @@ def run_judges(args: argparse.Namespace) -> None:
                 path.write_text(json.dumps(results, indent=1))
     if args.stopping:
         run_stopping(args, path, results)
-    for key, apart in (("paper/otgb/c2st-apart", True), ("paper/otgb/c2st", False)):
+    cases = {
+        "paper/otgb/c2st-apart": lambda: (*split_rows(*judge_rows(args.rows, args.features, apart=True)), None),
+        "paper/otgb/c2st": lambda: (*split_rows(*judge_rows(args.rows, args.features)), None),
+        "paper/otgb/c2st-advdiff-mm": lambda: advdiff_mm_test_rows(Path(args.out)),
+    }
+    for key, samples in cases.items():
         if args.whole and key not in results:
-            rows, classes = judge_rows(args.rows, args.features, apart)
+            p, q, trajectory_shape = samples()
             start = time.perf_counter()
-            score = c2st(*(torch.as_tensor(rows[classes == c]) for c in (0, 1)), classifier="paper", precision=args.precision)
+            score = c2st(p, q, classifier="paper", trajectory_shape=trajectory_shape, precision=args.precision)
             wall = time.perf_counter() - start
-            results[key] = {"wall_s": wall, "c2st": float(score["c2st"]), "rows": list(rows.shape), "machine": machine()}
+            rows = [len(p) + len(q), p.shape[1]]
+            results[key] = {"wall_s": wall, "c2st": float(score["c2st"]), "rows": rows, "machine": machine()}
             path.write_text(json.dumps(results, indent=1))
     for name in [*judges, *fold_jobs]:
         each = [v["s_per_epoch"] for k, v in results.items() if k.startswith(f"paper/{name}/") and "s_per_epoch" in v]
@@ -439,7 +464,7 @@ def run_judges(args: argparse.Namespace) -> None:
             tried = f"{run['epochs']} epochs of {run['max_epochs']}, {run['wall_s']:.0f} s, accuracy {run['accuracy']:.4f}"
             print(f"paper judge, {key[9:].replace('/', ' rows, ')}: {tried} (one fold)")
         if key.startswith("paper/otgb/c2st"):
-            rows = "separable rows" if key.endswith("apart") else "close rows"
+            rows = {"paper/otgb/c2st-apart": "separable rows", "paper/otgb/c2st": "close rows"}.get(key, key[11:] + " rows")
             print(f"paper judge, whole 5-fold C2ST, {rows}: {run['wall_s'] / 60:.1f} min (C2ST {run['c2st']:.3f})")
     print(f"speed_benchmark: wrote {path}")
 
@@ -524,12 +549,17 @@ def judges_table(out: Path) -> list[str]:
         one_fold = "library-conv1d" in epoch and not name.startswith("5 folds")  # a whole C2ST's fold-epochs: no ratio
         ratio = f"{epoch['library-conv1d'] / epoch[name]:.2f}x" if one_fold else "-"
         lines.append(f"| {rows} rows | {name} | {epoch[name]:.3f} | {ratio} | {len(runs)} | {machines} |")
-    for key, kind in (("paper/otgb/c2st-apart", "separable"), ("paper/otgb/c2st", "close")):
-        if key in judges:
-            whole = judges[key]
+    kinds = {
+        "c2st-apart": "separable rows,",
+        "c2st": "close rows,",
+        "c2st-advdiff-mm": "rows of the Adv-diff-m-m test set, f_p against the process,",
+    }
+    for name, kind in kinds.items():
+        if f"paper/otgb/{name}" in judges:
+            whole = judges[f"paper/otgb/{name}"]
             rows = " x ".join(map(str, whole["rows"]))
             lines.append(
-                f"| {rows} {kind} rows, whole 5-fold C2ST | otgb | {whole['wall_s'] / 60:.2f} min in all "
+                f"| {rows} {kind} whole 5-fold C2ST | otgb | {whole['wall_s'] / 60:.2f} min in all "
                 f"(C2ST {whole['c2st']:.3f}) | - | 1 | {whole.get('machine', LOCAL_MACHINE)} |"
             )
     stops = {key[9:].replace("/", " rows, "): run for key, run in judges.items() if key.startswith("stopping/")}
