@@ -29,9 +29,19 @@ def compile_generic(function: Callable, cpp_wrapper: bool = False, cuda_graphs: 
     where the last replay wrote it, so the result is copied out before it is returned.
     """
     _lower_view_copies()
+    _quiet_value_range_analysis()
     if cuda_graphs:
         return _copied_out(torch.compile(function, mode="reduce-overhead", dynamic=True, fullgraph=True))
     return torch.compile(function, dynamic=True, fullgraph=True, options={"cpp_wrapper": True} if cpp_wrapper else None)
+
+
+def _quiet_value_range_analysis() -> None:
+    """Silence torch's warning for each size expression its value-range analysis cannot bound (a power with a negative
+    exponent of a dynamic size): the analysis handles the failure itself, but a GPU fit of reaction-diffusion printed
+    144 such lines. Left alone where the user set the logger's level."""
+    sympy_log = logging.getLogger("torch.utils._sympy.interp")
+    if sympy_log.level == logging.NOTSET:
+        sympy_log.setLevel(logging.ERROR)
 
 
 def _copied_out(replayed: Callable) -> Callable:

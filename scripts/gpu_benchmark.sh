@@ -50,16 +50,16 @@ keep() { cp "$work/$1/steps.json" "$out/steps-$1.json" 2>/dev/null; }
     keep cpu2
 ) >"$out/cpu2.log" 2>&1 &
 
-{
+{  # reaction-diffusion first: its compile is the long part
+    limited 270 gpu "${steps[@]}" "$work/gpu" --configs reactdiff --label gpu --steps 20 -- --trainer.accelerator=gpu
+    keep gpu
     limited 150 gpu "${steps[@]}" "$work/gpu" --configs pendulum --label gpu --steps 30 \
         --solvers torchdiffeq compiled -- --trainer.accelerator=gpu
     keep gpu
-    limited 220 gpu "${steps[@]}" "$work/gpu" --configs reactdiff --label gpu --steps 20 -- --trainer.accelerator=gpu
-    keep gpu
 } >"$out/gpu.log" 2>&1
 
-limited 120 gpu python -m pytest -m gpu tests/test_gpu.py -q -p no:cacheprovider >"$out/pytest-gpu.log" 2>&1
-limited 50 gpu python scripts/profile_step.py --config configs/pendulum.yaml --device cuda --steps 10 --trace 30 \
+limited 90 gpu python -m pytest -m gpu tests/test_gpu.py -q -p no:cacheprovider >"$out/pytest-gpu.log" 2>&1
+limited 30 gpu python scripts/profile_step.py --config configs/pendulum.yaml --device cuda --steps 10 --trace 30 \
     >"$out/profile-gpu.log" 2>&1
 wait
 keep cpu2

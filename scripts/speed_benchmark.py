@@ -188,14 +188,16 @@ def timed_command(command: list[str], **options) -> dict:
 
 def run_fit(args: argparse.Namespace) -> None:
     from otgb.command import logger_override
+    from otgb.runs import machine
 
     out = Path(args.out)
+    gpu = any(o.split("=")[-1] in ("gpu", "cuda") for o in args.overrides if "accelerator" in o)
 
     def fit(solver: str, key: str) -> dict:
         env = None
         if args.cold_cache:  # an empty compile cache: what a new machine pays
             env = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": tempfile.mkdtemp(prefix="otgb-inductor-")}
-        return {"cold_cache": args.cold_cache, "threads": torch.get_num_threads()} | timed_command([
+        return {"cold_cache": args.cold_cache, "threads": torch.get_num_threads(), "machine": machine(gpu)} | timed_command([
             sys.executable, "-m", "otgb.cli", "fit", "--config", str(ROOT / "configs" / f"{args.config}.yaml"),
             f"--solver={solver}", logger_override(str(out / "runs" / key), "run"), "--trainer.enable_progress_bar=false",
             f"--data.cache_dir={out / 'cache'}", *args.overrides,
@@ -498,7 +500,8 @@ def write_table(args: argparse.Namespace) -> None:
             )
     fits = _read(out / "fit.json")
     if fits:
-        lines += ["", "| whole `otgb fit` | solver | minutes | runs | compile cache | torch threads |", "|" + "---|" * 6]
+        head = "| whole `otgb fit` | solver | minutes | runs | compile cache | torch threads | machine |"
+        lines += ["", head, "|" + "---|" * 7]
         for prefix in dict.fromkeys(key.rsplit("/", 1)[0] + "/" for key in fits):
             config, solver = prefix.split("/")[:2]
             runs = [v for k, v in fits.items() if k.startswith(prefix)]
@@ -506,7 +509,10 @@ def write_table(args: argparse.Namespace) -> None:
             cache = {"empty" if v.get("cold_cache") else "as found" if "cold_cache" in v else "-" for v in runs}
             threads = ", ".join(sorted({str(v.get("threads", "-")) for v in runs}))
             cache_text = ", ".join(sorted(cache))
-            lines.append(f"| {config} | {solver} | {statistics.median(walls):.2f} | {len(walls)} | {cache_text} | {threads} |")
+            machines = ", ".join(sorted({v.get("machine", LOCAL_MACHINE) for v in runs}))
+            lines.append(
+                f"| {config} | {solver} | {statistics.median(walls):.2f} | {len(walls)} | {cache_text} | {threads} | {machines} |"
+            )
     lines += designs_table(out) + judges_table(out) + discover_table(out)
     write_between(doc, SECTION_START, SECTION_END, "\n".join(lines))
     print(f"speed_benchmark: wrote {doc}")

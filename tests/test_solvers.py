@@ -286,6 +286,18 @@ def test_compiled_gradients_that_differ_from_the_eager_loop_make_the_field_run_e
     assert len(lines) == 1 and "runs eagerly: its compiled gradients differ from the eager loop's" in lines[0], lines
 
 
+def test_compiling_quiets_torch_s_value_range_warnings_unless_the_user_set_that_logger(monkeypatch):
+    from otgb.compiling import compile_generic
+
+    sympy_log = logging.getLogger("torch.utils._sympy.interp")
+    monkeypatch.setattr(sympy_log, "level", logging.NOTSET)
+    compile_generic(torch.sin)
+    assert sympy_log.level == logging.ERROR
+    sympy_log.setLevel(logging.DEBUG)
+    compile_generic(torch.sin)
+    assert sympy_log.level == logging.DEBUG
+
+
 def test_compiled_select_and_slice_copies_equal_the_library_s_and_are_fused():
     """otgb.compiling lowers select_copy / slice_copy (what a differentiated compiled loop makes of views) into the
     compiler's kernels: the same values as eager, for every batch size of one shape-generic graph."""
