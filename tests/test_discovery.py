@@ -188,6 +188,33 @@ def test_locate_maps_field_regions():
     assert "most in region s" in describe(result)
 
 
+def test_the_permutation_test_gives_the_same_statistics_however_many_cells_it_holds_at_once(monkeypatch):
+    from otgb.discovery import locate as locating
+
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.randn(7, 40, 3, generator=g, dtype=torch.float64), torch.randn(7, 30, 3, generator=g, dtype=torch.float64)
+    together = permutation_energy(a, b, 99, 0)
+    monkeypatch.setattr(locating, "DISTANCE_BYTES", 8 * 70**2 * 2)  # two cells' distance matrices at a time
+    assert all(torch.equal(x, y) for x, y in zip(permutation_energy(a, b, 99, 0), together))
+    monkeypatch.setattr(locating, "DISTANCE_BYTES", 1)  # less than one cell's: still one at a time
+    assert all(torch.equal(x, y) for x, y in zip(permutation_energy(a, b, 99, 0), together))
+
+
+def test_a_disagreement_map_tests_at_most_locate_rows_measured_trajectories_and_says_so():
+    pendulum = Pendulum()
+    measured = _draws(pendulum, 120, 1)
+    settings = DiscoverySettings(n_permutations=99, locate_rows=50)
+    result = locate_step(pendulum, measured, settings)
+    assert result.sizes == (50, 50) and result.drawn_from == 120
+    assert "(50 and 50 (at random of 120))" in describe(result) and result.to_dict()["drawn_from"] == 120
+    again = locate_step(pendulum, measured, settings)
+    assert torch.equal(again.statistic, result.statistic)  # the same draw from the same seed
+    everything = locate_step(pendulum, measured, DiscoverySettings(n_permutations=99))
+    assert everything.sizes == (120, 120) and everything.drawn_from == 0 and "(120 and 120)" in describe(everything)
+    with pytest.raises(InputError, match="locate_rows >= 10"):
+        DiscoverySettings(locate_rows=5)
+
+
 # --- name -----------------------------------------------------------------------------
 def _pendulum_states(n, angle=(-1.57, 1.57), seed=0):
     model = Pendulum(angle=Uniform(*angle))

@@ -335,6 +335,18 @@ def test_the_paper_judge_without_numba_trains_on_torch_after_one_line(generator,
     assert judge.n_iter_ == 3
 
 
+def test_auto_precision_of_the_paper_judge_is_float32_only_where_its_loops_compiled(monkeypatch):
+    """On a CPU that multiplies bfloat16 natively, "auto" is float32 for the fused loops, and bfloat16 (as for the
+    other judges) where they did not compile."""
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: True)
+    monkeypatch.setattr(fused_judge, "usable", lambda: True)
+    with PaperConvClassifier(precision="auto")._autocast(torch.device("cpu")):
+        assert not torch.is_autocast_enabled("cpu")
+    monkeypatch.setattr(fused_judge, "usable", lambda: False)
+    with PaperConvClassifier(precision="auto")._autocast(torch.device("cpu")):
+        assert torch.is_autocast_enabled("cpu")
+
+
 def test_c2st_permutation_pvalue(generator):
     p, q = torch.randn(100, 2, generator=generator), torch.randn(100, 2, generator=generator) + 3.0
     out = c2st(p, q, folds=3, n_permutations=5, classifier="mlp")

@@ -21,7 +21,7 @@ from torch import Tensor
 
 from otgb.discovery.paired import PairedCheck
 
-CELLS_PER_BLOCK = 16  # cells whose distance matrices are held at once
+DISTANCE_BYTES = 2**29  # the cells' distance matrices held at once, at most (at least one cell's)
 SPREAD_FLOOR = 1e-3  # of the features' RMS spread: a feature (nearly) constant in both samples is not blown up to unit spread
 
 
@@ -41,7 +41,8 @@ class DisagreementMap:
     trajectories at level alpha / 2.
     ``mean_*`` / ``spread_*`` / ``amplitude_*`` are each sample's mean, standard deviation and
     mean absolute value per cell (averaged over the region), for the sentence; ``sizes`` the two
-    samples' numbers of trajectories.
+    samples' numbers of trajectories; ``drawn_from`` the measured part's size where ``a`` is a random
+    subset of it (0: all of it).
     """
 
     times: Tensor
@@ -64,6 +65,12 @@ class DisagreementMap:
     sizes: tuple[int, int] = (0, 0)  # trajectories in a (the measurements) and in b (the model's)
     whole_level: float = 0.025  # the level of the whole-trajectory test (and of the paired check, when there is one)
     paired: PairedCheck | None = None  # f_p on the measurements' recorded inputs (otgb.discovery.paired)
+    drawn_from: int = 0  # the measured trajectories a was drawn from at random; 0: a is all of them
+
+    @property
+    def measured_rows(self) -> str:
+        """The measured trajectories tested, as the sentences say it: "1000 (at random of 5250)" or "140"."""
+        return f"{self.sizes[0]} (at random of {self.drawn_from})" if self.drawn_from else str(self.sizes[0])
 
     @property
     def any_significant(self) -> bool:
@@ -88,6 +95,8 @@ class DisagreementMap:
             "whole": {"statistic": self.whole_statistic, "pvalue": self.whole_pvalue, "significant": self.whole_significant},
             "whole_level": self.whole_level,
             "paired": None if self.paired is None else self.paired.to_dict(),
+            "sizes": list(self.sizes),
+            "drawn_from": self.drawn_from,
         }
 
 
@@ -126,9 +135,9 @@ def permutation_energy(a: Tensor, b: Tensor, n_permutations: int, seed: int) -> 
     labels[0, :n] = 1
     for k in range(1, n_permutations + 1):
         labels[k, torch.randperm(n + m, generator=g)[:n]] = 1
-    stats = []
-    for start in range(0, len(a), CELLS_PER_BLOCK):
-        pooled = torch.cat([a[start : start + CELLS_PER_BLOCK], b[start : start + CELLS_PER_BLOCK]], dim=1)
+    stats, block = [], max(1, DISTANCE_BYTES // (8 * (n + m) ** 2))
+    for start in range(0, len(a), block):
+        pooled = torch.cat([a[start : start + block], b[start : start + block]], dim=1)
         distances = torch.cdist(pooled, pooled)  # (g, N, N)
         total = distances.sum((1, 2))[:, None]
         row_a = distances @ labels.T  # (g, N, K+1): distance of each point to sample a's points
@@ -225,9 +234,9 @@ def describe(result: DisagreementMap, a_name: str = "measured", b_name: str = "s
 def _distributions(result: DisagreementMap, a_name: str, b_name: str) -> str:
     """:func:`describe`'s sentence on the two-sample tests alone."""
     if not (result.significant.any() or result.whole_significant):
-        measured, simulated = result.sizes
         sentence = (
-            f"the tests see no difference between {b_name} and {a_name} trajectories ({simulated} and {measured}): "
+            f"the tests see no difference between {b_name} and {a_name} trajectories ({result.sizes[1]} and "
+            f"{result.measured_rows}): "
             f"neither the whole trajectories nor any time step, component or region differ at a false discovery rate of "
             f"{result.alpha:g} ({result.n_permutations} permutations)"
         )

@@ -70,6 +70,8 @@ class DiscoverySettings:
         n_permutations: Label permutations per p-value of the disagreement map.
         alpha: False discovery rate of the disagreement map (Benjamini-Hochberg).
         regions_per_axis: Blocks per spatial axis in which a field's cells are compared.
+        locate_rows: Most measured trajectories in a disagreement map (a random subset beyond, drawn with ``seed``),
+            and as many simulated: the permutation tests' time and memory grow with the square of the rows.
         n_trajectories: Generated trajectories along which the correction f_phi is evaluated.
         n_bootstrap: Bootstrap resamples (of f_phi's trajectories) for inclusion probabilities and f_phi's slope intervals.
         theta_products: Whether the library also offers each feature times each physics parameter.
@@ -86,6 +88,7 @@ class DiscoverySettings:
         n_permutations: int = 999,
         alpha: float = 0.05,
         regions_per_axis: int = 4,
+        locate_rows: int = 1000,
         n_trajectories: int = 256,
         n_bootstrap: int = 30,
         theta_products: bool = False,
@@ -96,10 +99,10 @@ class DiscoverySettings:
         c2st_classifier: str = "auto",
         seed: int = 0,
     ) -> None:
-        if n_permutations < 19 or not 0 < alpha < 1 or regions_per_axis < 1:
+        if n_permutations < 19 or not 0 < alpha < 1 or regions_per_axis < 1 or locate_rows < 10:
             raise InputError(
-                f"discover: need n_permutations >= 19, 0 < alpha < 1, regions_per_axis >= 1; "
-                f"got {n_permutations}, {alpha}, {regions_per_axis}"
+                f"discover: need n_permutations >= 19, 0 < alpha < 1, regions_per_axis >= 1, locate_rows >= 10; "
+                f"got {n_permutations}, {alpha}, {regions_per_axis}, {locate_rows}"
             )
         if n_trajectories < 10 or n_bootstrap < 1 or fit_steps < 1 or fit_batch < 2 or strong_candidates < 0:
             raise InputError(
@@ -109,6 +112,7 @@ class DiscoverySettings:
         if unknown or not families:
             raise InputError(f"discover.families={list(families)}: expected a non-empty list among {list(FAMILIES)}")
         self.n_permutations, self.alpha, self.regions_per_axis = n_permutations, alpha, regions_per_axis
+        self.locate_rows = locate_rows
         self.n_trajectories, self.n_bootstrap, self.theta_products = n_trajectories, n_bootstrap, theta_products
         self.strong_candidates, self.fit_steps, self.fit_batch = strong_candidates, fit_steps, fit_batch
         self.families, self.c2st_classifier, self.seed = tuple(families), c2st_classifier, seed
@@ -235,14 +239,21 @@ def locate_step(
     physics: PhysicsModel, measured: Tensor, settings: DiscoverySettings, model_name: str = "f_p",
     paired: PairedCheck | None = None,
 ) -> DisagreementMap:  # fmt: skip
-    """The disagreement map between ``measured`` and as many trajectories of ``physics`` (f_p, or a candidate
-    model whose diverged trajectories are dropped), with f_p's ``paired`` check on the measurements' inputs, if any."""
+    """The disagreement map between ``measured`` (at most ``settings.locate_rows`` of them, drawn at random) and as many
+    trajectories of ``physics`` (f_p, or a candidate model whose diverged trajectories are dropped), with f_p's
+    ``paired`` check on the measurements' inputs, if any."""
+    tested = measured
+    if len(measured) > settings.locate_rows:
+        drawn = torch.randperm(len(measured), generator=generator_for(settings.seed, "discover", "locate", model_name))
+        tested = measured[drawn[: settings.locate_rows].sort().values]
     simulate = simulate_candidate if isinstance(physics, Augmented) else simulate_from_priors
-    simulated = simulate(physics, len(measured), settings.seed, model_name)
-    return locate(
-        measured, simulated, physics.observation_times(), physics.observed,
+    simulated = simulate(physics, len(tested), settings.seed, model_name)
+    result = locate(
+        tested, simulated, physics.observation_times(), physics.observed,
         settings.n_permutations, settings.alpha, settings.regions_per_axis, settings.seed, paired,
     )  # fmt: skip
+    result.drawn_from = len(measured) if len(tested) < len(measured) else 0
+    return result
 
 
 def name_step(module: Any, settings: DiscoverySettings) -> tuple[list[Selection], dict, dict[str, Tensor], float]:

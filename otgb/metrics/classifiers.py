@@ -392,6 +392,6 @@ class PaperConvClassifier(_TorchClassifier):
     def _autocast(self, device: torch.device) -> torch.autocast:
         """ "auto" on a CPU is float32 where the fused loops run (measured faster than torch's operations on a 2-core
         CPU; not measured against bfloat16 on a CPU that multiplies it natively)."""
-        if self.precision == "auto" and device.type == "cpu" and not fused_judge.UNAVAILABLE:
+        if self.precision == "auto" and device.type == "cpu" and fused_judge.usable():
             return torch.autocast("cpu", enabled=False)
         return super()._autocast(device)

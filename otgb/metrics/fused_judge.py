@@ -46,10 +46,13 @@ _lock = threading.Lock()  # folds train in threads: one compiles, one says why
 
 def available(rows: Tensor, parameters: Sequence[Tensor]) -> bool:
     """Whether the fused loops can run the network: float32 rows and parameters on the CPU, outside autocast, no gradient
-    of the rows wanted, numba imported and its loops compiled (at the first call; a failure is said once)."""
+    of the rows wanted, and :func:`usable`."""
     on_cpu = all(t.device.type == "cpu" and t.dtype == torch.float32 for t in (rows, *parameters))
-    if not on_cpu or rows.requires_grad or _autocast_on_cpu():
-        return False
+    return on_cpu and not rows.requires_grad and not _autocast_on_cpu() and usable()
+
+
+def usable() -> bool:
+    """Whether numba imported and the loops compiled (at the first call; a failure is said once)."""
     with _lock:
         if not _state["why"] and not _state["compiled"]:
             _compile()
