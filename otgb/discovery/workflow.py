@@ -244,7 +244,8 @@ def locate_step(
     ``paired`` check on the measurements' inputs, if any."""
     tested = measured
     if len(measured) > settings.locate_rows:
-        drawn = torch.randperm(len(measured), generator=generator_for(settings.seed, "discover", "locate", model_name))
+        # one draw per part of the measurements, whatever the model: the before and after maps see the same trajectories
+        drawn = torch.randperm(len(measured), generator=generator_for(settings.seed, "discover", "locate"))
         tested = measured[drawn[: settings.locate_rows].sort().values]
     simulate = simulate_candidate if isinstance(physics, Augmented) else simulate_from_priors
     simulated = simulate(physics, len(tested), settings.seed, model_name)
