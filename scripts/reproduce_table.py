@@ -108,14 +108,6 @@ def training_seconds(folder: Path) -> float:
     return float(torch.load(last, map_location="cpu", weights_only=False)["otgb"]["elapsed_s"])
 
 
-def add_fit_time(folder: Path, seconds: float) -> float:
-    """Adds a discover run's (or a resumed one's) seconds to the run's ``wall_time.json``; the total."""
-    path = folder / "wall_time.json"
-    total = (json.loads(path.read_text())["fit_s"] if path.exists() else 0.0) + seconds
-    path.write_text(json.dumps({"fit_s": total}))
-    return total
-
-
 class Grid:
     """One task's runs: the run folders under ``out``, their result files under ``results``."""
 
@@ -158,7 +150,11 @@ class Grid:
                 self.test_and_record(name, None, self.out / folder_of(name), common, None)
 
     def augmented(self, seed: int) -> None:
-        """``otgb discover`` on a file of the task's measured set, then f_p plus the named terms scored by ``otgb test``."""
+        """``otgb discover`` on a file of the task's measured set, then f_p plus the named terms scored by ``otgb test``.
+
+        The grey-box that discover reads is trained first by ``otgb fit`` on the same file, so that a fit
+        stopped with the session resumes from its ``last.ckpt``; discover then loads its best checkpoint.
+        """
         if self.result_path(AUGMENTED, seed).exists():
             return
         folder = (self.out / folder_of(AUGMENTED) / f"seed{seed}").resolve()
@@ -172,11 +168,18 @@ class Grid:
                 sys.exit(f"{self.task}: scripts/export_measured.py could not write {measured}")
         report = newest(folder, "runs/*/version_*/report.json")
         if report is None:
+            marginal = [*config, "--data.hidden_effect=[]", f"--data.measured_path={measured}", *seeds]
+            marginal += ["--trainer.enable_progress_bar=false", *self.extra]
+            last = newest(folder / "fit", "version_*/checkpoints/last.ckpt")
+            resume = [f"--ckpt_path={last}"] if last is not None else []
+            print(f"{self.task} {AUGMENTED} seed {seed}: {'resuming' if resume else 'fitting'} the grey-box", flush=True)
+            run_otgb(["fit", *marginal, logger_override(str(folder), "fit"), *resume], folder / "otgb.log")
+            best = newest(folder / "fit", "version_*/checkpoints/best-*.ckpt")
             print(f"{self.task} {AUGMENTED} seed {seed}: discovering", flush=True)
-            args = ["discover", *config, "--data.hidden_effect=[]", f"--data.measured_path={measured}", *seeds]
-            args += [f"--discover.seed={seed}", "--trainer.enable_progress_bar=false", *self.extra]
+            args = ["discover", *marginal, f"--discover.seed={seed}", f"--ckpt_path={best}"]
             args += QUICK_DISCOVER if self.quick else []
-            add_fit_time(folder, run_otgb(args, folder / "otgb.log", cwd=folder))
+            discover_s = run_otgb(args, folder / "otgb.log", cwd=folder)
+            (folder / "wall_time.json").write_text(json.dumps({"fit_s": training_seconds(folder) + discover_s}))
             report = newest(folder, "runs/*/version_*/report.json")
         augmented = report.parent / "augmented.yaml"
         terms = yaml.safe_load(augmented.read_text())["data"]["physics"]["init_args"]["terms"] if augmented.exists() else []
