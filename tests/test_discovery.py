@@ -57,7 +57,9 @@ from otgb.discovery.workflow import (
     Discovery,
     DiscoverySettings,
     Measurements,
+    at_most,
     family_step,
+    fitting_for,
     locate_step,
     paired_after,
     replaces,
@@ -215,6 +217,18 @@ def test_a_disagreement_map_tests_at_most_locate_rows_measured_trajectories_and_
     assert everything.sizes == (120, 120) and everything.drawn_from == 0 and "(120 and 120)" in describe(everything)
     with pytest.raises(InputError, match="locate_rows >= 10"):
         DiscoverySettings(locate_rows=5)
+
+
+def test_fits_and_scores_use_at_most_score_rows_of_each_part_nested_in_the_maps_rows():
+    pendulum = Pendulum()
+    data = Measurements(_draws(pendulum, 60, 1), _draws(pendulum, 30, 2), _draws(pendulum, 30, 3))
+    fitting = fitting_for(pendulum, data, DiscoverySettings(score_rows=20), {})
+    assert len(fitting.train) == len(fitting.val) == 20
+    assert fitting_for(pendulum, data, DiscoverySettings(), {}).train is data.train  # fewer rows than the cap: all
+    smaller, larger = at_most(data.train, 10, 0), at_most(data.train, 20, 0)
+    assert torch.equal(larger, fitting.train)
+    position = {tuple(row.flatten().tolist()): i for i, row in enumerate(data.train)}
+    assert {position[tuple(r.flatten().tolist())] for r in smaller} <= {position[tuple(r.flatten().tolist())] for r in larger}
 
 
 # --- name -----------------------------------------------------------------------------

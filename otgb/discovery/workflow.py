@@ -72,6 +72,8 @@ class DiscoverySettings:
         regions_per_axis: Blocks per spatial axis in which a field's cells are compared.
         locate_rows: Most measured trajectories in a disagreement map (a random subset beyond, drawn with ``seed``),
             and as many simulated: the permutation tests' time and memory grow with the square of the rows.
+        score_rows: Most measured trajectories of the training and validation parts that the coefficient fits and the
+            scores of fits, prior families and spreads use (a random subset beyond): each score grows with the square.
         n_trajectories: Generated trajectories along which the correction f_phi is evaluated.
         n_bootstrap: Bootstrap resamples (of f_phi's trajectories) for inclusion probabilities and f_phi's slope intervals.
         theta_products: Whether the library also offers each feature times each physics parameter.
@@ -89,6 +91,7 @@ class DiscoverySettings:
         alpha: float = 0.05,
         regions_per_axis: int = 4,
         locate_rows: int = 1000,
+        score_rows: int = 2000,
         n_trajectories: int = 256,
         n_bootstrap: int = 30,
         theta_products: bool = False,
@@ -99,10 +102,10 @@ class DiscoverySettings:
         c2st_classifier: str = "auto",
         seed: int = 0,
     ) -> None:
-        if n_permutations < 19 or not 0 < alpha < 1 or regions_per_axis < 1 or locate_rows < 10:
+        if n_permutations < 19 or not 0 < alpha < 1 or regions_per_axis < 1 or min(locate_rows, score_rows) < 10:
             raise InputError(
-                f"discover: need n_permutations >= 19, 0 < alpha < 1, regions_per_axis >= 1, locate_rows >= 10; "
-                f"got {n_permutations}, {alpha}, {regions_per_axis}, {locate_rows}"
+                f"discover: need n_permutations >= 19, 0 < alpha < 1, regions_per_axis >= 1, locate_rows >= 10, "
+                f"score_rows >= 10; got {n_permutations}, {alpha}, {regions_per_axis}, {locate_rows}, {score_rows}"
             )
         if n_trajectories < 10 or n_bootstrap < 1 or fit_steps < 1 or fit_batch < 2 or strong_candidates < 0:
             raise InputError(
@@ -112,7 +115,7 @@ class DiscoverySettings:
         if unknown or not families:
             raise InputError(f"discover.families={list(families)}: expected a non-empty list among {list(FAMILIES)}")
         self.n_permutations, self.alpha, self.regions_per_axis = n_permutations, alpha, regions_per_axis
-        self.locate_rows = locate_rows
+        self.locate_rows, self.score_rows = locate_rows, score_rows
         self.n_trajectories, self.n_bootstrap, self.theta_products = n_trajectories, n_bootstrap, theta_products
         self.strong_candidates, self.fit_steps, self.fit_batch = strong_candidates, fit_steps, fit_batch
         self.families, self.c2st_classifier, self.seed = tuple(families), c2st_classifier, seed
@@ -242,11 +245,7 @@ def locate_step(
     """The disagreement map between ``measured`` (at most ``settings.locate_rows`` of them, drawn at random) and as many
     trajectories of ``physics`` (f_p, or a candidate model whose diverged trajectories are dropped), with f_p's
     ``paired`` check on the measurements' inputs, if any."""
-    tested = measured
-    if len(measured) > settings.locate_rows:
-        # one draw per part of the measurements, whatever the model: the before and after maps see the same trajectories
-        drawn = torch.randperm(len(measured), generator=generator_for(settings.seed, "discover", "locate"))
-        tested = measured[drawn[: settings.locate_rows].sort().values]
+    tested = at_most(measured, settings.locate_rows, settings.seed)
     simulate = simulate_candidate if isinstance(physics, Augmented) else simulate_from_priors
     simulated = simulate(physics, len(tested), settings.seed, model_name)
     result = locate(
@@ -313,7 +312,18 @@ def fitting_for(physics: PhysicsModel, data: Measurements, settings: DiscoverySe
     """The run's :class:`otgb.discovery.refine.Fitting`: the settings' steps, batch and seed, and each library
     candidate's natural scale, the slope at which its term alone would be as large as f_phi on its component."""
     natural = {c: _natural_scale(c, design) for design in designs.values() for c in design.candidates}
-    return Fitting(physics, data.train, data.val, settings.fit_steps, settings.fit_batch, settings.seed, natural)
+    train, val = (at_most(part, settings.score_rows, settings.seed) for part in (data.train, data.val))
+    return Fitting(physics, train, val, settings.fit_steps, settings.fit_batch, settings.seed, natural)
+
+
+def at_most(rows: Tensor, n: int, seed: int) -> Tensor:
+    """``rows``, or ``n`` of them drawn at random (in their order) where there are more. One permutation per number of
+    rows, whatever the model compared with them: the before and after maps of a part see the same trajectories, and a
+    smaller subset of a part is a part of a larger one."""
+    if len(rows) <= n:
+        return rows
+    drawn = torch.randperm(len(rows), generator=generator_for(seed, "discover", "rows", len(rows)))
+    return rows[drawn[:n].sort().values]
 
 
 def _natural_scale(candidate: Candidate, design: Any) -> float:
@@ -504,12 +514,12 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
     fitting = fitting_for(physics, data, settings, designs)
     result.cross_check = cross_check_step(strong, fitting)
     progress(f"cross-checked {len(strong)} candidates alone")
-    result.undertrained = undertrained(module, data.val, settings)
+    result.undertrained = undertrained(module, fitting.val, settings)
     kept, truncated = None, False
     if selected and result.undertrained is None:
         kept, result.dropped, truncated = add_step(result.selections, designs, fitting)
         progress(f"kept {[c.feature for c in kept.candidates]}, coefficients {short(kept.priors)}")
-    result.search_reason = search_reason(physics, kept, truncated, data.val, settings)
+    result.search_reason = search_reason(physics, kept, truncated, fitting.val, settings)
     if result.search_reason is not None:
         kept = search_step(kept, result, designs, fitting)
     if kept is not None:
@@ -526,7 +536,7 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
     }
     if result.found:
         result.final_terms = final_regression(result.selections, designs, result.fitted.candidates, settings)
-        result.intervals = sandwich_intervals(physics, result.fitted, data.train, settings.fit_batch, settings.seed)
+        result.intervals = sandwich_intervals(physics, result.fitted, fitting.train, settings.fit_batch, settings.seed)
         progress(f"intervals: {rounded(result.intervals.centre) if result.intervals else 'none (the fit is not at a minimum)'}")
         sources["augmented"] = simulate_candidate(result.fitted.model(physics), len(data.test), settings.seed, "gap-augmented")
         result.before_on_test = locate_step(physics, data.test, settings, "f_p-test")
