@@ -208,13 +208,15 @@ def test_a_disagreement_map_tests_at_most_locate_rows_measured_trajectories_and_
     settings = DiscoverySettings(n_permutations=99, locate_rows=50)
     result = locate_step(pendulum, measured, settings)
     assert result.sizes == (50, 50) and result.drawn_from == 120
-    assert "(50 and 50 (at random of 120))" in describe(result) and result.to_dict()["drawn_from"] == 120
+    assert "(50 and 50 of 120, drawn at random)" in describe(result) and result.to_dict()["drawn_from"] == 120
+    assert result.measured_trajectories == "50 of its 120 trajectories, drawn at random"
     again = locate_step(pendulum, measured, settings)
     assert torch.equal(again.statistic, result.statistic)  # the same draw from the same seed
     other_model = locate_step(pendulum, measured, settings, "augmented")
     assert torch.equal(other_model.mean_a, result.mean_a)  # the same measured trajectories, whatever the model
     everything = locate_step(pendulum, measured, DiscoverySettings(n_permutations=99))
     assert everything.sizes == (120, 120) and everything.drawn_from == 0 and "(120 and 120)" in describe(everything)
+    assert everything.measured_trajectories == "120 trajectories"
     with pytest.raises(InputError, match="locate_rows >= 10"):
         DiscoverySettings(locate_rows=5)
 

@@ -68,9 +68,11 @@ class DisagreementMap:
     drawn_from: int = 0  # the measured trajectories a was drawn from at random; 0: a is all of them
 
     @property
-    def measured_rows(self) -> str:
-        """The measured trajectories tested, as the sentences say it: "1000 (at random of 5250)" or "140"."""
-        return f"{self.sizes[0]} (at random of {self.drawn_from})" if self.drawn_from else str(self.sizes[0])
+    def measured_trajectories(self) -> str:
+        """The measured trajectories tested, for a title: "1000 of its 5250 trajectories, drawn at random" or "140
+        trajectories"."""
+        drawn = f" of its {self.drawn_from}" if self.drawn_from else ""
+        return f"{self.sizes[0]}{drawn} trajectories{', drawn at random' if drawn else ''}"
 
     @property
     def any_significant(self) -> bool:
@@ -236,7 +238,7 @@ def _distributions(result: DisagreementMap, a_name: str, b_name: str) -> str:
     if not (result.significant.any() or result.whole_significant):
         sentence = (
             f"the tests see no difference between {b_name} and {a_name} trajectories ({result.sizes[1]} and "
-            f"{result.measured_rows}): "
+            f"{result.sizes[0]}{f' of {result.drawn_from}, drawn at random' if result.drawn_from else ''}): "
             f"neither the whole trajectories nor any time step, component or region differ at a false discovery rate of "
             f"{result.alpha:g} ({result.n_permutations} permutations)"
         )

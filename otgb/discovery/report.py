@@ -370,12 +370,12 @@ def disagreement_panels(result: Discovery) -> list[tuple[DisagreementMap, str]]:
     """The disagreement maps and their titles: f_p on the training part (where discovery looked) and, once terms
     are named, f_p (before) and the augmented physics (after) on the test part, which no fit saw: the same
     trajectories, so the last two panels compare like with like."""
-    maps = [(result.before, f"f_p vs measured: the training part, {result.before.measured_rows} trajectories")]
+    maps = [(result.before, f"f_p vs measured: the training part, {result.before.measured_trajectories}")]
     if result.before_on_test:
-        test = f"the test part, {result.before_on_test.measured_rows} trajectories"
+        test = f"the test part, {result.before_on_test.measured_trajectories}"
         maps.append((result.before_on_test, f"before: f_p vs measured, {test}"))
     if result.after:
-        maps.append((result.after, f"after: augmented vs measured, the test part, {result.after.measured_rows} trajectories"))
+        maps.append((result.after, f"after: augmented vs measured, the test part, {result.after.measured_trajectories}"))
     return maps
 
 
