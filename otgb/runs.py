@@ -135,6 +135,17 @@ def newest(folder: Path, pattern: str) -> Path | None:
     return found[-1] if found else None
 
 
+def asks_for_gpu(overrides: list[str]) -> bool:
+    """Whether otgb command-line ``overrides`` choose a GPU: ``--trainer.accelerator=gpu`` or ``--trainer.accelerator gpu``
+    (or ``cuda``)."""
+    values = []
+    for arg, after in zip(overrides, [*overrides[1:], ""]):
+        key, equals, value = arg.partition("=")
+        if key == "--trainer.accelerator":
+            values.append(value if equals else after)
+    return any(value.strip() in ("gpu", "cuda") for value in values)
+
+
 def machine(gpu: bool = False) -> str:
     """The machine a benchmark ran on, for its result files: the GPU's name when ``gpu``, else the CPU (its model, and
     whether it multiplies bfloat16 natively: the judges' arithmetic depends on it) and its threads."""

@@ -44,7 +44,7 @@ from otgb.command import logger_override
 from otgb.discovery.report import distribution_text
 from otgb.metrics.classifiers import PaperConvClassifier
 from otgb.reports import mean_spread
-from otgb.runs import machine, newest, run_otgb
+from otgb.runs import asks_for_gpu, machine, newest, run_otgb
 
 ROOT = Path(__file__).parents[1]
 BASELINES = ROOT / "configs" / "baselines"
@@ -222,10 +222,6 @@ def portable(arg: str, out: Path) -> str:
 def folder_of(row: str) -> str:
     """The folder name of a row's runs and result files."""
     return "augmented_physics" if row == AUGMENTED else row.replace(" ", "_")
-
-
-def asks_for_gpu(extra: list[str]) -> bool:
-    return any(arg.replace(" ", "") in ("--trainer.accelerator=gpu", "--trainer.accelerator=cuda") for arg in extra)
 
 
 def seeds_cell(values: list[float]) -> str:

@@ -188,10 +188,10 @@ def timed_command(command: list[str], **options) -> dict:
 
 def run_fit(args: argparse.Namespace) -> None:
     from otgb.command import logger_override
-    from otgb.runs import machine
+    from otgb.runs import asks_for_gpu, machine
 
     out = Path(args.out)
-    gpu = any(o.split("=")[-1] in ("gpu", "cuda") for o in args.overrides if "accelerator" in o)
+    gpu = asks_for_gpu(args.overrides)
 
     def fit(solver: str, key: str) -> dict:
         env = None

@@ -6,7 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from otgb.runs import fit_and_test
+from otgb.runs import asks_for_gpu, fit_and_test
 
 ROOT = Path(__file__).parents[1]
 CONFIG = str(ROOT / "configs" / "pendulum.yaml")
@@ -57,3 +57,8 @@ def test_the_results_page_shows_the_committed_budget_sweeps():
     page = (ROOT / "docs" / "results.md").read_text()
     shown = page.split("<!-- results: scripts/budget_sweep.py -->", 1)[1].split("<!-- end results -->", 1)[0]
     assert "| pendulum-3125-steps |" in shown and shown.strip() == written.strip()
+
+
+def test_a_gpu_is_asked_for_in_either_form_of_the_accelerator_override():
+    assert asks_for_gpu(["--trainer.accelerator=gpu"]) and asks_for_gpu(["--seed_everything=1", "--trainer.accelerator", "cuda"])
+    assert not asks_for_gpu(["--trainer.accelerator=cpu", "--trainer.devices", "gpu"]) and not asks_for_gpu([])
