@@ -62,9 +62,9 @@ def main(args: list[str] | None = None) -> None:
         loggers = cli.trainer.loggers  # not trainer.log_dir: a collective under DDP, and the other ranks have finished
         if cli.trainer.is_global_zero and loggers and loggers[0].log_dir:
             run = Path(loggers[0].log_dir)
-            if cli.subcommand == "test" and (sentence := summary_of(run)):
-                print(f"otgb test: {sentence}", file=sys.stderr)
-            print(closing_line(cli.subcommand, run), file=sys.stderr)
+            if cli.subcommand == "test" and (sentence := summary_of(run)):  # results on stdout, as discover and tune
+                print(f"otgb test: {sentence}")
+            print(closing_line(cli.subcommand, run))
     except InputError as error:
         print(f"otgb: error: {error}", file=sys.stderr)
         raise SystemExit(2) from None

@@ -62,7 +62,7 @@ def test_fit_writes_logs_checkpoints_and_figures(tmp_path, capsys):
         ]
     )
     run = tmp_path / "run" / "version_0"
-    last = capsys.readouterr().err.strip().splitlines()[-1]
+    last = capsys.readouterr().out.strip().splitlines()[-1]
     assert last == f"otgb fit: results in {run}: config.yaml, metrics.csv, checkpoints/, figures/, components.json", last
     assert {"metrics.csv", "config.yaml", "hparams.yaml"} <= {p.name for p in run.iterdir()}
     assert list(run.glob("events.out.tfevents.*")), "TensorBoard events next to the CSV log"
@@ -359,7 +359,7 @@ def test_test_writes_metrics_json_and_table(tmp_path, capsys):
     capsys.readouterr()
     main(["test", *_args(tmp_path, "--evaluation.reference_repeats=2"), f"--ckpt_path={ckpt}"])
     captured = capsys.readouterr()
-    summary, last = captured.err.strip().splitlines()[-2:]
+    summary, last = captured.out.strip().splitlines()[-2:]
     assert last.startswith(f"otgb test: results in {tmp_path / 'run' / 'version_1'}: metrics.md, metrics.json"), last
     assert summary.startswith("otgb test: C2ST accuracy: model ") and "Reference (noise floor)" in summary, summary
     assert "Test metric" not in captured.out + captured.err, "the results are in metrics.md, not a raw metric table"
@@ -590,3 +590,17 @@ def test_a_second_run_reads_f_p_and_the_reference_from_the_cache_and_gives_the_s
     strip = lambda rows: [{k: v for k, v in row.items() if not k.endswith(timing)} for row in rows]  # noqa: E731
     assert strip(first) == strip(second), "the same numbers, the model's included: reading the cache draws nothing"
     assert _last(second, "val/fp_c2st") > 0.5 and _last(second, "val/fp_mmd") > 0
+
+
+def test_test_without_a_checkpoint_says_it_scores_an_untrained_map_and_f_p_alone_does_not(tmp_path, caplog):
+    untrained = "otgb test: no --ckpt_path: scoring the map as initialised, untrained"
+    caplog.set_level(logging.INFO)
+    logging.getLogger("lightning.pytorch.utilities.rank_zero").addHandler(caplog.handler)  # lightning's own does not propagate
+    try:
+        main(["test", *_args(tmp_path, "--evaluation.reference_repeats=1")])
+        assert untrained in caplog.text
+        caplog.clear()
+        main(["test", *_args(tmp_path, "--evaluation.reference_repeats=1", "--model.transport_map=otgb.models.IdentityMap")])
+        assert untrained not in caplog.text, "nothing to train: nothing to say"
+    finally:
+        logging.getLogger("lightning.pytorch.utilities.rank_zero").removeHandler(caplog.handler)

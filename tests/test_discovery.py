@@ -39,6 +39,7 @@ from otgb.discovery.refine import (
 )
 from otgb.discovery.regression import SelectedTerm, Selection, design_matrix, regress
 from otgb.discovery.report import (
+    OUTCOMES,
     OUTSIDE_THE_LIBRARY,
     _family_section,
     augmented_config,
@@ -47,6 +48,7 @@ from otgb.discovery.report import (
     distribution_text,
     low_power,
     named_divergences,
+    outcome,
     share_removed,
     verdict,
     write_report,
@@ -473,6 +475,47 @@ def test_terms_that_leave_the_test_part_no_closer_than_f_p_are_not_called_found_
         "the OT grey-box does not beat f_p alone on the 150 validation trajectories by two standard errors (undertrained, "
         "or too few to tell; the gap table is on the test part), and the library search named nothing"
     )
+    assert outcome(result) == "named, not confirmed" and outcome(nothing) == "nothing found"
+
+
+def test_a_library_search_whose_joint_fit_diverged_is_not_reported_as_candidates_that_lost_to_f_p():
+    """A newcomer's driven oscillator with v|v| and sign(v) in the library: the search's joint fit of its 12 local
+    candidates diverged, so no candidate was scored; the verdict says so rather than that none beat f_p alone."""
+    joint = {"what": "fit (constant)", "terms": ["1 on dvelocity/dt", "velocity on dvelocity/dt"], "diverged": 1024, "of": 1024}
+    result = Discovery(
+        before=SimpleNamespace(any_significant=True), sentence_before="they differ", search_reason="f_phi named nothing"
+    )
+    result.diverged = [joint]
+    head = verdict(result, Pendulum())[0]
+    assert head == (
+        "no missing effect found in the library: the measurements differ from f_p (they differ), but the library search "
+        "could not score any candidate: the joint fit of its 2 local candidates diverged (report.md, Solves that diverged), "
+        "so no term was compared with f_p alone"
+    ), head
+    assert outcome(result) == "nothing found"
+
+
+def test_a_fit_whose_last_line_search_leaves_the_finite_region_keeps_its_best_iterate(monkeypatch):
+    """L-BFGS may end on coefficients whose solves diverge (its line search ran into them): the fit keeps the lowest
+    loss it evaluated instead of discarding the whole fit as diverged."""
+    pendulum = Pendulum()
+    dgp = pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))])
+    friction = build_library(pendulum, ["velocity"])[2]
+    step = torch.optim.LBFGS.step
+
+    def step_then_leave(self, closure):
+        loss = step(self, closure)
+        with torch.no_grad():
+            for group in self.param_groups:
+                for parameter in group["params"]:
+                    parameter.fill_(float("nan"))
+        return loss
+
+    monkeypatch.setattr(torch.optim.LBFGS, "step", step_then_leave)
+    with DivergenceLog() as log:
+        fitted = fit(pendulum, [friction], [-1.0], "constant", _draws(dgp, 300, 1), _draws(dgp, 100, 2), steps=20)
+    assert log.records == [] and fitted.heldout.finite, "the best iterate is kept, not a divergence"
+    assert abs(fitted.priors[0].value + 1.2) < 0.1 and min(fitted.loss) < fitted.loss[0], (fitted.priors, fitted.loss)
 
 
 def test_constant_terms_are_checked_on_the_test_parts_recorded_inputs_and_an_inexact_fit_is_not_called_closed():
@@ -894,7 +937,8 @@ def test_discover_from_python_as_the_tutorial_does_finds_friction_and_writes_a_c
     exec(block.replace(written, ", ".join(map(repr, settings))), names)
     finder, report = names["finder"], names["report"]
     assert report == json.loads((finder.run_dir_ / "report.json").read_text()) and finder.verdict_ == report["verdict"]
-    assert finder.found_ and [t["feature"] for t in report["terms"]] == ["velocity"], report["terms"]
+    assert finder.found_ and finder.outcome_ == report["outcome"] in OUTCOMES[:4], report["outcome"]
+    assert [t["feature"] for t in report["terms"]] == ["velocity"], report["terms"]
     assert abs(report["terms"][0]["coefficient"] + 1.2) < 0.12 and report["terms"][0]["name"] == "viscous friction"
     named = [(t.feature, t.priors["coefficient"].value) for t in finder.terms_]
     assert named == [("velocity", report["terms"][0]["coefficient"])]
@@ -914,7 +958,7 @@ def test_discover_from_python_as_the_tutorial_does_finds_friction_and_writes_a_c
         cwd=tmp_path, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert fit.returncode == 0, fit.stderr[-2000:]
-    assert fit.stderr.strip().splitlines()[-1].startswith("otgb fit: results in runs/augmented/version_0")
+    assert fit.stdout.strip().splitlines()[-1].startswith("otgb fit: results in runs/augmented/version_0")
 
 
 @pytest.mark.slow

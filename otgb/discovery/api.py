@@ -27,7 +27,9 @@ class MissingEffect:
 
     After :meth:`fit`:
         verdict_: the report's verdict sentence (gap closed, named but not confirmed, partly closed, or nothing found).
-        found_: whether terms were named and kept.
+        outcome_: which verdict: "gap closed", "found, not exactly", "named, not confirmed", "partly found" (the
+            library terms that came closest, not the missing effect itself), "nothing found" or "nothing detected".
+        found_: whether terms were named and kept (any outcome but the last two).
         confirmed_: whether the test part confirms them (the gap closed on a part that tells f_p apart).
         terms_: the kept terms, :class:`otgb.physics.LibraryTerm` with their fitted coefficient priors.
         augmented_physics_: f_p with the kept terms added (an :class:`otgb.physics.Augmented`), or None.
@@ -53,7 +55,7 @@ class MissingEffect:
         finished = discover_run(args)
         self.run_dir_, self.result_, self.report_ = finished.run_dir, finished.result, finished.report
         self.verdict_, self.found_ = self.report_["verdict"], finished.result.found
-        self.confirmed_ = self.report_["confirmed"]
+        self.confirmed_, self.outcome_ = self.report_["confirmed"], self.report_["outcome"]
         self.terms_ = finished.result.fitted.terms() if self.found_ else []
         self.augmented_physics_ = finished.result.fitted.model(finished.physics) if self.found_ else None
         return self

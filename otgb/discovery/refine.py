@@ -272,7 +272,8 @@ def fit(
     from the priors and the coefficients' noise drawn once; against at most ``batch`` measured
     ones), so the discrepancy is a smooth deterministic function of the prior's parameters and
     L-BFGS (``steps`` iterations, strong-Wolfe line search) can follow the narrow valleys that
-    correlated terms make.
+    correlated terms make. Where its last step leaves the prior's parameters non-finite (a line search
+    that ran into coefficients whose solves diverge), the fit keeps the best iterate it evaluated.
     """
     prior = CoefficientPrior(family, init, scales)
     model = Augmented(base, [LibraryTerm(c.feature, c.component, Constant(v)) for c, v in zip(candidates, init)])
@@ -281,6 +282,7 @@ def fit(
     target, x0, theta, noise = Target.of(sample.targets), sample.x0, sample.theta, sample.noise
     optimiser = torch.optim.LBFGS(prior.parameters(), lr=1, max_iter=steps, max_eval=2 * steps, line_search_fn="strong_wolfe")
     losses: list[float] = []
+    best: list[Tensor] = []  # the parameters of the lowest finite loss evaluated
 
     def closure() -> Tensor:
         optimiser.zero_grad()
@@ -289,17 +291,27 @@ def fit(
         if not torch.isfinite(loss):  # trajectories diverged, or grew so large that their distances overflow
             return torch.tensor(DIVERGED_LOSS)
         loss.backward()
+        if not losses or float(loss) < min(losses):
+            best[:] = [p.detach().clone() for p in prior.parameters()]
         losses.append(float(loss.detach()))
         return loss
 
     optimiser.step(closure)
-    if not losses or not (torch.isfinite(prior.centre).all() and torch.isfinite(prior.width).all()):
+    if losses and not prior_is_finite(prior):
+        with torch.no_grad():
+            for parameter, value in zip(prior.parameters(), best):
+                parameter.copy_(value)
+    if not losses or not prior_is_finite(prior):
         diverged(f"fit ({family})", term_names(candidates), n, n)
         priors = [Constant(v) for v in init]
         return FittedTerms(family, list(candidates), priors, Scores.diverged(HELDOUT_REPEATS), losses, list(init), scales)
     priors = prior.priors()
     scored = discrepancies(base, candidates, priors, heldout, seed) if score else Scores([])
     return FittedTerms(family, list(candidates), priors, scored, losses, list(init), scales)
+
+
+def prior_is_finite(prior: CoefficientPrior) -> bool:
+    return bool(torch.isfinite(prior.centre).all() and torch.isfinite(prior.width).all())
 
 
 @dataclass

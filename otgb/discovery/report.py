@@ -56,18 +56,34 @@ OUTSIDE_THE_LIBRARY = (
 )
 
 
-def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
-    """The verdict in parts, the answer first: one of five (the gap closed, found but not exact on the recorded
-    inputs, named but not confirmed, partly closed, nothing found or detected) with its numbers; then how strongly
-    the measurements prefer each named term over its closest alternative, and the flags of implausible terms.
-    ``report.json``'s ``verdict`` joins them with "; "."""
+OUTCOMES = ("gap closed", "found, not exactly", "named, not confirmed", "partly found", "nothing found", "nothing detected")
+
+
+def outcome(result: Discovery) -> str:
+    """Which of :data:`OUTCOMES` the verdict is (``report.json``'s ``outcome``): "partly found" names the terms
+    that came closest, not the missing effect itself."""
     if not result.before.any_significant:
-        return ["no missing effect detected: " + result.sentence_before]
+        return "nothing detected"
     if not result.found:
+        return "nothing found"
+    if (closed_on_test(result) and test_part_blind(result)) or gap_closed(result.gap) <= 0:
+        return "named, not confirmed"
+    if closed_on_test(result):
+        return "gap closed"
+    return "found, not exactly" if result.after is not None and not result.after.any_significant else "partly found"
+
+
+def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
+    """The verdict in parts, the answer first: one of :data:`OUTCOMES` (:func:`outcome`) with its numbers; then how
+    strongly the measurements prefer each named term over its closest alternative, and the flags of implausible
+    terms. ``report.json``'s ``verdict`` joins them with "; "."""
+    kind = outcome(result)
+    if kind == "nothing detected":
+        return ["no missing effect detected: " + result.sentence_before]
+    if kind == "nothing found":
+        why = unscored_search(result) or "no candidate term fits the validation part better than f_p alone by two standard errors"
         return [
-            "no missing effect found in the library: the measurements differ from f_p ("
-            + result.sentence_before
-            + "), but no candidate term fits the validation part better than f_p alone by two standard errors",
+            f"no missing effect found in the library: the measurements differ from f_p ({result.sentence_before}), but {why}",
             OUTSIDE_THE_LIBRARY,
             *undertrained_note(result, "and the library search named nothing"),
         ]
@@ -81,16 +97,14 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
         for c, p in _terms(result)
     )
     removes, closes = ("removes", "closes") if len(_terms(result)) == 1 else ("remove", "close")
-    agree = result.after is not None and not result.after.any_significant
-    closed = agree and not inexact(result)
-    blind = test_part_blind(result) if closed else None
+    blind = test_part_blind(result) if kind == "named, not confirmed" and closed_on_test(result) else None
     if blind:
         answer = [
             f"missing effect named, not confirmed: {names}, but the {len(result.draws['f_p'])} test trajectories cannot "
             f"tell even f_p from the measurements ({blind}), so their agreeing with the augmented physics confirms "
             "nothing: more measurements are needed to confirm it"
         ]
-    elif gap_closed(result.gap) <= 0:
+    elif kind == "named, not confirmed":
         energy = {name: result.gap[name]["energy"] for name in ("augmented", "f_p")}
         answer = [
             f"missing effect named, not confirmed: {names} fit the validation part better than f_p alone, but on the "
@@ -99,13 +113,13 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
             result.sentence_after,
             OUTSIDE_THE_LIBRARY,
         ]
-    elif closed:
+    elif kind == "gap closed":
         answer = [
             f"missing effect found, the gap is closed as far as the test part can tell: {names} {removes} "
             f"{share_removed(result)}, and no test tells the augmented physics from them",
             result.sentence_after,
         ]
-    elif agree:  # the distributions agree, the recorded inputs do not
+    elif kind == "found, not exactly":  # the distributions agree, the recorded inputs do not
         answer = [
             f"missing effect found, not exactly: {names} {removes} {share_removed(result)} and the distribution tests "
             "see no difference on the test part, but solved on its recorded inputs the augmented physics misses the "
@@ -128,6 +142,21 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
             f"simulated trajectories ({worst['what']}): some inputs blow up with these coefficients"
         )
     return parts + undertrained_note(result, "the terms come from the library search")
+
+
+def unscored_search(result: Discovery) -> str | None:
+    """What the verdict says when the library search ran but scored no model (its joint fit of the local candidates
+    diverged, or the library had none), rather than that no candidate beat f_p; None when it scored some or did
+    not run."""
+    if result.search_reason is None or result.search:
+        return None
+    joint = [d for d in result.diverged if d["what"].startswith("fit") and len(d["terms"]) > 1]
+    if joint:
+        return (
+            f"the library search could not score any candidate: the joint fit of its {len(joint[0]['terms'])} local "
+            "candidates diverged (report.md, Solves that diverged), so no term was compared with f_p alone"
+        )
+    return "the library holds no local candidate for the search, and f_phi's regression named nothing that held"
 
 
 def undertrained_note(result: Discovery, so: str) -> list[str]:
@@ -159,8 +188,13 @@ def share_removed(result: Discovery) -> str:
 
 def confirmed(result: Discovery) -> bool:
     """Whether the test part confirms the named terms: the gap closed there, on a part that tells f_p apart."""
-    closed = result.found and result.after is not None and not result.after.any_significant and not inexact(result)
-    return bool(closed and not test_part_blind(result))
+    return bool(result.found and closed_on_test(result) and not test_part_blind(result))
+
+
+def closed_on_test(result: Discovery) -> bool:
+    """Whether no test on the test part tells the augmented physics from the measurements: neither the disagreement
+    map nor, where the file recorded the inputs, the paired check."""
+    return result.after is not None and not result.after.any_significant and not inexact(result)
 
 
 def inexact(result: Discovery) -> bool:
@@ -278,6 +312,7 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
             }
         )
     return {
+        "outcome": outcome(result),
         "found": result.found,
         "confirmed": confirmed(result),
         "verdict": "; ".join(parts),
