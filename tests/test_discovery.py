@@ -1,6 +1,7 @@
 """Missing-effect discovery: the library term, the augmented physics, locate, name, add, and `otgb discover`."""
 
 import json
+import logging
 import math
 import re
 import subprocess
@@ -22,7 +23,7 @@ from otgb.discovery.evidence import Comparison, choose_swap, weigh
 from otgb.discovery.intervals import sandwich_intervals
 from otgb.discovery.library import Candidate, build_library, physical_name
 from otgb.discovery.locate import describe, locate, permutation_energy
-from otgb.discovery.log import DivergenceLog, rounded, short
+from otgb.discovery.log import DivergenceLog, OncePerModel, diverged, rounded, short
 from otgb.discovery.paired import paired_check
 from otgb.discovery.refine import (
     FAMILIES,
@@ -788,7 +789,9 @@ def test_a_forward_route_still_improving_at_six_terms_is_cut_short_and_hands_ove
     kept, dropped, truncated = workflow.add_step([selection], {}, fitting)
     assert tried == [1, 2, 3, 4, 5, 6] and truncated and len(kept.candidates) == workflow.MAX_FORWARD_TERMS
     assert [d["feature"] for d in dropped] == ["angle^3", "velocity^3"]
-    assert "cut short" in workflow.search_reason(Pendulum(), kept, truncated, torch.zeros(0), DiscoverySettings(**FAST))
+    assert "cut short" in workflow.search_reason(Pendulum(), kept, truncated, torch.zeros(0), DiscoverySettings(**FAST), False)
+    reason = partial(workflow.search_reason, Pendulum(), None, False, torch.zeros(0), DiscoverySettings(**FAST))
+    assert reason(False) == "f_phi named nothing" and "f_phi's terms are not used" in reason(True), "undertrained: unused"
 
 
 def test_the_search_replaces_a_longer_model_the_data_cannot_tell_from_it():
@@ -1143,3 +1146,22 @@ def test_the_next_round_keeps_the_measurements_noise():
     config = {"discover": {"seed": 2}, "data": data, "trainer": {}}
     next_round = augmented_config(config, Pendulum(), SimpleNamespace(found=False))
     assert next_round["data"]["measurement_noise"] == 0.03 and "discover" not in next_round
+
+
+def test_the_terminal_shows_a_models_divergence_once_per_kind_of_step_and_the_report_keeps_them_all():
+    shown: list[str] = []
+    handler = logging.Handler()
+    handler.emit = lambda record: shown.append(record.getMessage())
+    handler.addFilter(OncePerModel())
+    logging.getLogger("otgb.discover").addHandler(handler)
+    try:
+        with DivergenceLog() as log:
+            for low in (0.1, 0.2, 0.3):
+                diverged("score", ["velocity on dvelocity/dt"], 1, 140, coefficients=[f"Uniform(low={low}, high=0.5)"])
+            diverged("fit (uniform)", ["velocity on dvelocity/dt"], 1024, 1024)
+            diverged("fit (normal)", ["velocity on dvelocity/dt"], 1024, 1024)
+            diverged("score", ["angle on dvelocity/dt"], 2, 140)
+    finally:
+        logging.getLogger("otgb.discover").removeHandler(handler)
+    assert len(log.records) == 6 and len(shown) == 3, shown
+    assert [m.split(":")[0] for m in shown] == ["score", "fit (uniform)", "score"]

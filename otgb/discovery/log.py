@@ -3,7 +3,8 @@
 Everything goes to the ``otgb.discover`` logger: progress at INFO, a model whose solve produced
 NaN/Inf (a candidate, a resample's refit, a verification) at WARNING with the details in the
 record's ``divergence`` attribute. ``otgb discover`` shows both on stderr
-(:func:`show_on_stderr`), away from the progress bar's stream; a notebook user configures
+(:func:`show_on_stderr`; a model's divergence once per kind of step, :class:`OncePerModel`), away
+from the progress bar's stream; a notebook user configures
 ``logging`` as usual. :class:`DivergenceLog` collects the divergences of one run for its report.
 """
 
@@ -57,6 +58,24 @@ def diverged(
     )
 
 
+class OncePerModel(logging.Filter):
+    """Lets through the first divergence of each model (f_p plus the same terms) in each kind of step ("score",
+    "fit", ...); its repeats with other coefficients (a family's or an interval's fits) go to the report only."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: set[tuple[str, tuple[str, ...]]] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        details = getattr(record, "divergence", None)
+        if details is None:
+            return True
+        key = (details["what"].split(" (")[0], tuple(details["terms"]))
+        first = key not in self.seen
+        self.seen.add(key)
+        return first
+
+
 class _Elapsed(logging.Formatter):
     def format(self, record: logging.LogRecord) -> str:
         return f"otgb discover [{(record.created - _STARTED) / 60:.1f} min]: {record.getMessage()}"
@@ -68,6 +87,7 @@ def show_on_stderr() -> None:
         return
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(_Elapsed())
+    handler.addFilter(OncePerModel())
     handler.otgb_discover = True
     logger.addHandler(handler)
     logger.setLevel(logging.INFO)

@@ -519,7 +519,8 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
     if selected and result.undertrained is None:
         kept, result.dropped, truncated = add_step(result.selections, designs, fitting)
         progress(f"kept {[c.feature for c in kept.candidates]}, coefficients {short(kept.priors)}")
-    result.search_reason = search_reason(physics, kept, truncated, fitting.val, settings)
+    unused = bool(selected) and result.undertrained is not None
+    result.search_reason = search_reason(physics, kept, truncated, fitting.val, settings, unused)
     if result.search_reason is not None:
         kept = search_step(kept, result, designs, fitting)
     if kept is not None:
@@ -564,12 +565,13 @@ def paired_after(fitted: FittedTerms, physics: PhysicsModel, data: Measurements,
 
 
 def search_reason(
-    physics: PhysicsModel, kept: FittedTerms | None, truncated: bool, val: Tensor, settings: DiscoverySettings
+    physics: PhysicsModel, kept: FittedTerms | None, truncated: bool, val: Tensor, settings: DiscoverySettings, unused: bool
 ) -> str | None:
-    """Why the library search runs, or None: f_phi's route named nothing, was truncated (:func:`add_step`), or the
-    physics it augmented still disagrees with the validation measurements."""
+    """Why the library search runs, or None: f_phi's terms were not used (``unused``: an undertrained grey-box), its
+    route named nothing, was truncated (:func:`add_step`), or the physics it augmented still disagrees with the
+    validation measurements."""
     if kept is None:
-        return "f_phi named nothing"
+        return "the grey-box is no better than f_p alone, so f_phi's terms are not used" if unused else "f_phi named nothing"
     if truncated:
         return f"f_phi's route reached {MAX_FORWARD_TERMS} terms and was cut short"
     if locate_step(kept.model(physics), val, settings, "augmented-check").any_significant:
