@@ -491,7 +491,9 @@ def markdown(report: dict[str, Any], facts: dict[str, Any]) -> str:
         "",
         "Reference: one half of the test measurements against the other, the noise floor of these metrics (half-size samples: "
         "the biased paper-code MMD sits about twice as high as a full-size comparison at the floor; C2ST and the unbiased "
-        "energy distance keep their level).",
+        "energy distance keep their level). All on the raw observations, each model drawn afresh from the priors: "
+        "`otgb test` scores the same test part on rows standardised per time step, so its metrics.md gives other "
+        "numbers, and another share of the gap closed.",
         "",
         "![distributions](figures/distributions.png)",
         "",
