@@ -29,7 +29,6 @@ from typing import Any
 import torch
 from lightning import LightningModule
 from lightning.pytorch.cli import LRSchedulerCallable, OptimizerCallable
-from lightning.pytorch.utilities import rank_zero_info
 from torch import Tensor, nn
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
@@ -415,11 +414,6 @@ class MapTraining(LightningModule):
 
     def on_test_epoch_start(self) -> None:
         self._key_draws("test")
-        if self.trainer.ckpt_path is None and self.global_step == 0 and any(True for _ in self.transport_map.parameters()):
-            rank_zero_info(
-                "otgb test: no --ckpt_path: scoring the map as initialised, untrained "
-                "(give --ckpt_path=<run>/checkpoints/best-step=*.ckpt or last.ckpt)"
-            )
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> dict[str, Tensor]:
         return {"y_hat": self._evaluation_draws(batch, "validation")}

@@ -602,5 +602,9 @@ def test_test_without_a_checkpoint_says_it_scores_an_untrained_map_and_f_p_alone
         caplog.clear()
         main(["test", *_args(tmp_path, "--evaluation.reference_repeats=1", "--model.transport_map=otgb.models.IdentityMap")])
         assert untrained not in caplog.text, "nothing to train: nothing to say"
+        main(["fit", *_args(tmp_path, "--trainer.max_steps=3")])
+        caplog.clear()
+        main(["test", *_args(tmp_path, "--evaluation.reference_repeats=1"), f"--ckpt_path={next(tmp_path.rglob('last.ckpt'))}"])
+        assert untrained not in caplog.text and "otgb: evaluation mode" in caplog.text
     finally:
         logging.getLogger("lightning.pytorch.utilities.rank_zero").removeHandler(caplog.handler)

@@ -490,10 +490,15 @@ def test_a_library_search_whose_joint_fit_diverged_is_not_reported_as_candidates
     head = verdict(result, Pendulum())[0]
     assert head == (
         "no missing effect found in the library: the measurements differ from f_p (they differ), but the library search "
-        "could not score any candidate: the joint fit of its 2 local candidates diverged (report.md, Solves that diverged), "
-        "so no term was compared with f_p alone"
+        "could not score any candidate: the joint model of its 2 local candidates diverged (fit (constant); report.md, "
+        "Solves that diverged), so no term was compared with f_p alone"
     ), head
     assert outcome(result) == "nothing found"
+    result.diverged = [joint | {"what": "score", "diverged": 3, "of": 30}, {**joint, "terms": ["velocity on dvelocity/dt"]}]
+    assert "its 2 local candidates diverged (score; " in verdict(result, Pendulum())[0], "its fit ended finite, its score not"
+    result.diverged = []
+    assert verdict(result, Pendulum())[0].endswith(", but the library search scored no candidate model, so no term was "
+                                                   "compared with f_p alone")  # fmt: skip
 
 
 def test_a_fit_whose_last_line_search_leaves_the_finite_region_keeps_its_best_iterate(monkeypatch):

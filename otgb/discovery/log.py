@@ -82,9 +82,14 @@ class _Elapsed(logging.Formatter):
 
 
 def show_on_stderr() -> None:
-    """Print the ``otgb.discover`` records (INFO and up) on stderr with the minutes since start (once per process)."""
-    if any(getattr(h, "otgb_discover", False) for h in logger.handlers):
-        return
+    """Print the ``otgb.discover`` records (INFO and up) on stderr with the minutes since start (the handler once per
+    process; each run's divergences shown afresh)."""
+    for handler in logger.handlers:
+        if getattr(handler, "otgb_discover", False):
+            for once in handler.filters:
+                if isinstance(once, OncePerModel):
+                    once.seen.clear()
+            return
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(_Elapsed())
     handler.addFilter(OncePerModel())

@@ -145,18 +145,18 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
 
 
 def unscored_search(result: Discovery) -> str | None:
-    """What the verdict says when the library search ran but scored no model (its joint fit of the local candidates
-    diverged, or the library had none), rather than that no candidate beat f_p; None when it scored some or did
-    not run."""
+    """What the verdict says when the library search ran but scored no model, rather than that no candidate beat f_p;
+    None when it scored some or did not run. The joint model of the local candidates is the divergence record with the
+    most terms (its fit or its score on the validation part)."""
     if result.search_reason is None or result.search:
         return None
-    joint = [d for d in result.diverged if d["what"].startswith("fit") and len(d["terms"]) > 1]
-    if joint:
+    joint = max((d for d in result.diverged if len(d["terms"]) > 1), key=lambda d: len(d["terms"]), default=None)
+    if joint is not None:
         return (
-            f"the library search could not score any candidate: the joint fit of its {len(joint[0]['terms'])} local "
-            "candidates diverged (report.md, Solves that diverged), so no term was compared with f_p alone"
+            f"the library search could not score any candidate: the joint model of its {len(joint['terms'])} local "
+            f"candidates diverged ({joint['what']}; report.md, Solves that diverged), so no term was compared with f_p alone"
         )
-    return "the library holds no local candidate for the search, and f_phi's regression named nothing that held"
+    return "the library search scored no candidate model, so no term was compared with f_p alone"
 
 
 def undertrained_note(result: Discovery, so: str) -> list[str]:

@@ -571,7 +571,11 @@ def search_reason(
     route named nothing, was truncated (:func:`add_step`), or the physics it augmented still disagrees with the
     validation measurements."""
     if kept is None:
-        return "the grey-box is no better than f_p alone, so f_phi's terms are not used" if unused else "f_phi named nothing"
+        return (
+            "the grey-box does not beat f_p alone by two standard errors, so f_phi's terms are not used"
+            if unused
+            else "f_phi named nothing"
+        )
     if truncated:
         return f"f_phi's route reached {MAX_FORWARD_TERMS} terms and was cut short"
     if locate_step(kept.model(physics), val, settings, "augmented-check").any_significant:
