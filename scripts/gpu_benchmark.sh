@@ -58,7 +58,7 @@ keep() { cp "$work/$1/steps.json" "$out/steps-$1.json" 2>/dev/null; }
     keep gpu
 } >"$out/gpu.log" 2>&1
 
-limited 90 gpu python -m pytest -m gpu tests/test_gpu.py -q -p no:cacheprovider >"$out/pytest-gpu.log" 2>&1
+limited 90 gpu python -m pytest -m gpu tests/test_gpu.py -q -n0 -p no:cacheprovider >"$out/pytest-gpu.log" 2>&1
 limited 30 gpu python scripts/profile_step.py --config configs/pendulum.yaml --device cuda --steps 10 --trace 30 \
     >"$out/profile-gpu.log" 2>&1
 wait

@@ -8,6 +8,17 @@ from lightning import Callback
 from otgb.physics import Constant, Pendulum, ViscousFriction
 
 
+def pytest_configure(config) -> None:
+    """Under pytest-xdist each worker computes on its share of the cores, and so do the commands a test starts:
+    torch's default of one thread per core in every worker would put more threads than cores on the machine."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers > 1:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        threads = max(1, cores // workers)
+        os.environ["OMP_NUM_THREADS"] = str(threads)
+        torch.set_num_threads(threads)
+
+
 @pytest.fixture
 def pendulum() -> Pendulum:
     return Pendulum()

@@ -676,6 +676,7 @@ def _last_interval(pendulum, measured):
     return interval
 
 
+@pytest.mark.slow
 def test_evidence_adds_the_second_effect_that_forward_selection_missed():
     """Adding drag fits the validation measurements better by two standard errors and its interval excludes zero; at
     this size (500 training trajectories, 256 simulated per fit) friction comes out within 10 % and drag within 15 %."""
@@ -930,9 +931,10 @@ def test_discover_refuses_bad_input_in_one_line_and_writes_nothing(tmp_path, mis
     assert not (tmp_path / "runs").exists(), "nothing written"
 
 
-def test_discover_from_python_as_the_tutorial_does_finds_friction_and_writes_a_config_fit_accepts(tmp_path, monkeypatch):
+def test_discover_from_python_as_the_tutorial_does_finds_friction_and_writes_a_config_fit_accepts(tmp_path, monkeypatch, capfd):
     """docs/discover.md's Python block as written, at a small budget: the grey-box trained, its f_phi named, no
-    stand-in; the attributes agree with report.json, and `otgb fit` takes augmented.yaml."""
+    stand-in; the attributes agree with report.json, no known-harmless third-party line, and `otgb fit` takes
+    augmented.yaml."""
     _export(tmp_path, -1.2)
     block = re.findall(r"```python\n(.*?)\n```", (ROOT / "docs" / "discover.md").read_text(), re.S)[0]
     settings = [str(ROOT / "configs" / "pendulum.yaml"), "--data.simulation_budget=16000", "--trainer.val_check_interval=250"]
@@ -944,6 +946,8 @@ def test_discover_from_python_as_the_tutorial_does_finds_friction_and_writes_a_c
     names: dict = {}
     exec(block.replace(written, ", ".join(map(repr, settings))), names)
     finder, report = names["finder"], names["report"]
+    printed = capfd.readouterr()
+    assert "litlogger" not in printed.err + printed.out and "TPU available" not in printed.err + printed.out
     assert report == json.loads((finder.run_dir_ / "report.json").read_text()) and finder.verdict_ == report["verdict"]
     assert finder.found_ and finder.outcome_ == report["outcome"] in OUTCOMES[:4], report["outcome"]
     assert [t["feature"] for t in report["terms"]] == ["velocity"], report["terms"]

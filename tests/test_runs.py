@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from otgb.runs import asks_for_gpu, fit_and_test
 
 ROOT = Path(__file__).parents[1]
@@ -18,6 +20,7 @@ def _tiny(cache: Path) -> list[str]:
     return [*small, "--evaluation.mmdagg_permutations=200", "--components.enabled=false"]
 
 
+@pytest.mark.slow
 def test_fit_and_test_returns_a_finished_run_as_it_is_and_resumes_a_fit_from_its_last_checkpoint(tmp_path):
     args = ["--config", CONFIG, "--seed_everything=3", "--data.simulation_budget=64", "--data.batch_size=16", *_tiny(tmp_path)]
     first = fit_and_test(tmp_path / "run", args)
@@ -32,6 +35,7 @@ def test_fit_and_test_returns_a_finished_run_as_it_is_and_resumes_a_fit_from_its
     assert again["model"]["abs_err"] == first["model"]["abs_err"], "the same best checkpoint, tested again"
 
 
+@pytest.mark.slow
 def test_budget_sweep_spreads_each_budget_over_the_steps_and_writes_its_table_into_a_page(tmp_path):
     page = tmp_path / "page.md"
     page.write_text("# Results\n\n<!-- results: scripts/budget_sweep.py -->\nSTALE TABLE\n<!-- end results -->\n\nafter\n")

@@ -211,6 +211,7 @@ def _fit(tmp_path: Path, solver: str) -> list[dict]:
     return _rows(tmp_path / solver / "run" / "version_0")
 
 
+@pytest.mark.slow
 def test_a_50_step_pendulum_fit_gives_the_same_curve_on_the_compiled_path(tmp_path):
     reference, fast = _fit(tmp_path, "torchdiffeq"), _fit(tmp_path, "compiled")
     for key in ("train/map_loss", "train/critic_loss", "val/abs_err"):

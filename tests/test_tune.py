@@ -125,6 +125,7 @@ def _worker_in_its_second_trial(tmp_path: Path, steps: int) -> subprocess.Popen:
     return worker
 
 
+@pytest.mark.slow
 def test_sigterm_stops_a_trial_and_the_same_command_finishes_the_study_without_losing_or_repeating(tmp_path):
     worker = _worker_in_its_second_trial(tmp_path, steps=18)
     worker.send_signal(signal.SIGTERM)

@@ -47,6 +47,7 @@ from otgb.discovery.workflow import (
 )
 from otgb.parser_errors import ConciseParser
 from otgb.physics.base import PhysicsModel
+from otgb.quiet import quiet_known_harmless
 from otgb.runs import load_weights
 from otgb.training import MapTraining
 
@@ -96,6 +97,7 @@ def discover(args: list[str]) -> Path:
 
 def discover_run(args: list[str]) -> Finished:
     """The workflow with ``otgb discover`` arguments: report, figures and ``augmented.yaml`` written."""
+    quiet_known_harmless()  # as the otgb command, when MissingEffect calls it from Python
     with warnings.catch_warnings():  # the arguments come from the command line, after the word "discover"
         warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
         parser = {"prog": "otgb discover", "description": _description(), "formatter_class": DescribedHelp}
