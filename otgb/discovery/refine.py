@@ -291,9 +291,10 @@ def fit(
         if not torch.isfinite(loss):  # trajectories diverged, or grew so large that their distances overflow
             return torch.tensor(DIVERGED_LOSS)
         loss.backward()
-        if not losses or float(loss) < min(losses):
+        value = float(loss.detach())
+        if not losses or value < min(losses):
             best[:] = [p.detach().clone() for p in prior.parameters()]
-        losses.append(float(loss.detach()))
+        losses.append(value)
         return loss
 
     optimiser.step(closure)
