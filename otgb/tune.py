@@ -350,10 +350,12 @@ class Study:
         if len(self.space) > 1:
             plots["importances.png"] = optuna.visualization.matplotlib.plot_param_importances
         for name, plot in plots.items():
-            try:
-                figure = plot(self.study).figure
-            except (ValueError, RuntimeError):  # too few completed trials for an importance
-                continue
+            with warnings.catch_warnings():  # from one completed trial Optuna draws every importance equal: no figure
+                warnings.filterwarnings("error", message=".*importances will be equal")
+                try:
+                    figure = plot(self.study).figure
+                except (ValueError, RuntimeError, UserWarning):  # too few completed trials for an importance
+                    continue
             figure.set_size_inches(10, 4.5)  # room for the config keys' full names
             figure.tight_layout()
             save(figure, self.directory / name)
