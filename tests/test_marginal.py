@@ -30,8 +30,8 @@ def test_one_feature_by_sorting_equals_the_u_statistic_by_hand_with_its_gradient
         cross = cdist(a, b)
         unpaired = 2 * cross.mean() - cdist(a, a).sum() / (n * (n - 1)) - cdist(b, b).sum() / (n * (n - 1))
         paired = unpaired + 2 * cross.mean() / (n - 1) - 2 * cross.trace() / (n * (n - 1))
-        assert float(batched_energy(p, q)[g]) == pytest.approx(unpaired, rel=1e-9)
-        assert float(batched_energy(p, q, paired=True)[g]) == pytest.approx(paired, rel=1e-9)
+        assert float(batched_energy(p, q)[g].detach()) == pytest.approx(unpaired, rel=1e-9)
+        assert float(batched_energy(p, q, paired=True)[g].detach()) == pytest.approx(paired, rel=1e-9)
         assert row_distance_sums(p[g, :, 0], q[g, :, 0]).detach().numpy() == pytest.approx(cross.sum(0), rel=1e-12)
     (gradient,) = torch.autograd.grad(batched_energy(p, q).sum(), p)
     # the matrix path (the value twice: every distance times sqrt(2)), about 0: its matrix product loses digits at 100
