@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from otgb.discovery.chunked import Simulate, backward_in_chunks
 from otgb.discovery.log import diverged
 from otgb.discovery.refine import FitSample, FittedTerms, batched_discrepancy, centre, row_terms, term_names
 from otgb.physics.augmented import Augmented
@@ -87,18 +88,26 @@ def sandwich_covariance(
     sample = FitSample.draw(base, measured, fitted.family, len(fitted.candidates), batch, seed)
     steps = STEP * _sizes(fitted, p)
     variants = torch.cat([p[None], p + torch.diag(steps), p - torch.diag(steps)]).requires_grad_()  # (1 + 2P, P)
-    simulated = _simulate(base, fitted, variants, sample)
-    if simulated is None:
-        return None
     targets = sample.targets.double()
-    losses = batched_discrepancy(simulated, targets.expand(len(variants), *targets.shape))
-    gradients = torch.autograd.grad(losses.sum(), variants)[0]  # row v: grad L at variants[v]
+    V, n = len(variants), len(sample.x0)
+
+    def losses(simulated: Tensor) -> Tensor:  # the sum over variants of each one's discrepancy
+        return batched_discrepancy(simulated.unflatten(0, (V, n)), targets.expand(V, *targets.shape)).sum()
+
+    total, simulated = backward_in_chunks(_simulator(base, fitted, variants, sample), V * n, losses)
+    finite = torch.isfinite(simulated.flatten(1)).all(1)
+    if not bool(finite.all()):
+        diverged("interval", term_names(fitted.candidates), int((~finite).sum()), V * n, None)
+        return None
+    if not bool(torch.isfinite(total)):
+        return None
+    gradients = variants.grad  # row v: grad L at variants[v]
+    simulated = simulated.unflatten(0, (V, n))
     P = len(p)
     hessian = (gradients[1 : 1 + P] - gradients[1 + P :]) / (2 * steps[:, None])
     hessian = (hessian + hessian.T) / 2
     if not bool(torch.linalg.eigvalsh(hessian).min() > 0):
         return None
-    simulated = simulated.detach()
     a, b = _influences(simulated[1 : 1 + P], simulated[1 + P :], targets, steps)
     variance = _covariance(a) / len(a) + _covariance(b) / len(b)
     inverse = torch.linalg.inv(hessian)
@@ -118,21 +127,21 @@ def _covariance(rows: Tensor) -> Tensor:
     return centred.T @ centred / (len(rows) - 1)
 
 
-def _simulate(base: PhysicsModel, fitted: FittedTerms, variants: Tensor, sample: FitSample) -> Tensor | None:
-    """Trajectories (V, n, T, *obs) of the fitted terms with each row of ``variants`` as p, the fit's inputs and noise."""
+def _simulator(base: PhysicsModel, fitted: FittedTerms, variants: Tensor, sample: FitSample) -> Simulate:
+    """The trajectories (rows, T, *obs) of rows of the flattened (variant, trajectory) grid: the fitted terms with
+    ``variants[v]`` as p, the fit's inputs and noise of trajectory i, at row v * n + i."""
     model = Augmented(base, [LibraryTerm(c.feature, c.component, Constant(0.0)) for c in fitted.candidates])
     k, n = len(fitted.candidates), len(sample.x0)
-    centres = variants[:, :k]
-    widths = variants[:, k:] if fitted.family != "constant" else torch.zeros_like(centres)
-    coefficients = centres[:, None] + widths[:, None] * sample.noise.double()[None]  # (V, n, K)
-    repeat = lambda t: t.repeat(len(variants), *[1] * (t.dim() - 1))  # noqa: E731
-    theta = torch.cat([repeat(sample.theta), coefficients.flatten(0, 1).float()], 1)
-    observed = model.observe(model.solve(model.vector_field, repeat(sample.x0), theta)).double()
-    finite = torch.isfinite(observed.detach().flatten(1)).all(1)
-    if not bool(finite.all()):
-        diverged("interval", term_names(fitted.candidates), int((~finite).sum()), len(finite), None)
-        return None
-    return observed.unflatten(0, (len(variants), n))
+
+    def simulate(rows: slice) -> Tensor:
+        index = torch.arange(len(variants) * n)[rows]
+        variant, trajectory = variants[index // n], index % n
+        widths = variant[:, k:] if fitted.family != "constant" else torch.zeros_like(variant[:, :k])
+        coefficients = variant[:, :k] + widths * sample.noise.double()[trajectory]
+        theta = torch.cat([sample.theta[trajectory], coefficients.float()], 1)
+        return model.observe(model.solve(model.vector_field, sample.x0[trajectory], theta)).double()
+
+    return simulate
 
 
 def _pair_terms(s: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:

@@ -30,6 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from otgb.discovery.chunked import backward_in_chunks
 from otgb.discovery.library import Candidate
 from otgb.discovery.log import diverged
 from otgb.metrics.energy import batched_energy, cross_row_means, within_means
@@ -284,14 +285,15 @@ def fit(
     losses: list[float] = []
     best: list[Tensor] = []  # the parameters of the lowest finite loss evaluated
 
+    def simulate(rows: slice) -> Tensor:
+        return model.observe(model.solve(model.vector_field, x0[rows], torch.cat([theta[rows], prior.draw(noise[rows])], 1)))
+
     def closure() -> Tensor:
         optimiser.zero_grad()
-        simulated, _ = simulate_finite(model, x0, torch.cat([theta, prior.draw(noise)], dim=1))
-        loss = discrepancy_and_rows(simulated, target)[0] if len(simulated) == n else torch.tensor(float("nan"))
+        loss, _ = backward_in_chunks(simulate, n, lambda simulated: discrepancy_and_rows(simulated, target)[0])
         if not torch.isfinite(loss):  # trajectories diverged, or grew so large that their distances overflow
             return torch.tensor(DIVERGED_LOSS)
-        loss.backward()
-        value = float(loss.detach())
+        value = float(loss)
         if not losses or value < min(losses):
             best[:] = [p.detach().clone() for p in prior.parameters()]
         losses.append(value)

@@ -1,0 +1,73 @@
+"""Exact gradients of a loss of many simulated trajectories, with the autograd graph of only a few in memory.
+
+A distribution-matching loss (:func:`otgb.discovery.refine.discrepancy`) compares every simulated
+trajectory with every other, so it does not split into a sum over chunks of trajectories; but its
+gradient does, by the chain rule. :func:`backward_in_chunks` takes it in two passes:
+
+1. simulate all n trajectories without a graph, evaluate the loss on them and take its gradient
+   g with respect to the trajectories (cheap: the loss is a function of n small arrays);
+2. simulate again, a chunk of trajectories at a time with a graph, and back-propagate g's rows
+   of that chunk, so that the gradients of the parameters the simulation depends on accumulate.
+
+The fixed-step solvers of :class:`otgb.physics.base.PhysicsModel` solve each trajectory on its own
+(no step size shared by the batch), so the second pass reproduces the first and the gradient is
+the whole batch's. The chunk is as large as :data:`GRAPH_BYTES` of saved tensors allow, measured on
+one trajectory: a reaction-diffusion solve with twenty library terms saves ~30 MB per trajectory,
+so a fit of 1024 trajectories in one graph needs ~31 GB.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+GRAPH_BYTES = 1024**3  # the storages autograd keeps for one chunk of simulated trajectories: at most this many bytes
+
+Simulate = Callable[[slice], Tensor]  # the trajectories of the given rows, with a graph where grad is enabled
+
+
+def backward_in_chunks(
+    simulate: Simulate, n: int, loss_of: Callable[[Tensor], Tensor], budget: int | None = None
+) -> tuple[Tensor, Tensor]:
+    """``loss_of(simulate(slice(0, n)))`` and the trajectories, both detached; where the loss is finite, its
+    gradient is accumulated into the ``.grad`` of the leaves that ``simulate`` depends on: in one pass where
+    all n trajectories' graph fits in ``budget`` bytes (default :data:`GRAPH_BYTES`), else in two (module docstring)."""
+    size = chunk_size(simulate, n, budget)
+    with torch.set_grad_enabled(size >= n):
+        simulated = simulate(slice(0, n))
+    leaf = simulated if size >= n else simulated.detach().requires_grad_()
+    loss = loss_of(leaf)
+    if not bool(torch.isfinite(loss)):
+        return loss.detach(), simulated.detach()
+    if size >= n:
+        loss.backward()
+        return loss.detach(), simulated.detach()
+    (gradient,) = torch.autograd.grad(loss, leaf)
+    for start in range(0, n, size):
+        rows = slice(start, min(start + size, n))
+        simulate(rows).backward(gradient[rows])
+    return loss.detach(), simulated
+
+
+def chunk_size(simulate: Simulate, n: int, budget: int | None = None) -> int:
+    """How many of the n trajectories fit in ``budget`` bytes (default :data:`GRAPH_BYTES`) of saved tensors, measured
+    on the first."""
+    budget = GRAPH_BYTES if budget is None else budget
+    per_trajectory = saved_bytes(lambda: simulate(slice(0, 1)))
+    return max(1, min(n, budget // max(per_trajectory, 1)))
+
+
+def saved_bytes(run: Callable[[], object]) -> int:
+    """The bytes of the storages that autograd keeps for the backward pass of ``run()`` (each storage once)."""
+    storages: dict[int, int] = {}
+
+    def pack(tensor: Tensor) -> Tensor:
+        storage = tensor.untyped_storage()
+        storages[storage.data_ptr()] = storage.nbytes()
+        return tensor
+
+    with torch.autograd.graph.saved_tensors_hooks(pack, lambda tensor: tensor):
+        run()
+    return sum(storages.values())
