@@ -98,10 +98,14 @@ class Augmented(PhysicsModel):
     def field(self, state: Tensor, theta: Tensor) -> Tensor:
         base_theta = theta[:, : self.base.theta_dim]
         dstate = self.base.field(state, base_theta)
+        if not len(self.added):
+            return dstate
+        rates, powers = list(dstate.unbind(1)), {}  # per component; each factor's value computed once
         for k, term in enumerate(self.added):
             column = self.base.theta_dim + k
-            dstate = dstate + term(state, theta[:, column : column + 1], self.base, base_theta)
-        return dstate
+            index = self.base.state_names.index(term.component)
+            rates[index] = rates[index] + term.rate(state, theta[:, column : column + 1], self.base, base_theta, powers)
+        return torch.stack(rates, dim=1)
 
     def sample_theta(self, n: int, generator: torch.Generator) -> Tensor:
         """The base model's theta, then one draw of each term's coefficient prior."""

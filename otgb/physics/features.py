@@ -92,14 +92,23 @@ def _grammar_hint(model: object) -> str:
     )
 
 
-def evaluate_feature(factors: tuple[Factor, ...], state: Tensor, theta: Tensor, model: object) -> Tensor:
-    """The feature on states (B, *state_shape) with parameters theta (B, P): shape (B, *grid_shape)."""
+def evaluate_feature(
+    factors: tuple[Factor, ...], state: Tensor, theta: Tensor, model: object, powers: dict[tuple, Tensor] | None = None
+) -> Tensor:
+    """The feature on states (B, *state_shape) with parameters theta (B, P): shape (B, *grid_shape).
+
+    ``powers``: the factors' values already computed on this state and theta (filled in here), so that
+    features evaluated together (an augmented model's terms) compute each ``u^2`` or ``lap(v)`` once.
+    """
+    powers = {} if powers is None else powers
     value = None
     for factor in factors:
         if factor.op == "one":
             return torch.ones_like(state[:, 0])
-        part = _atom(factor, state, theta, model) ** factor.power
-        value = part if value is None else value * part
+        key = (factor.op, factor.name, factor.power)
+        if key not in powers:
+            powers[key] = _atom(factor, state, theta, model) ** factor.power
+        value = powers[key] if value is None else value * powers[key]
     return value
 
 

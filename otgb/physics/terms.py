@@ -145,12 +145,19 @@ class LibraryTerm(Term):
         self._factors = parse_feature(self.feature, model)
 
     def forward(self, state: Tensor, params: Tensor, model: PhysicsModel, theta: Tensor | None = None) -> Tensor:
-        if self._factors is None:
-            self.check_model(model)
-        value = _column(params, state[:, 0]) * evaluate_feature(self._factors, state, theta, model)
+        value = self.rate(state, params, model, theta)
         index = model.state_names.index(self.component)
         parts = [value if i == index else torch.zeros_like(value) for i in range(state.shape[1])]
         return torch.stack(parts, dim=1)
+
+    def rate(
+        self, state: Tensor, params: Tensor, model: PhysicsModel, theta: Tensor | None, powers: dict | None = None
+    ) -> Tensor:
+        """What the term adds to d(component)/dt: (B, *grid); ``powers`` as in
+        :func:`otgb.physics.features.evaluate_feature`."""
+        if self._factors is None:
+            self.check_model(model)
+        return _column(params, state[:, 0]) * evaluate_feature(self._factors, state, theta, model, powers)
 
 
 def coefficient_name(feature: str, component: str) -> str:
