@@ -107,16 +107,15 @@ class CoefficientPrior(torch.nn.Module):
     gives ``v*|v|`` a tiny slope) must still be able to reach its value.
     """
 
-    def __init__(self, family: str, init: list[float], scales: list[float] | None = None, copies: int | None = None) -> None:
+    def __init__(self, family: str, init: list[float], scales: list[float] | None = None) -> None:
         super().__init__()
         init = torch.tensor(init, dtype=torch.float32)
         scale = init.abs() if scales is None else torch.maximum(torch.tensor(scales, dtype=torch.float32), init.abs())
         self.family = family
         self.register_buffer("init", init)
         self.register_buffer("scale", torch.where(scale > 0, scale, torch.ones_like(init)))
-        shape = init.shape if copies is None else (copies, len(init))  # ``copies`` independent priors, fitted at once
-        self.shift = torch.nn.Parameter(torch.zeros(shape))
-        self.raw_width = torch.nn.Parameter(torch.full(shape, -2.0))
+        self.shift = torch.nn.Parameter(torch.zeros_like(init))
+        self.raw_width = torch.nn.Parameter(torch.full_like(init, -2.0))
 
     @property
     def centre(self) -> Tensor:
@@ -128,14 +127,9 @@ class CoefficientPrior(torch.nn.Module):
         that shrinks it to nothing (a coefficient that does not vary) still gives a valid prior."""
         return self.scale * (F.softplus(self.raw_width) + MIN_WIDTH)
 
-    def noise(self, n: int, generator: torch.Generator) -> Tensor:
-        """Standardised draws ([copies,] n, K) that :meth:`draw` maps to coefficients."""
-        return standard_noise(self.family, (*self.shift.shape[:-1], n, len(self.init)), generator)
-
     def draw(self, noise: Tensor) -> Tensor:
-        """Coefficients ([copies,] n, K) for standardised draws ``noise``."""
-        centre = self.centre.unsqueeze(-2)
-        return centre + (torch.zeros_like(noise) if self.family == "constant" else self.width.unsqueeze(-2) * noise)
+        """Coefficients (n, K) for standardised draws ``noise`` (n, K)."""
+        return self.centre + (torch.zeros_like(noise) if self.family == "constant" else self.width * noise)
 
     def priors(self) -> list[Prior]:
         centre, width = self.centre.tolist(), self.width.tolist()
