@@ -33,7 +33,8 @@ def _loss_and_gradient(budget, n=7):
     coefficients = torch.tensor([[0.3, 0.002]]).repeat(n, 1).requires_grad_()
     field, simulate = _field_simulator(n, coefficients)
     target = Target.of(generate_measured(field, 9, 1)["y"].float())
-    loss, simulated = backward_in_chunks(simulate, n, lambda s: discrepancy_and_rows(s, target)[0], budget)
+    size = chunk_size(simulate, n, budget)
+    loss, simulated = backward_in_chunks(simulate, n, lambda s: discrepancy_and_rows(s, target)[0], size)
     return loss, simulated, coefficients.grad
 
 
@@ -65,7 +66,7 @@ def test_a_diverging_simulation_gives_its_loss_without_a_gradient():
     def simulate(rows: slice) -> torch.Tensor:
         return torch.exp(1e4 * coefficients[rows])[:, None, :]
 
-    loss, simulated = backward_in_chunks(simulate, 4, lambda s: (s - 1).abs().mean(), budget=1)
+    loss, simulated = backward_in_chunks(simulate, 4, lambda s: (s - 1).abs().mean(), size=1)
     assert not torch.isfinite(loss) and coefficients.grad is None and simulated.shape == (4, 1, 1)
 
 

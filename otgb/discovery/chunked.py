@@ -28,13 +28,10 @@ GRAPH_BYTES = 1024**3  # the storages autograd keeps for one chunk of simulated 
 Simulate = Callable[[slice], Tensor]  # the trajectories of the given rows, with a graph where grad is enabled
 
 
-def backward_in_chunks(
-    simulate: Simulate, n: int, loss_of: Callable[[Tensor], Tensor], budget: int | None = None
-) -> tuple[Tensor, Tensor]:
+def backward_in_chunks(simulate: Simulate, n: int, loss_of: Callable[[Tensor], Tensor], size: int) -> tuple[Tensor, Tensor]:
     """``loss_of(simulate(slice(0, n)))`` and the trajectories, both detached; where the loss is finite, its
-    gradient is accumulated into the ``.grad`` of the leaves that ``simulate`` depends on: in one pass where
-    all n trajectories' graph fits in ``budget`` bytes (default :data:`GRAPH_BYTES`), else in two (module docstring)."""
-    size = chunk_size(simulate, n, budget)
+    gradient is accumulated into the ``.grad`` of the leaves that ``simulate`` depends on: in one pass where ``size``
+    (:func:`chunk_size`) covers all n trajectories, else in two, ``size`` trajectories at a time (module docstring)."""
     with torch.set_grad_enabled(size >= n):
         simulated = simulate(slice(0, n))
     leaf = simulated if size >= n else simulated.detach().requires_grad_()
@@ -53,7 +50,7 @@ def backward_in_chunks(
 
 def chunk_size(simulate: Simulate, n: int, budget: int | None = None) -> int:
     """How many of the n trajectories fit in ``budget`` bytes (default :data:`GRAPH_BYTES`) of saved tensors, measured
-    on the first."""
+    on the first (a solve of one trajectory: once per fit, not per evaluation)."""
     budget = GRAPH_BYTES if budget is None else budget
     per_trajectory = saved_bytes(lambda: simulate(slice(0, 1)))
     return max(1, min(n, budget // max(per_trajectory, 1)))

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from otgb.discovery.chunked import Simulate, backward_in_chunks
+from otgb.discovery.chunked import Simulate, backward_in_chunks, chunk_size
 from otgb.discovery.log import diverged
 from otgb.discovery.refine import FitSample, FittedTerms, batched_discrepancy, centre, row_terms, term_names
 from otgb.physics.augmented import Augmented
@@ -94,7 +94,8 @@ def sandwich_covariance(
     def losses(simulated: Tensor) -> Tensor:  # the sum over variants of each one's discrepancy
         return batched_discrepancy(simulated.unflatten(0, (V, n)), targets.expand(V, *targets.shape)).sum()
 
-    total, simulated = backward_in_chunks(_simulator(base, fitted, variants, sample), V * n, losses)
+    simulate = _simulator(base, fitted, variants, sample)
+    total, simulated = backward_in_chunks(simulate, V * n, losses, chunk_size(simulate, V * n))
     finite = torch.isfinite(simulated.flatten(1)).all(1)
     if not bool(finite.all()):
         diverged("interval", term_names(fitted.candidates), int((~finite).sum()), V * n, None)

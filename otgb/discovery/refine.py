@@ -30,7 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from otgb.discovery.chunked import backward_in_chunks
+from otgb.discovery.chunked import backward_in_chunks, chunk_size
 from otgb.discovery.library import Candidate
 from otgb.discovery.log import diverged
 from otgb.metrics.energy import batched_energy, cross_row_means, within_means
@@ -282,9 +282,11 @@ def fit(
     def simulate(rows: slice) -> Tensor:
         return model.observe(model.solve(model.vector_field, x0[rows], torch.cat([theta[rows], prior.draw(noise[rows])], 1)))
 
+    size = chunk_size(simulate, n)
+
     def closure() -> Tensor:
         optimiser.zero_grad()
-        loss, _ = backward_in_chunks(simulate, n, lambda simulated: discrepancy_and_rows(simulated, target)[0])
+        loss, _ = backward_in_chunks(simulate, n, lambda simulated: discrepancy_and_rows(simulated, target)[0], size)
         if not torch.isfinite(loss):  # trajectories diverged, or grew so large that their distances overflow
             return torch.tensor(DIVERGED_LOSS)
         value = float(loss)
