@@ -79,7 +79,8 @@ class DiscoverySettings:
         theta_products: Whether the library also offers each feature times each physics parameter.
         strong_candidates: Candidates per component cross-checked alone (besides the selected ones), by univariate R^2.
         fit_steps: L-BFGS iterations of each distribution-matching fit of coefficients.
-        fit_batch: Simulated (and at most as many measured) trajectories of each distribution-matching fit.
+        fit_batch: Simulated (and at most as many measured) trajectories of each distribution-matching fit; its
+            memory stays bounded at any size (the gradient is taken a chunk of trajectories at a time).
         families: Prior families tried for the coefficients, simplest first.
         c2st_classifier: The C2ST judge of the gap table ("auto", "mlp" or "conv").
         seed: Seed of every draw of the workflow.
