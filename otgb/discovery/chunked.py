@@ -10,10 +10,12 @@ gradient does, by the chain rule. :func:`backward_in_chunks` takes it in two pas
    of that chunk, so that the gradients of the parameters the simulation depends on accumulate.
 
 The fixed-step solvers of :class:`otgb.physics.base.PhysicsModel` solve each trajectory on its own
-(no step size shared by the batch), so the second pass reproduces the first and the gradient is
-the whole batch's. The chunk is as large as :data:`GRAPH_BYTES` of saved tensors allow, measured on
-one trajectory: a reaction-diffusion solve with twenty library terms saves ~30 MB per trajectory,
-so a fit of 1024 trajectories in one graph needs ~31 GB.
+(no step size shared by the batch), so the second pass differentiates the same function at the same
+points and the gradient is the whole batch's. (Measurement noise, where it is in force, is added to
+the observations and drawn per chunk's shape; being additive, it leaves the derivatives unchanged.)
+The chunk is as large as :data:`GRAPH_BYTES` of saved tensors allow, measured on one trajectory: a
+32x32 reaction-diffusion solve with twenty library terms saves ~9 MB per trajectory and grows the
+process by ~30 MB, so a fit of 1024 trajectories in one graph needs ~31 GB.
 """
 
 from __future__ import annotations

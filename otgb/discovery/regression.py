@@ -95,8 +95,10 @@ def design_matrix(
     n, steps = states.shape[:2]
     flat = states.flatten(0, 1).double()
     theta_rows = theta.double().repeat_interleave(steps, dim=0)
+    powers = {}  # each factor (u^2, lap(v)) computed once for all candidates
     columns = [
-        evaluate_feature(parse_feature(c.feature, model), flat, theta_rows, model).reshape(len(flat), -1) for c in candidates
+        evaluate_feature(parse_feature(c.feature, model), flat, theta_rows, model, powers).reshape(len(flat), -1)
+        for c in candidates
     ]
     X = torch.stack(columns, dim=-1).reshape(-1, len(candidates))
     y = target.double().reshape(-1)
