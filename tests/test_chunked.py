@@ -29,12 +29,13 @@ def _field_simulator(n: int, coefficients: torch.Tensor):
     return field, simulate
 
 
-def _loss_and_gradient(budget, n=7):
+def _loss_and_gradient(budget, n=7, noise=0.0):
     coefficients = torch.tensor([[0.3, 0.002]]).repeat(n, 1).requires_grad_()
     field, simulate = _field_simulator(n, coefficients)
     target = Target.of(generate_measured(field, 9, 1)["y"].float())
     size = chunk_size(simulate, n, budget)
-    loss, simulated = backward_in_chunks(simulate, n, lambda s: discrepancy_and_rows(s, target)[0], size)
+    with field.measured_with_noise(noise, seed=3):
+        loss, simulated = backward_in_chunks(simulate, n, lambda s: discrepancy_and_rows(s, target)[0], size)
     return loss, simulated, coefficients.grad
 
 
@@ -49,6 +50,15 @@ def test_the_gradient_in_chunks_is_the_gradient_in_one_graph():
         chunked_loss, chunked_simulated, chunked_gradient = _loss_and_gradient(budget)
         assert torch.equal(chunked_loss, loss) and torch.equal(chunked_simulated, simulated)
         torch.testing.assert_close(chunked_gradient, gradient, rtol=1e-5, atol=1e-7)
+
+
+def test_measurement_noise_leaves_the_chunked_gradient_exact():
+    """With measurement noise in force each chunk draws its own noise, but it is added to the observations: the
+    gradient is still the whole batch's, and the noise changed the loss."""
+    loss, _, gradient = _loss_and_gradient(budget=None, noise=0.05)
+    chunked_loss, _, chunked_gradient = _loss_and_gradient(budget=1, noise=0.05)
+    assert torch.equal(chunked_loss, loss) and loss != _loss_and_gradient(budget=None)[0]
+    torch.testing.assert_close(chunked_gradient, gradient, rtol=1e-5, atol=1e-7)
 
 
 def test_the_chunk_holds_as_many_trajectories_as_the_budget_allows():
