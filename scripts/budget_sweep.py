@@ -6,13 +6,15 @@
         --budgets 300000 --batches 32 64 128 256 512 --seeds 0 [-- OVERRIDES...]
     python scripts/budget_sweep.py study --out results/budget --name pendulum-budget-study \\
         --storage sqlite:///STUDY_DIR/study.db --study pendulum-budget --space configs/tune/pendulum-budget.yaml
+    python scripts/budget_sweep.py merge --out results/budget --name pendulum-gpu --parts gpu-part-a gpu-part-b
     python scripts/budget_sweep.py table --out results/budget --doc docs/results.md
 
 Each (budget, batch, seed) is one real ``otgb fit`` and an ``otgb test`` of its best checkpoint
 (:func:`otgb.runs.fit_and_test`), in ``<out>/runs/<name>/...``. ``--steps S`` spreads each budget over S
 training steps (batch = budget / S); ``--batches`` fixes the batch instead. Everything after ``--`` goes to
 both commands (a learning rate, a schedule). Results go to ``<out>/<name>.json`` as each run ends; a
-rerun skips what is done and resumes an interrupted fit from its ``last.ckpt``. ``table`` writes every
+rerun skips what is done and resumes an interrupted fit from its ``last.ckpt``. Sweeps run side by side (one
+GPU, several processes) each under its own name; ``merge`` joins them into one. ``table`` writes every
 sweep's table into ``--doc`` between ``<!-- results: scripts/budget_sweep.py -->`` and
 ``<!-- end results -->``, with a line per ``otgb tune`` study that ``study`` recorded (its result files copied
 beside the sweeps, a summary in ``<out>/<name>/study.json``).
@@ -30,7 +32,7 @@ import torch
 import yaml
 
 from otgb.reports import LABELS, mean_spread, write_between
-from otgb.runs import fit_and_test, machine, newest
+from otgb.runs import asks_for_gpu, fit_and_test, machine, newest
 
 START, END = "<!-- results: scripts/budget_sweep.py -->", "<!-- end results -->"
 
@@ -55,13 +57,25 @@ def sweep(args: argparse.Namespace) -> None:
             command = ["--config", args.config, f"--seed_everything={seed}", *settings]
             folder = out / "runs" / args.name / key
             report = fit_and_test(folder, command)
+            ran_on = results.get(key, {}).get("machine", machine(gpu=asks_for_gpu(args.overrides)))
             results[key] = {
                 "budget": budget, "batch": batch, "seed": seed, "overrides": args.overrides, "fit_s": report["fit_s"],
                 **{f"{source}_{args.metric}": report[source][args.metric]["mean"] for source in ("model", "fp")},
-                **learning_rates(folder), "machine": results.get(key, {}).get("machine", machine()),
+                **learning_rates(folder), "machine": ran_on,
             }  # fmt: skip
             path.write_text(json.dumps(results, indent=1))
             print(f"{args.name} {key}: {args.metric} {results[key][f'model_{args.metric}']:.4g}", flush=True)
+
+
+def merge(out: Path, name: str, parts: list[str]) -> None:
+    """Sweeps run side by side under their own names (``parts``) as one sweep ``name``; the parts' files are removed."""
+    merged = {}
+    for part in parts:
+        merged.update(json.loads((out / f"{part}.json").read_text()))
+    (out / f"{name}.json").write_text(json.dumps(merged, indent=1))
+    for part in parts:
+        (out / f"{part}.json").unlink()
+    print(f"{name}: {len(merged)} runs from {len(parts)} parts")
 
 
 def learning_rates(folder: Path) -> dict[str, float]:
@@ -153,12 +167,19 @@ def main() -> None:
     record.add_argument("--storage", required=True, help="the study's sqlite:/// URL (its folder holds trials.md)")
     record.add_argument("--study", required=True)
     record.add_argument("--space", required=True, help="the space file the study searched, as the docs name it")
+    join = commands.add_parser("merge", help="sweeps run side by side under their own names, as one sweep")
+    join.add_argument("--out", default="results/budget")
+    join.add_argument("--name", required=True, help="the merged sweep's name")
+    join.add_argument("--parts", nargs="+", required=True, help="the names the parts ran under")
     show = commands.add_parser("table", help="the tables of every sweep in --out")
     show.add_argument("--out", default="results/budget")
     show.add_argument("--doc", help="a page to write the tables into, between the markers")
     args = parser.parse_args()
     if args.command == "run":
         sweep(args)
+        return
+    if args.command == "merge":
+        merge(Path(args.out), args.name, args.parts)
         return
     if args.command == "study":
         record_study(Path(args.out) / args.name, args.storage, args.study, args.space)

@@ -54,6 +54,16 @@ def test_budget_sweep_spreads_each_budget_over_the_steps_and_writes_its_table_in
     assert all(f"{r['model_abs_err']:.4g}" in text for r in results.values())
 
 
+def test_merge_joins_sweeps_run_side_by_side_into_one_and_removes_the_parts(tmp_path):
+    parts = {"a": {"1024/32/seed0": {"budget": 1024}}, "b": {"1024/32/seed1": {"budget": 1024}}}
+    for name, results in parts.items():
+        (tmp_path / f"{name}.json").write_text(json.dumps(results))
+    script = [sys.executable, str(ROOT / "scripts" / "budget_sweep.py"), "merge", "--out", str(tmp_path)]
+    subprocess.run([*script, "--name", "joined", "--parts", "a", "b"], check=True, capture_output=True)
+    assert json.loads((tmp_path / "joined.json").read_text()) == {**parts["a"], **parts["b"]}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["joined.json"]
+
+
 def test_the_results_page_shows_the_committed_budget_sweeps():
     """docs/results.md's budget table is what scripts/budget_sweep.py writes from the committed results/budget/."""
     script = [sys.executable, str(ROOT / "scripts" / "budget_sweep.py"), "table", "--out", str(ROOT / "results" / "budget")]
