@@ -54,7 +54,7 @@ from otgb.discovery.report import (
     verdict,
     write_report,
 )
-from otgb.discovery.search import best_subsets, sparsest_kept, subset_values
+from otgb.discovery.search import SearchStep, best_subsets, sparsest_kept, subset_values
 from otgb.discovery.variation import choose_family
 from otgb.discovery.workflow import (
     Discovery,
@@ -68,6 +68,7 @@ from otgb.discovery.workflow import (
     replaces,
     run,
     simulate_candidate,
+    undertrained,
     undertrained_text,
 )
 from otgb.errors import InputError
@@ -479,6 +480,28 @@ def test_terms_that_leave_the_test_part_no_closer_than_f_p_are_not_called_found_
     assert outcome(result) == "named, not confirmed" and outcome(nothing) == "nothing found"
 
 
+def test_nothing_kept_but_a_model_close_to_two_standard_errors_is_called_undecided_with_its_numbers():
+    """A newcomer's 200 trajectories of a pendulum with a saturating friction: the search's best model scored 1.4
+    standard errors below f_p alone on 30 validation trajectories; the verdict says that is undecided, not absent."""
+
+    def step(feature: str, below: float, error: float) -> SearchStep:
+        fitted = FittedTerms("constant", [Candidate(feature, "velocity")], [Constant(-0.4)], Scores([0.1], torch.zeros(30)), [])
+        return SearchStep(fitted.candidates, 0.8, fitted, versus_f_p=(below, error))
+
+    result = Discovery(before=SimpleNamespace(any_significant=True), sentence_before="they differ", search_reason="why")
+    result.search = [step("velocity*|velocity|", 0.316, 0.22), step("velocity", 0.2, 0.25)]
+    head, undecided, outside = verdict(result, Pendulum())
+    assert head.endswith("but no candidate term fits the validation part better than f_p alone by two standard errors")
+    assert undecided == (
+        "undecided rather than absent: the closest model, f_p + velocity*|velocity| on dvelocity/dt, scores 0.316 ± 0.22 "
+        "below f_p alone's held-out energy (1.4 standard errors, two needed) on the 30 validation trajectories, too few to "
+        "tell whether it describes the process or fits their noise: more measurements would decide"
+    ), undecided
+    assert outside == OUTSIDE_THE_LIBRARY and outcome(result) == "nothing found"
+    result.search = [step("velocity", 0.2, 0.25), step("sign(velocity)", float("-inf"), float("nan"))]
+    assert verdict(result, Pendulum())[1:] == [OUTSIDE_THE_LIBRARY], "within one standard error: no such sentence"
+
+
 def test_a_library_search_whose_joint_fit_diverged_is_not_reported_as_candidates_that_lost_to_f_p():
     """A newcomer's driven oscillator with v|v| and sign(v) in the library: the search's joint fit of its 12 local
     candidates diverged, so no candidate was scored; the verdict says so rather than that none beat f_p alone."""
@@ -724,6 +747,17 @@ def _knowing(physics, correction) -> MapTraining:
         return GreyBoxODE(base, z_dim, lambda *_: Known(correction))
 
     return MapTraining(physics, greybox, partial(MLPCritic, hidden=[8]))
+
+
+def test_the_undertrained_check_simulates_grey_box_and_f_p_from_the_same_inputs():
+    """A grey-box whose f_phi is zero is f_p: scored on 30 validation trajectories, the two differ by float rounding
+    only, because each draw gives both the same (x0, theta); drawn apart, they differed by their luck (the
+    newcomer's pendulum: a difference's standard error of 1.3 against an energy of 1.4)."""
+    pendulum = Pendulum()
+    dgp = pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))])
+    record = undertrained(_knowing(pendulum, lambda state: 0 * state[:, 1:2]), _draws(dgp, 30, 2), DiscoverySettings(**FAST))
+    assert record is not None and record["validation_trajectories"] == 30
+    assert abs(record["difference"]) < 1e-4 * record["f_p_heldout_energy"] and record["standard_error"] < 1e-4, record
 
 
 def test_workflow_names_adds_and_closes_the_gap():

@@ -92,7 +92,8 @@ def test_every_figure_has_axis_labels_a_title_and_a_legend_or_colour_bar(figures
         for ax in panels:
             assert ax.get_xlabel() and ax.get_ylabel(), f"{kind}: panel {ax.get_title()!r} lacks an axis label"
         assert figure._suptitle is not None and figure._suptitle.get_text(), f"{kind}: no title"
-        keys = any(ax.get_legend() is not None for ax in panels) or any(_is_colorbar(ax) for ax in figure.axes)
+        keys = any(ax.get_legend() is not None for ax in panels) or bool(figure.legends)
+        keys = keys or any(_is_colorbar(ax) for ax in figure.axes)
         assert keys, f"{kind}: neither a legend nor a colour bar"
         for ax in figure.axes:
             if _is_colorbar(ax):

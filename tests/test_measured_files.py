@@ -117,9 +117,12 @@ def test_csv_checks_per_trajectory_values_and_fields(tmp_path, pendulum, measure
         read_measured(tmp_path / "m.csv", AdvectionDiffusion())
 
 
-def test_missing_file_and_suffix(tmp_path, pendulum):
-    with pytest.raises(InputError, match="nope.npz' does not exist"):
+def test_missing_file_and_suffix(tmp_path, pendulum, monkeypatch):
+    with pytest.raises(InputError, match="nope.npz' does not exist \\(expected"):
         read_measured(tmp_path / "nope.npz", pendulum)
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(InputError, match=f"'nope.csv' does not exist, looked for at '{tmp_path / 'nope.csv'}': a relative"):
+        read_measured("nope.csv", pendulum)
     with pytest.raises(InputError, match="unsupported suffix '.h5'"):
         read_measured(tmp_path / "m.h5", pendulum)
     (tmp_path / "broken.pt").write_bytes(b"not a torch file")

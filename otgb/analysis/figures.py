@@ -84,7 +84,8 @@ def distribution_figure(
     labels = next(iter(series.values()))[1]
     cols = min(len(labels), 3)
     rows = -(-len(labels) // cols)
-    figure, axes = plt.subplots(rows, cols, figsize=(max(4.5 * cols, 8.0), 3.0 * rows + 0.6), squeeze=False)
+    height = 3.0 * rows + 0.6 + LEGEND_BELOW
+    figure, axes = plt.subplots(rows, cols, figsize=(max(4.5 * cols, 8.0), height), squeeze=False)
     t = times.numpy()
     for k, ax in enumerate(axes.flat):
         if k >= len(labels):
@@ -113,11 +114,14 @@ def distribution_figure(
         Line2D([], [], color="grey", lw=0.5, alpha=0.6, label="2 sample paths (thin)"),
     ]
     handles = axes.flat[0].get_legend_handles_labels()[0] + styles
-    axes.flat[0].legend(handles=handles, fontsize=6, loc="best", framealpha=0.8)
+    figure.legend(handles=handles, fontsize=7, loc="lower center", ncol=4, frameon=False)  # below the panels, off the data
     what = f"median, 25-75 % and 5-95 % over time ({first} filled), 2 paths each (unpaired)"
     title(figure, what, step)
-    figure.tight_layout()
+    figure.tight_layout(rect=(0, LEGEND_BELOW / height, 1, 1))
     return figure
+
+
+LEGEND_BELOW = 0.6  # inches under the panels for the legend's two rows
 
 
 def trajectory_figure(

@@ -69,7 +69,12 @@ def read_measured(path: str | os.PathLike, physics: PhysicsModel) -> MeasuredFil
     if path.suffix not in SUFFIXES:
         raise InputError(f"measured data file {str(path)!r}: unsupported suffix {path.suffix!r}, expected one of {SUFFIXES}")
     if not path.exists():
-        raise InputError(f"measured data file {str(path)!r} does not exist (expected a {'/'.join(SUFFIXES)} file)")
+        where = (
+            ""
+            if path.is_absolute()
+            else f", looked for at {str(path.absolute())!r}: a relative path is read from the current directory"
+        )
+        raise InputError(f"measured data file {str(path)!r} does not exist{where} (expected a {'/'.join(SUFFIXES)} file)")
     if not path.is_file():
         raise InputError(f"measured data file {str(path)!r} is not a file (expected a {'/'.join(SUFFIXES)} file)")
     content = _read_csv(path, physics) if path.suffix == ".csv" else {".pt": _read_pt, ".npz": _read_npz}[path.suffix](path)

@@ -84,8 +84,10 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
         why = unscored_search(result) or "no candidate term fits the validation part better than f_p alone by two standard errors"
         return [
             f"no missing effect found in the library: the measurements differ from f_p ({result.sentence_before}), but {why}",
+            *closest_unkept(result),
             OUTSIDE_THE_LIBRARY,
             *undertrained_note(result, "and the library search named nothing"),
+            *low_power(result),
         ]
     ambiguous: dict[tuple[str, str], list] = {}
     for c in sorted(result.evidence, key=lambda c: abs(c.standard_errors)):  # closest first
@@ -142,6 +144,23 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
             f"simulated trajectories ({worst['what']}): some inputs blow up with these coefficients"
         )
     return parts + undertrained_note(result, "the terms come from the library search")
+
+
+def closest_unkept(result: Discovery) -> list[str]:
+    """When nothing is kept but a searched model scored below f_p alone by at least one standard error: that model, by
+    how much, and that the validation part is too small to decide, so the verdict does not read as a clean negative."""
+    scored = [s for s in result.search if math.isfinite(s.versus_f_p[0]) and s.versus_f_p[1] > 0]
+    closest = max(scored, key=lambda s: s.versus_f_p[0] / s.versus_f_p[1], default=None)
+    if closest is None or closest.versus_f_p[0] < closest.versus_f_p[1]:
+        return []
+    below, error = closest.versus_f_p
+    terms = ", ".join(f"{c.feature} on d{c.component}/dt" for c in closest.candidates)
+    n = len(closest.fitted.heldout.rows)
+    return [
+        f"undecided rather than absent: the closest model, f_p + {terms}, scores {below:.3g} ± {error:.2g} below f_p "
+        f"alone's held-out energy ({below / error:.1f} standard errors, two needed) on the {n} validation trajectories, "
+        "too few to tell whether it describes the process or fits their noise: more measurements would decide"
+    ]
 
 
 def unscored_search(result: Discovery) -> str | None:
@@ -220,7 +239,7 @@ LOW_POWER_SPREAD = 0.1  # the Reference C2ST's spread over its repeats above whi
 def low_power(result: Discovery) -> list[str]:
     """A sentence when the test part is too small for the verification to see a moderate difference: the Reference
     C2ST (half the test measurements against the other half) then spreads widely around 0.5."""
-    spread = result.gap["reference"].get("c2st_std", 0.0)
+    spread = result.gap.get("reference", {}).get("c2st_std", 0.0)
     if spread <= LOW_POWER_SPREAD:
         return []
     return [
@@ -339,6 +358,9 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
                 "terms": [{"feature": c.feature, "component": c.component} for c in step.candidates],
                 "g_residual": step.g_residual,
                 "heldout_energy": step.fitted.heldout_energy,
+                "below_f_p": step.versus_f_p[0],
+                "standard_error": step.versus_f_p[1],
+                "validation_trajectories": len(step.fitted.heldout.rows),
                 "alternatives": [[{"feature": c.feature, "component": c.component} for c in a] for a in step.alternatives],
             }
             for step in result.search
@@ -686,10 +708,19 @@ def _search_section(report: dict) -> list[str]:
     lines = ["", "### Library search: every local candidate fitted together, then the best subset of each size", ""]
     if report.get("search_reason"):
         lines += [f"It ran because {report['search_reason']}.", ""]
-    lines += ["| terms | residual of g (relative RMS) | held-out energy |", "|---|---|---|"]
+    first = report["search"][0]
+    lines += [
+        f"Held-out energy: on the {first['validation_trajectories']} validation trajectories, lower is better; a model is "
+        "kept only where it is below f_p alone's by more than two standard errors of the difference.",
+        "",
+        "| terms | residual of g (relative RMS) | held-out energy | below f_p alone's (± standard error) |",
+        "|---|---|---|---|",
+        f"| f_p alone | - | {first['heldout_energy'] + first['below_f_p']:.4g} | - |",
+    ]
     for step in report["search"]:
         terms = ", ".join(f"{code(t['feature'])} on d{t['component']}/dt" for t in step["terms"])
-        lines.append(f"| {terms} | {step['g_residual']:.3f} | {step['heldout_energy']:.4g} |")
+        below = f"{step['below_f_p']:.3g} ± {step['standard_error']:.2g}"
+        lines.append(f"| {terms} | {step['g_residual']:.3f} | {step['heldout_energy']:.4g} | {below} |")
     return lines + ["", f"Terms named by: **{report['route']}**." if report["route"] else "Nothing kept."]
 
 

@@ -42,7 +42,7 @@ import torch
 from torch import Tensor
 
 from otgb.discovery.library import Candidate
-from otgb.discovery.refine import FittedTerms, Fitting, Scores, beats, centre, discrepancies
+from otgb.discovery.refine import FittedTerms, Fitting, Scores, beats, centre, difference, discrepancies
 from otgb.discovery.regression import design_matrix
 from otgb.physics.base import PhysicsModel
 from otgb.physics.features import is_local
@@ -63,6 +63,7 @@ class SearchStep:
     g_residual: float  # relative RMS residual of the subset's least-squares fit of g
     fitted: FittedTerms
     alternatives: list[list[Candidate]] = field(default_factory=list)  # subsets of this size it does not beat
+    versus_f_p: tuple[float, float] = (float("nan"), float("nan"))  # f_p alone's held-out score minus its, standard error
 
 
 @torch.no_grad()
@@ -165,6 +166,7 @@ def search(
         step = _best_of_size(physics, local, X, y, size, fitting.val, seed, fitting)
         if step is None:
             break
+        step.versus_f_p = difference(step.fitted.heldout, alone)
         path.append(step)
         scores.append(step.fitted.heldout)
         names = [f"{c.feature} on d{c.component}/dt" for c in step.candidates]

@@ -209,11 +209,14 @@ def _simulate_finite_rows(model: Augmented, first: int, x0: Tensor, theta: Tenso
         return simulate_finite(model, x0, theta)
 
 
+GREYBOX = "greybox"  # the grey-box's stream of inputs; f_p simulated from it gets the same (x0, theta)
+
+
 @torch.no_grad()
 def greybox_draws(module: Any, n: int, seed: int) -> dict[str, Tensor]:
     """The grey-box's states, f_p and f_phi (in state space) along n generated trajectories from the priors."""
     physics = module.physics
-    g = generator_for(seed, "discover", "greybox")
+    g = generator_for(seed, "discover", GREYBOX)
     x0, theta = physics.sample_initial_state(n, g), physics.sample_theta(n, g)
     transport_map, device = module.evaluation_map(), module.device
     rng = module.generator.get_state()
@@ -510,7 +513,12 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
     result = Discovery(before, describe(before))
     result.selections, designs, draws, result.correction_share = name_step(module, settings)
     selected = [(t.candidate, t.coefficient) for s in result.selections for t in s.terms]
-    progress(f"named {[f'{c.feature} on d{c.component}/dt: {v:.4g}' for c, v in selected] or 'nothing'}")
+    proposed = [f"{c.feature} on d{c.component}/dt: {v:.4g}" for c, v in selected]
+    progress(
+        f"f_phi's regression proposes {proposed}; each is checked against the measurements next"
+        if proposed
+        else "f_phi's regression proposes no term"
+    )
     strong = strong_candidates(result.selections, designs, settings.strong_candidates)
     fitting = fitting_for(physics, data, settings, designs)
     result.cross_check = cross_check_step(strong, fitting)
@@ -609,16 +617,21 @@ def replaces(found: FittedTerms, kept: FittedTerms) -> bool:
 
 
 UNDERTRAINED_REPEATS = 5  # simulation draws per held-out score of the grey-box and of f_p
+UNDERTRAINED_DRAWS = 256  # simulated trajectories per draw, at least: a draw as small as a small validation part is noise
 
 
 def undertrained(module: Any, heldout: Tensor, settings: DiscoverySettings) -> dict[str, float] | None:
     """The grey-box's and f_p's held-out discrepancy when the grey-box does not beat f_p by two standard errors
     (:func:`otgb.discovery.refine.beats`): its correction is then no evidence, and the naming relies on the
-    library search. None when the grey-box is better."""
+    library search. None when the grey-box is better.
+
+    Both are simulated from the same inputs (x0, theta) in each draw (common random numbers), so their scores differ
+    by the correction, not by the luck of the draws; what the few validation trajectories leave uncertain remains.
+    """
     physics = module.physics
-    n, seed = len(heldout), settings.seed
-    greybox = sample_scores(lambda r: generated(module, n, seed + 100 + r), heldout, UNDERTRAINED_REPEATS)
-    alone = sample_scores(lambda r: simulate_from_priors(physics, n, seed + 100 + r, "f_p"), heldout, UNDERTRAINED_REPEATS)
+    n, m, seed = len(heldout), max(len(heldout), UNDERTRAINED_DRAWS), settings.seed
+    greybox = sample_scores(lambda r: generated(module, m, seed + 100 + r), heldout, UNDERTRAINED_REPEATS)
+    alone = sample_scores(lambda r: simulate_from_priors(physics, m, seed + 100 + r, GREYBOX), heldout, UNDERTRAINED_REPEATS)
     if beats(greybox, alone):
         return None
     gain, error = difference(greybox, alone)
