@@ -72,6 +72,7 @@ def test_exact_correction_has_no_function_level_error(tmp_path):
     assert result["func_err"].shape == (50,) and result["func_err"].max() < 1e-5
     assert result["func_err_fp"][1:].min() > 1e-3 and result["summary"]["func_err_fp"] > 0.05
     assert result["traj_err"].max() < 1e-5, "solving the DGP's field reproduces the DGP's draws"
+    assert result["summary"]["traj_err_fp"] > 1e-2, "f_p alone, solved from the same inputs, misses the friction"
     share = result["f_phi_abs"] / (result["f_p_abs"] + result["f_phi_abs"])
     assert torch.allclose(result["correction_share"], share) and result["f_phi_abs"][1:].min() > 0
 

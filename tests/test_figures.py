@@ -43,7 +43,8 @@ def _components():
     t = torch.linspace(0, 1, 10)
     values = torch.linspace(0.1, 0.2, 10)
     return {
-        "times": t, "traj_err": values, "traj_err_kind": "abs_err", "func_err": values, "func_err_fp": 2 * values,
+        "times": t, "traj_err": values, "traj_err_fp": 3 * values, "traj_err_kind": "abs_err", "func_err": values,
+        "func_err_fp": 2 * values,
         "func_err_unavailable": None, "f_p_abs": values, "f_phi_abs": values / 3, "summary": {"correction_share": 0.25},
     }  # fmt: skip
 

@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from otgb.data import SimulationDataModule
+from otgb.data.measured import simulate_in_chunks
 from otgb.metrics.energy import energy_per_time
 from otgb.physics.base import PhysicsModel
 from otgb.training import MapTraining
@@ -98,7 +99,8 @@ def component_analysis(model: MapTraining, datamodule: SimulationDataModule, n: 
 
     Returns, per time step (T,) unless said otherwise:
 
-    - ``traj_err`` and ``traj_err_kind``: see :func:`trajectory_error` ("abs_err" or "energy");
+    - ``traj_err`` and ``traj_err_kind``: see :func:`trajectory_error` ("abs_err" or "energy"), and
+      ``traj_err_fp``: the same for f_p alone solved from the same inputs;
     - ``func_err``: mean |f_p + f_phi - f_true| over trajectories and state components, and
       ``func_err_fp``: mean |f_p - f_true|; both None when there is no true field, with the
       reason in ``func_err_unavailable`` (see :func:`true_field`);
@@ -114,10 +116,13 @@ def component_analysis(model: MapTraining, datamodule: SimulationDataModule, n: 
     if len(data["y"]) < 2:
         raise ValueError(f"component_analysis needs at least 2 validation inputs, got {len(data['y'])}")
     draws = data["y"].shape[1]
-    theta = data["theta"].repeat_interleave(draws, dim=0)
-    parts = solve_components(model, data["x0"].repeat_interleave(draws, dim=0), theta, seed)
+    x0, theta = data["x0"].repeat_interleave(draws, dim=0), data["theta"].repeat_interleave(draws, dim=0)
+    parts = solve_components(model, x0, theta, seed)
     y_hat = datamodule.physics.observe(parts["states"]).reshape(data["y"].shape)
     traj_err, kind = trajectory_error(y_hat, data["y"], datamodule)
+    physics = model.evaluation_map().physics
+    y_fp = simulate_in_chunks(physics, x0.to(model.device), theta.to(model.device)).cpu().reshape(data["y"].shape)
+    traj_err_fp, _ = trajectory_error(y_fp, data["y"], datamodule)
     truth, unavailable = true_field(datamodule.dgp, parts["states"], theta, seed)
     f_p, f_phi = parts["physics"], parts["correction"]
     func_err = None if truth is None else per_time(f_p + f_phi - truth)
@@ -130,6 +135,7 @@ def component_analysis(model: MapTraining, datamodule: SimulationDataModule, n: 
         "draws_per_input": draws,
         "times": datamodule.physics.observation_times(),
         "traj_err": traj_err,
+        "traj_err_fp": traj_err_fp,
         "traj_err_kind": kind,
         "func_err": func_err,
         "func_err_fp": func_err_fp,
@@ -139,6 +145,7 @@ def component_analysis(model: MapTraining, datamodule: SimulationDataModule, n: 
         "correction_share": f_phi_abs / (f_p_abs + f_phi_abs),
         "summary": {
             "traj_err": mean(traj_err),
+            "traj_err_fp": mean(traj_err_fp),
             "func_err": mean(func_err),
             "func_err_fp": mean(func_err_fp),
             "correction_share": float(f_phi_abs.mean() / (f_p_abs.mean() + f_phi_abs.mean())),

@@ -214,7 +214,8 @@ def components_figure(result: dict[str, Any], step: int | None = None) -> plt.Fi
     figure, axes = plt.subplots(1, 3 if known else 2, figsize=(13 if known else 9, 3.6))
     traj, parts = axes[0], axes[-1]
     kind = "ABS ERR" if result["traj_err_kind"] == "abs_err" else "energy distance"
-    traj.plot(t, result["traj_err"].numpy(), color="tab:green", label="generated vs measured")
+    traj.plot(t, result["traj_err_fp"].numpy(), color="tab:orange", ls="--", label="f_p vs measured")
+    traj.plot(t, result["traj_err"].numpy(), color="tab:green", label="grey-box vs measured")
     traj.set_title(f"trajectory level ({kind})", fontsize=9)
     traj.set_ylabel(kind, fontsize=8)
     traj.legend(fontsize=7)

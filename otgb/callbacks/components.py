@@ -20,7 +20,7 @@ class ComponentAnalysis(Callback):
 
     Writes ``<log_dir>/components.json`` (:func:`component_analysis`'s result) and
     ``<log_dir>/figures/components.png``, adds the figure to TensorBoard and logs
-    ``components/<name>`` for each summary float (``traj_err``, ``func_err``, ``func_err_fp``,
+    ``components/<name>`` for each summary float (``traj_err``, ``traj_err_fp``, ``func_err``, ``func_err_fp``,
     ``correction_share``; the function-level ones only where available) to every logger. It
     runs at ``on_train_end``, while the module is still on its training device (Lightning
     moves it to the CPU before ``on_fit_end``). A map without components (not a grey-box) is
