@@ -123,6 +123,23 @@ def test_conv_critic_scores_trajectories_and_takes_a_gradient_penalty(time_as_ch
     assert parts["gradient_penalty"] > 0 and all(p.grad is not None for p in critic.parameters())
 
 
+def test_a_bf16_critic_scores_as_the_float32_one_to_bf16_rounding_and_trains_with_a_gradient_penalty(generator):
+    shape = (6, 2, 8, 8)
+    full = ConvCritic(shape, channels=(8, 16))
+    mixed = ConvCritic(shape, channels=(8, 16), precision="bf16-mixed")
+    mixed.load_state_dict(full.state_dict())  # the same float32 weights: the checkpoints are interchangeable
+    real, fake = torch.randn(4, *shape, generator=generator), torch.randn(4, *shape, generator=generator)
+    scores, rounded = full(real), mixed(real)
+    assert rounded.dtype == torch.float32 and not torch.equal(scores, rounded), "the convolutions ran in bfloat16"
+    assert torch.allclose(rounded, scores, rtol=0.02, atol=0.02 * scores.abs().max().item())
+    loss, parts = critic_loss(mixed, real, fake, gp_weight=1.0, generator=generator)
+    loss.backward()
+    assert torch.isfinite(loss) and parts["gradient_penalty"] > 0
+    assert all(p.grad is not None and p.grad.dtype == torch.float32 for p in mixed.parameters())
+    with pytest.raises(InputError, match=r"model.critic.init_args.precision: 'fp16' is not one of \('32-true', 'bf16-mixed'\)"):
+        ConvCritic(shape, precision="fp16")
+
+
 def test_field_figure_names_a_missing_channel(generator):
     physics = ReactionDiffusion(n_grid=8)
     x = torch.rand(1, 15, 2, 8, 8, generator=generator)
