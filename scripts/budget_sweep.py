@@ -68,10 +68,19 @@ def sweep(args: argparse.Namespace) -> None:
 
 
 def merge(out: Path, name: str, parts: list[str]) -> None:
-    """Sweeps run side by side under their own names (``parts``) as one sweep ``name``; the parts' files are removed."""
-    merged = {}
+    """Sweeps run side by side under their own names (``parts``) as one sweep ``name``; the parts' files are removed.
+    A missing part, a run in two parts, or an existing sweep ``name`` stops it with one line, nothing written."""
+    missing = [part for part in parts if not (out / f"{part}.json").is_file()]
+    if missing:
+        raise SystemExit(f"budget_sweep.py merge: no result file for {missing} in {out}")
+    if (out / f"{name}.json").exists():
+        raise SystemExit(f"budget_sweep.py merge: {out / f'{name}.json'} exists; choose another --name")
+    merged: dict = {}
     for part in parts:
-        merged.update(json.loads((out / f"{part}.json").read_text()))
+        results = json.loads((out / f"{part}.json").read_text())
+        if twice := sorted(set(results) & set(merged)):
+            raise SystemExit(f"budget_sweep.py merge: {part} repeats runs {twice} of an earlier part")
+        merged.update(results)
     (out / f"{name}.json").write_text(json.dumps(merged, indent=1))
     for part in parts:
         (out / f"{part}.json").unlink()

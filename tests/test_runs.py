@@ -62,6 +62,14 @@ def test_merge_joins_sweeps_run_side_by_side_into_one_and_removes_the_parts(tmp_
     subprocess.run([*script, "--name", "joined", "--parts", "a", "b"], check=True, capture_output=True)
     assert json.loads((tmp_path / "joined.json").read_text()) == {**parts["a"], **parts["b"]}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["joined.json"]
+    for parts, expected in ((["c"], "no result file for ['c']"), (["joined"], "joined.json exists")):
+        done = subprocess.run([*script, "--name", "joined", "--parts", *parts], capture_output=True, text=True)
+        assert done.returncode == 1 and expected in done.stderr and len(done.stderr.splitlines()) == 1, done.stderr
+    (tmp_path / "d.json").write_text(json.dumps(parts_of_one := {"1024/32/seed0": {}}))
+    (tmp_path / "e.json").write_text(json.dumps(parts_of_one))
+    done = subprocess.run([*script, "--name", "de", "--parts", "d", "e"], capture_output=True, text=True)
+    assert "e repeats runs ['1024/32/seed0']" in done.stderr and not (tmp_path / "de.json").exists()
+    assert (tmp_path / "d.json").exists() and (tmp_path / "e.json").exists(), "the parts are kept"
 
 
 def test_the_results_page_shows_the_committed_budget_sweeps():

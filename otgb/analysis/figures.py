@@ -74,6 +74,9 @@ def probe_series(trajectories: Tensor, names: Sequence[str]) -> tuple[Tensor, li
     return series, labels
 
 
+LEGEND_BELOW = 0.6  # inches under the distribution figure's panels for its legend's two rows
+
+
 def distribution_figure(
     samples: dict[str, Tensor], times: Tensor, names: Sequence[str], step: int | None = None
 ) -> plt.Figure:  # fmt: skip
@@ -119,9 +122,6 @@ def distribution_figure(
     title(figure, what, step)
     figure.tight_layout(rect=(0, LEGEND_BELOW / height, 1, 1))
     return figure
-
-
-LEGEND_BELOW = 0.6  # inches under the panels for the legend's two rows
 
 
 def trajectory_figure(

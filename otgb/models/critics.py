@@ -81,9 +81,10 @@ class ConvCritic(nn.Module):
         time_as_channels: stack the T frames as channels and convolve over space only.
         activation_name: torch.nn class name of the activation.
         precision: the convolutions' arithmetic: "32-true" (float32), or "bf16-mixed" (under bfloat16
-            autocast, float32 weights, the pooled features and the score in float32): about half the
-            time of a 3-D critic's update where the processor multiplies bfloat16 natively (AMX,
-            AVX512-BF16, a recent GPU), with scores rounded to bfloat16's 3 significant digits.
+            autocast, float32 weights, the pooled features and the score in float32), with the
+            convolutions rounded to bfloat16's 3 significant digits. It pays only where the processor
+            multiplies bfloat16 natively (AMX, AVX512-BF16), and there only the critic's share of a step
+            (docs/configs.md).
     """
 
     def __init__(
