@@ -152,6 +152,7 @@ class OTGBCLI(LightningCLI):
     def before_instantiate_classes(self) -> None:
         config = self.config[self.subcommand] if self.subcommand else self.config
         set_solver(checked_solver(config.solver, "--solver"))
+        check_precision(config.trainer.get("precision"))
         name_loggers_after_config(config.trainer.logger, config.get("config"))
         log_dirs = share_logger_version(config.trainer.logger)
         self.new_log_dirs = [_first_new(log_dir) for log_dir in log_dirs]
@@ -208,6 +209,19 @@ class OTGBCLI(LightningCLI):
         checkpoint = self._get(self.config_init, "checkpoint")
         if checkpoint.monitor == AUTO:
             checkpoint.monitor = config.checkpoint.monitor = self.datamodule.selection_metric
+
+
+FLOAT32 = (None, 32, "32", "32-true")
+
+
+def check_precision(precision: object) -> None:
+    """Refuse a trainer precision other than float32: Lightning's would autocast the solves and round the trajectories."""
+    if precision not in FLOAT32:
+        raise InputError(
+            f"--trainer.precision={precision}: otgb trains in float32 (expected 32-true): a lower precision would round "
+            "the solves' trajectories; a convolutional critic can convolve in bfloat16 alone "
+            "(--model.critic.init_args.precision bf16-mixed)"
+        )
 
 
 def check_validation_in_budget(data: Any, trainer: Trainer) -> tuple[int, int]:

@@ -200,6 +200,17 @@ def _otgb(cwd: Path, *args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "otgb.cli", *args], cwd=cwd, env=env, capture_output=True, text=True)
 
 
+def test_progress_written_to_a_file_is_whole_lines_up_to_the_last_step(tmp_path):
+    """Not a terminal: the progress is plain lines (a bar's redraws would pile up into one long line)."""
+    args = [a for a in _args(tmp_path, "--trainer.max_steps=6") if a != "--trainer.enable_progress_bar=false"]
+    done = _otgb(tmp_path, "fit", *args)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "\r" not in done.stdout
+    lines = [line for line in done.stdout.splitlines() if line.startswith("step ")]
+    assert [line.split(" |")[0] for line in lines] == [f"step {n}/6 ({100 * n / 6:.0f}%)" for n in range(1, 7)], lines
+    assert "to go" in lines[2] and lines[-1].endswith("simulations 96/3200"), lines
+
+
 def test_bad_input_is_one_line_status_2_and_no_run_directory(tmp_path):
     done = _otgb(tmp_path, "fit", "--config", CONFIG, "--model.objective.gamma=1.0", f"--data.cache_dir={tmp_path / 'cache'}")
     assert done.returncode == 2
@@ -246,6 +257,7 @@ def test_bad_input_is_one_line_status_2_and_no_run_directory(tmp_path):
             "--model.critic: otgb.models.MLPCritic has no option 'hiden' (did you mean hidden?) in critic.yaml",
         ),
         (["--trainer.accelerator=gpux"], "trainer: You selected an invalid accelerator name"),
+        (["--trainer.precision=bf16-mixed"], "--trainer.precision=bf16-mixed: otgb trains in float32 (expected 32-true)"),
         (["--model.objective.gamma=-1"], "model.objective.gamma=-1.0: expected a value in [0, 1]"),  # raised while built
         (
             ["--model.lr_batch_rule=otgb.schedules.BatchScaledRate", "--model.lr_batch_rule.max_lr=0"],

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+import sys
+import time
 from typing import Any
 
 from lightning import LightningModule, Trainer
@@ -14,7 +17,27 @@ class SimulationProgressBar(TQDMProgressBar):
 
     Its total is where training ends: ``max_steps`` or the simulation budget (the length of
     otgb's source stream), whichever comes first, counted from the run's start (also when resumed).
+
+    ``lines``: write the progress as plain lines, :data:`LINES` of them per run, instead of a bar
+    redrawn in place. ``None`` (default): lines when the output is not a terminal (a log file, a
+    batch job, a captured notebook cell), where a bar's redraws pile up into one long line.
     """
+
+    LINES = 20  # progress lines in a run of known length
+
+    def __init__(self, *args: Any, lines: bool | None = None, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.lines = lines
+        self._started = 0.0
+
+    @property
+    def writes_lines(self) -> bool:
+        return self.lines if self.lines is not None else not sys.stdout.isatty()
+
+    @property
+    def is_disabled(self) -> bool:
+        """Lightning's bars stay hidden while the progress is written as lines."""
+        return super().is_disabled or self.writes_lines
 
     @property
     def total_train_batches(self) -> int | float:
@@ -26,6 +49,23 @@ class SimulationProgressBar(TQDMProgressBar):
         super().on_train_start(trainer, pl_module)
         self.train_progress_bar.reset(total=convert_inf(self.total_train_batches))
         self.train_progress_bar.set_description(f"Epoch {trainer.current_epoch}")
+        self._started = time.perf_counter()
+
+    def on_train_batch_end(self, trainer: Trainer, pl_module: LightningModule, *args: Any, **kwargs: Any) -> None:
+        super().on_train_batch_end(trainer, pl_module, *args, **kwargs)
+        total, step = self.total_train_batches, trainer.global_step
+        every = max(1, math.ceil(total / self.LINES)) if math.isfinite(total) else 100
+        if self.is_enabled and self.writes_lines and (step % every == 0 or step == total):
+            print(self.progress_line(step, total, self.get_metrics(trainer, pl_module)), flush=True)
+
+    def progress_line(self, step: int, total: int | float, metrics: dict[str, Any]) -> str:
+        """``step 100/1000 (10%) | 1m04s, about 9m36s to go | simulations 1600/16000 | loss_T -0.0123``."""
+        elapsed = time.perf_counter() - self._started
+        where = f"step {step}/{total} ({100 * step / total:.0f}%)" if math.isfinite(total) else f"step {step}"
+        if math.isfinite(total) and 0 < step < total:
+            where += f" | {_clock(elapsed)}, about {_clock(elapsed * (total - step) / step)} to go"
+        shown = [f"{name} {value:.4g}" if isinstance(value, float) else f"{name} {value}" for name, value in metrics.items()]
+        return " | ".join([where, *[m for m in shown if not m.startswith("v_num ")]])
 
     def get_metrics(self, trainer: Trainer, pl_module: LightningModule) -> dict[str, Any]:
         metrics = super().get_metrics(trainer, pl_module)
@@ -33,3 +73,8 @@ class SimulationProgressBar(TQDMProgressBar):
         if hasattr(datamodule, "simulations") and hasattr(datamodule, "simulation_budget"):
             metrics["simulations"] = f"{datamodule.simulations}/{datamodule.simulation_budget}"
         return metrics
+
+
+def _clock(seconds: float) -> str:
+    minutes, seconds = divmod(round(seconds), 60)
+    return f"{minutes}m{seconds:02d}s" if minutes else f"{seconds}s"
