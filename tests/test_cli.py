@@ -15,6 +15,8 @@ import torch
 import yaml
 from lightning import Callback
 
+from otgb.callbacks import progress
+from otgb.callbacks.progress import SimulationProgressBar
 from otgb.cli import main
 from otgb.command import OTGBCLI, BestAndLastCheckpoint, logger_override
 from otgb.data import SimulationDataModule
@@ -209,6 +211,16 @@ def test_progress_written_to_a_file_is_whole_lines_up_to_the_last_step(tmp_path)
     lines = [line for line in done.stdout.splitlines() if line.startswith("step ")]
     assert [line.split(" |")[0] for line in lines] == [f"step {n}/6 ({100 * n / 6:.0f}%)" for n in range(1, 7)], lines
     assert "to go" in lines[2] and lines[-1].endswith("simulations 96/3200"), lines
+
+
+def test_a_resumed_runs_progress_line_counts_its_time_to_go_from_the_steps_it_has_run(monkeypatch):
+    bar = SimulationProgressBar(lines=True)
+    bar._started, bar._first_step = 100.0, 500  # resumed at step 500
+    monkeypatch.setattr(progress, "perf_counter", lambda: 160.0)  # 100 steps in 60 s since
+    line = bar.progress_line(600, 1000, {"v_num": 0, "train/wasserstein": 0.123456, "simulations": "9600/16000"})
+    assert line == "step 600/1000 (60%) | 1m00s, about 4m00s to go | train/wasserstein 0.1235 | simulations 9600/16000"
+    monkeypatch.setattr(progress, "perf_counter", lambda: 100.0 + 3900)
+    assert "1h05m, about 4h20m to go" in bar.progress_line(600, 1000, {})
 
 
 def test_bad_input_is_one_line_status_2_and_no_run_directory(tmp_path):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 import sys
-import time
+from time import perf_counter
 from typing import Any
 
 from lightning import LightningModule, Trainer
@@ -28,7 +28,7 @@ class SimulationProgressBar(TQDMProgressBar):
     def __init__(self, *args: Any, lines: bool | None = None, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.lines = lines
-        self._started = 0.0
+        self._started, self._first_step = 0.0, 0
 
     @property
     def writes_lines(self) -> bool:
@@ -49,7 +49,7 @@ class SimulationProgressBar(TQDMProgressBar):
         super().on_train_start(trainer, pl_module)
         self.train_progress_bar.reset(total=convert_inf(self.total_train_batches))
         self.train_progress_bar.set_description(f"Epoch {trainer.current_epoch}")
-        self._started = time.perf_counter()
+        self._started, self._first_step = perf_counter(), trainer.global_step  # a resumed run starts past 0
 
     def on_train_batch_end(self, trainer: Trainer, pl_module: LightningModule, *args: Any, **kwargs: Any) -> None:
         super().on_train_batch_end(trainer, pl_module, *args, **kwargs)
@@ -60,10 +60,11 @@ class SimulationProgressBar(TQDMProgressBar):
 
     def progress_line(self, step: int, total: int | float, metrics: dict[str, Any]) -> str:
         """``step 100/1000 (10%) | 1m04s, about 9m36s to go | simulations 1600/16000 | loss_T -0.0123``."""
-        elapsed = time.perf_counter() - self._started
+        elapsed = perf_counter() - self._started
         where = f"step {step}/{total} ({100 * step / total:.0f}%)" if math.isfinite(total) else f"step {step}"
-        if math.isfinite(total) and 0 < step < total:
-            where += f" | {_clock(elapsed)}, about {_clock(elapsed * (total - step) / step)} to go"
+        done = step - self._first_step
+        if math.isfinite(total) and done > 0 and step < total:
+            where += f" | {_clock(elapsed)}, about {_clock(elapsed * (total - step) / done)} to go"
         shown = [f"{name} {value:.4g}" if isinstance(value, float) else f"{name} {value}" for name, value in metrics.items()]
         return " | ".join([where, *[m for m in shown if not m.startswith("v_num ")]])
 
@@ -76,5 +77,7 @@ class SimulationProgressBar(TQDMProgressBar):
 
 
 def _clock(seconds: float) -> str:
+    """``42s``, ``9m36s``, ``1h05m``."""
     minutes, seconds = divmod(round(seconds), 60)
-    return f"{minutes}m{seconds:02d}s" if minutes else f"{seconds}s"
+    hours, minutes = divmod(minutes, 60)
+    return f"{hours}h{minutes:02d}m" if hours else f"{minutes}m{seconds:02d}s" if minutes else f"{seconds}s"
