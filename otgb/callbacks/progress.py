@@ -52,10 +52,13 @@ class SimulationProgressBar(TQDMProgressBar):
         self._started, self._first_step = perf_counter(), trainer.global_step  # a resumed run starts past 0
 
     def on_train_batch_end(self, trainer: Trainer, pl_module: LightningModule, *args: Any, **kwargs: Any) -> None:
-        super().on_train_batch_end(trainer, pl_module, *args, **kwargs)
+        """The bar's update, or a line every 1/:data:`LINES` of the run (the metrics, read back from the device, only
+        then: the hidden bar would read them at every step)."""
+        if not self.writes_lines:
+            return super().on_train_batch_end(trainer, pl_module, *args, **kwargs)
         total, step = self.total_train_batches, trainer.global_step
         every = max(1, math.ceil(total / self.LINES)) if math.isfinite(total) else 100
-        if self.is_enabled and self.writes_lines and (step % every == 0 or step == total):
+        if self.is_enabled and (step % every == 0 or step == total):
             print(self.progress_line(step, total, self.get_metrics(trainer, pl_module)), flush=True)
 
     def progress_line(self, step: int, total: int | float, metrics: dict[str, Any]) -> str:
