@@ -19,11 +19,12 @@ twice: C2ST with the strong judge (``evaluation.c2st_classifier=auto``) and with
 
 Every finished run leaves a small JSON in ``--results`` (``results/table/<task>/<row>/seed<S>.json``:
 the test's figures, the fit's training wall time (from its checkpoint, resumes included; a discover
-run's, its commands'), the machine, the command); ``--gather`` writes every table
+run's, its commands' with the fits that a stopped attempt finished), the machine, the command); ``--gather`` writes every table
 from those files alone, so the committed tables are reproducible from committed files.
 
 Interrupted? Run the same command again: finished runs (a result file) are skipped, an unfinished
-fit resumes from its ``last.ckpt``. The budgets are the task configs' own (sized for 2 CPU cores;
+fit resumes from its ``last.ckpt``, an unfinished discover run from its finished coefficient fits
+(``--discover.fit_cache``). The budgets are the task configs' own (sized for 2 CPU cores;
 the paper's are larger, see each config's header); ``--quick`` trains 4 steps on small sets, to
 check the whole path, not to measure anything.
 """
@@ -177,10 +178,11 @@ class Grid:
             best = newest(folder / "fit", "version_*/checkpoints/best-*.ckpt")
             print(f"{self.task} {AUGMENTED} seed {seed}: discovering", flush=True)
             args = ["discover", *marginal, f"--discover.seed={seed}", f"--ckpt_path={best}"]
-            args += QUICK_DISCOVER if self.quick else []
+            args += [f"--discover.fit_cache={folder / 'fits'}", *(QUICK_DISCOVER if self.quick else [])]
             discover_s = run_otgb(args, folder / "otgb.log", cwd=folder)
-            (folder / "wall_time.json").write_text(json.dumps({"fit_s": training_seconds(folder) + discover_s}))
             report = newest(folder, "runs/*/version_*/report.json")
+            discover_s += json.loads(report.read_text())["run"]["fit_cache"]["seconds_read"]  # fits of stopped attempts
+            (folder / "wall_time.json").write_text(json.dumps({"fit_s": training_seconds(folder) + discover_s}))
         augmented = report.parent / "augmented.yaml"
         terms = yaml.safe_load(augmented.read_text())["data"]["physics"]["init_args"]["terms"] if augmented.exists() else []
         scored = ["--model.transport_map=otgb.models.CompletePhysicsMap", f"--model.transport_map.init_args.seed={seed}"]

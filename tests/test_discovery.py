@@ -19,7 +19,9 @@ from torch import nn
 
 from otgb.data import generate_measured
 from otgb.data.measured import CHUNK, simulate_in_chunks
+from otgb.discovery import refine
 from otgb.discovery.evidence import Comparison, choose_swap, weigh
+from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.intervals import sandwich_intervals
 from otgb.discovery.library import Candidate, build_library, physical_name
 from otgb.discovery.locate import describe, locate, permutation_energy
@@ -90,6 +92,8 @@ from otgb.training import MapTraining
 
 ROOT = Path(__file__).parents[1]
 FAST = dict(n_permutations=199, n_trajectories=48, n_bootstrap=5, fit_steps=30, fit_batch=256, strong_candidates=1)
+
+REAL_FIT = refine.fit
 
 
 def _draws(model, n, seed):
@@ -775,6 +779,56 @@ def test_workflow_names_adds_and_closes_the_gap():
 
 
 @pytest.mark.slow
+def test_a_stopped_run_resumed_from_its_fit_cache_reaches_the_result_of_a_run_never_stopped(tmp_path, monkeypatch):
+    """The workflow with ``fit_cache``; then the fits of its second half deleted (what a stop part way leaves: the
+    fits finished before it) and the workflow run again: it fits only those and ends with the same terms, priors,
+    held-out scores and gap, to the last bit."""
+    pendulum = Pendulum()
+    dgp = pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))])
+    module = _knowing(pendulum, lambda state: -1.2 * state[:, 1:2])
+    data = Measurements(_draws(dgp, 300, 1), _draws(dgp, 100, 2), _draws(dgp, 100, 3))
+    settings = DiscoverySettings(**FAST, fit_cache=str(tmp_path / "fits"))
+    before = locate_step(pendulum, data.train, settings)
+    whole = run(module, data, settings, before)
+    stored = sorted((tmp_path / "fits").glob("*.pt"), key=lambda path: path.stat().st_mtime_ns)
+    assert len(stored) >= 4 and not list((tmp_path / "fits").glob(".*")), "one file per fit, no partial file left"
+    for path in stored[len(stored) // 2 :]:
+        path.unlink()
+    fits = []
+    monkeypatch.setattr(refine, "fit", lambda *args, **kwargs: fits.append(args[1]) or REAL_FIT(*args, **kwargs))
+    resumed = run(module, _clone(data), DiscoverySettings(**FAST, fit_cache=str(tmp_path / "fits")), before)
+    assert len(fits) == len(stored) - len(stored) // 2, "the finished fits are read back, the others fitted"
+    assert list(map(repr, resumed.fitted.priors)) == list(map(repr, whole.fitted.priors))
+    assert resumed.fitted.heldout.draws == whole.fitted.heldout.draws
+    assert resumed.cross_check == whole.cross_check and resumed.gap == whole.gap
+
+
+def _clone(data: Measurements) -> Measurements:
+    return Measurements(data.train.clone(), data.val.clone(), data.test.clone())
+
+
+def test_the_fit_cache_says_a_stored_fits_divergences_again_and_refuses_a_file(tmp_path):
+    cache, calls = FitCache(tmp_path / "fits"), []
+
+    def fit():
+        calls.append(1)
+        diverged("fit (constant)", ["u^3 on du/dt"], 3, 64)
+        return {"coefficient": 2.5}
+
+    key = cache.key(Pendulum(), torch.zeros(4, 3), torch.ones(4, 3), terms=[("u^3", "u")], init=[0.1])
+    for _ in range(2):
+        with DivergenceLog() as log:
+            assert cache.fitted(key, fit) == {"coefficient": 2.5}
+        assert [(r["what"], r["diverged"], r["of"]) for r in log.records] == [("fit (constant)", 3, 64)]
+    assert calls == [1] and FitCache(tmp_path / "fits").read == 0
+    other = cache.key(Pendulum(), torch.zeros(4, 3), torch.ones(4, 3), terms=[("u^3", "u")], init=[0.1000001])
+    assert other != key and cache.get(other) is None, "another start is another fit"
+    (tmp_path / "file").write_text("")
+    with pytest.raises(InputError, match="discover.fit_cache=.*expected a folder"):
+        DiscoverySettings(fit_cache=str(tmp_path / "file"))
+
+
+@pytest.mark.slow
 def test_workflow_names_quadratic_drag_and_closes_the_gap():
     pendulum = Pendulum()
     dgp = pendulum.with_hidden_effect([LibraryTerm("velocity*|velocity|", "velocity", Constant(-0.5))])
@@ -953,6 +1007,7 @@ def _bad_file(tmp_path: Path, kind: str) -> Path:
         (("file", "time grid"), "the time grid [0, 0.2, 0.4"),
         (("setting", "--discover.alpha=2"), "discover: need"),
         (("setting", "--discover.families=[constant,gamma]"), "discover.families=['constant', 'gamma']: expected"),
+        (("setting", "--discover.fit_cache=measured.npz"), "discover.fit_cache='measured.npz': expected a folder"),
     ],
 )
 def test_discover_refuses_bad_input_in_one_line_and_writes_nothing(tmp_path, mistake, expected):

@@ -31,6 +31,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from otgb.discovery.chunked import backward_in_chunks, chunk_size
+from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.library import Candidate
 from otgb.discovery.log import diverged
 from otgb.metrics.energy import batched_energy, cross_row_means, within_means
@@ -326,12 +327,23 @@ class Fitting:
     batch: int
     seed: int
     natural: dict[Candidate, float] = field(default_factory=dict)
+    cache: FitCache | None = None  # finished fits on disk (:mod:`otgb.discovery.fit_cache`)
 
     def __call__(self, candidates: list[Candidate], init: list[float], family: str = "constant", natural_scales: bool = True):
         """The fitted prior of ``family`` for ``candidates`` started at ``init``; without ``natural_scales`` each
-        coefficient moves in units of its start's size."""
-        scales = [self.natural[c] for c in candidates] if natural_scales and self.natural else None
-        return fit(self.physics, candidates, init, family, self.train, self.val, self.steps, self.batch, self.seed, scales=scales)
+        coefficient moves in units of its start's size. Read from the cache where it holds this fit."""
+        scales = [float(self.natural[c]) for c in candidates] if natural_scales and self.natural else None
+        init = [float(v) for v in init]
+
+        def run() -> FittedTerms:
+            data = (self.train, self.val, self.steps, self.batch, self.seed)
+            return fit(self.physics, candidates, init, family, *data, scales=scales)
+
+        if self.cache is None:
+            return run()
+        terms = [(c.feature, c.component) for c in candidates]
+        inputs = {"terms": terms, "init": init, "family": family, "scales": scales, "steps": self.steps, "batch": self.batch}
+        return self.cache.fitted(self.cache.key(self.physics, self.train, self.val, seed=self.seed, **inputs), run)
 
 
 @torch.no_grad()

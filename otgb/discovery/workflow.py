@@ -34,6 +34,7 @@ from torch import Tensor
 from otgb.data.measured import CHUNK, simulate_in_chunks
 from otgb.data.seeding import generator_for
 from otgb.discovery.evidence import Comparison, weigh
+from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.intervals import Intervals, sandwich_intervals
 from otgb.discovery.library import Candidate, build_library, physical_name
 from otgb.discovery.locate import DisagreementMap, describe, locate
@@ -84,6 +85,8 @@ class DiscoverySettings:
         families: Prior families tried for the coefficients, simplest first.
         c2st_classifier: The C2ST judge of the gap table ("auto", "mlp" or "conv").
         seed: Seed of every draw of the workflow.
+        fit_cache: A folder where each finished coefficient fit is stored and from which a run that asks for the same
+            fit reads it (:mod:`otgb.discovery.fit_cache`): a stopped run started again with the same folder resumes.
     """
 
     def __init__(
@@ -102,6 +105,7 @@ class DiscoverySettings:
         families: tuple[str, ...] = FAMILIES,
         c2st_classifier: str = "auto",
         seed: int = 0,
+        fit_cache: str | None = None,
     ) -> None:
         if n_permutations < 19 or not 0 < alpha < 1 or regions_per_axis < 1 or min(locate_rows, score_rows) < 10:
             raise InputError(
@@ -120,6 +124,8 @@ class DiscoverySettings:
         self.n_trajectories, self.n_bootstrap, self.theta_products = n_trajectories, n_bootstrap, theta_products
         self.strong_candidates, self.fit_steps, self.fit_batch = strong_candidates, fit_steps, fit_batch
         self.families, self.c2st_classifier, self.seed = tuple(families), c2st_classifier, seed
+        self.fit_cache = fit_cache
+        self.cache = None if fit_cache is None else FitCache(fit_cache)  # refuses a file before any work
 
 
 @dataclass
@@ -317,7 +323,7 @@ def fitting_for(physics: PhysicsModel, data: Measurements, settings: DiscoverySe
     candidate's natural scale, the slope at which its term alone would be as large as f_phi on its component."""
     natural = {c: _natural_scale(c, design) for design in designs.values() for c in design.candidates}
     train, val = (at_most(part, settings.score_rows, settings.seed) for part in (data.train, data.val))
-    return Fitting(physics, train, val, settings.fit_steps, settings.fit_batch, settings.seed, natural)
+    return Fitting(physics, train, val, settings.fit_steps, settings.fit_batch, settings.seed, natural, settings.cache)
 
 
 def at_most(rows: Tensor, n: int, seed: int) -> Tensor:
