@@ -4,6 +4,7 @@ import json
 import logging
 import math
 import re
+import signal
 import subprocess
 import sys
 from functools import partial
@@ -957,6 +958,42 @@ def test_discover_negative_control_names_nothing(tmp_path):
     assert set(report["gap"]) == {"f_p", "reference"} and not (tmp_path / run_dir / "augmented.yaml").exists()
     assert (tmp_path / run_dir / "report.md").read_text().count("figures/") >= 2
     assert not (tmp_path / run_dir / "checkpoints").exists(), "nothing to learn: no training"
+
+
+@pytest.mark.slow
+def test_discover_stopped_by_sigterm_says_how_to_resume_and_the_same_command_ends_as_a_run_never_stopped(tmp_path):
+    """A real ``otgb discover`` (it trains its grey-box) sent SIGTERM once its route fits have begun: one line with the
+    folder of finished fits and the trained checkpoint, exit 143; the same command with that checkpoint reads the fits
+    back and writes the report an unstopped run writes."""
+    args = [sys.executable, "-m", "otgb.cli", "discover", "--config", str(ROOT / "configs" / "pendulum.yaml")]
+    args += ["--data.hidden_effect=[]", f"--data.measured_path={_export(tmp_path, -1.2)}", "--data.simulation_budget=8000"]
+    args += [f"--data.cache_dir={tmp_path / 'cache'}", "--trainer.enable_progress_bar=false"]
+    args += [f"--discover.{k}={v}" for k, v in FAST.items()]
+    running = subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lines = []
+    for line in running.stderr:
+        lines.append(line)
+        if "held-out energy" in line:
+            running.send_signal(signal.SIGTERM)
+            break
+    lines += running.stderr.readlines()
+    assert running.wait(timeout=60) == 143, "".join(lines[-5:])
+    last = lines[-1].strip()
+    assert last.startswith("otgb discover: stopped by SIGTERM; ") and "Traceback" not in "".join(lines), last
+    folder, checkpoint = tmp_path / "runs" / "pendulum" / "fit_cache", last.split("--ckpt_path ")[1].split(" ")[0]
+    assert f"finished fits are in {folder.relative_to(tmp_path)}" in last and list(folder.glob("*.pt")), last
+    resumed = subprocess.run([*args, f"--ckpt_path={checkpoint}"], cwd=tmp_path, capture_output=True, text=True)
+    unstopped = [*args, f"--ckpt_path={checkpoint}", "--discover.fit_cache=null"]
+    unstopped = subprocess.run(unstopped, cwd=tmp_path, capture_output=True, text=True)
+    assert resumed.returncode == unstopped.returncode == 0, resumed.stderr[-1500:] + unstopped.stderr[-1500:]
+    assert "fit cache: reading finished fits" in resumed.stderr
+    reports = [json.loads((tmp_path / _run_dir(done) / "report.json").read_text()) for done in (resumed, unstopped)]
+    assert reports[0]["run"].pop("fit_cache")["fits_read"] > 0 and "fit_cache" not in reports[1]["run"]
+    assert reports[0] == reports[1]
+
+
+def _run_dir(done: subprocess.CompletedProcess) -> Path:
+    return Path(done.stdout.strip().splitlines()[-1].split("report in ")[1])
 
 
 def _forced_pendulum(path: Path, n: int = 200, noise: float = 0.05) -> Path:

@@ -18,8 +18,13 @@ where the fit's logs and checkpoints also go) and prints that directory. Progres
 
 from __future__ import annotations
 
+import signal
+import sys
+import threading
 import warnings
 from argparse import RawDescriptionHelpFormatter
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,6 +36,7 @@ from jsonargparse import DefaultHelpFormatter
 from otgb.analysis.components import component_analysis
 from otgb.command import OTGBCLI, check_validation_in_budget, refuse_written_log_dirs
 from otgb.data import SimulationDataModule
+from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.known import pointwise_errors
 from otgb.discovery.locate import describe
 from otgb.discovery.log import DivergenceLog, progress, show_on_stderr
@@ -83,10 +89,50 @@ class Finished:
     report: dict
 
 
+class Stopped(BaseException):
+    """``otgb discover`` stopped by a signal while it named and fitted terms; the message says how to resume. A
+    BaseException, as KeyboardInterrupt: no ``except Exception`` on the way swallows it."""
+
+    def __init__(self, signum: int, cache: FitCache | None, trained: str | None) -> None:
+        self.signum, name = signum, signal.Signals(signum).name
+        if cache is None:
+            super().__init__(f"otgb discover: stopped by {name}; with --discover.fit_cache DIR a stopped run resumes")
+            return
+        n = len(list(cache.folder.glob("*.pt")))
+        skip = f" (add --ckpt_path {trained} to skip training the grey-box again)" if trained else ""
+        resume = f"{n} finished fits are in {cache.folder}: the same command resumes{skip}"
+        super().__init__(f"otgb discover: stopped by {name}; {resume}")
+
+
+@contextmanager
+def stopped_by_signals(cache: FitCache | None, trained: str | None) -> Iterator[None]:
+    """Within it, SIGTERM (a scheduler ending the job) and Ctrl-C end the run with :class:`Stopped`; the fits finished
+    so far are on disk (:mod:`otgb.discovery.fit_cache`), none half-written. ``trained``: the checkpoint of a grey-box
+    this run trained."""
+
+    def stop(signum: int, frame: object) -> None:
+        raise Stopped(signum, cache, trained)
+
+    if threading.current_thread() is not threading.main_thread():  # signals reach the main thread only
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    except KeyboardInterrupt:
+        raise Stopped(signal.SIGINT, cache, trained) from None
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def discover(args: list[str]) -> Path:
     """Run ``otgb discover`` with its command-line arguments: the workflow, then the verdict and the run directory on
     stdout. Returns the run directory."""
-    finished = discover_run(args)
+    try:
+        finished = discover_run(args)
+    except Stopped as stopped:
+        print(stopped, file=sys.stderr)
+        raise SystemExit(128 + stopped.signum) from None
     answer, *details = finished.report["verdict_parts"]
     print(f"otgb discover: {answer}")
     for detail in details:
@@ -106,6 +152,7 @@ def discover_run(args: list[str]) -> Finished:
         )
     settings: DiscoverySettings = cli.config_init["discover"]
     refuse_written_log_dirs(cli.trainer)  # the report goes into the trainer's log folder
+    settings.cache_beside(Path(cli.trainer.log_dir).parent)
     if cli.config.get("ckpt_path") is None:
         check_validation_in_budget(cli.datamodule, cli.trainer)
     show_on_stderr()
@@ -125,9 +172,10 @@ def discover_run(args: list[str]) -> Finished:
     run_dir = Path(trainer.log_dir)
     components = None
     if before.any_significant:
-        load_or_fit(cli, cli.config.get("ckpt_path"))
+        given = cli.config.get("ckpt_path")
+        loaded = load_or_fit(cli, given)
         components = component_analysis(module, datamodule, seed=settings.seed)
-        with as_measured():
+        with as_measured(), stopped_by_signals(settings.cache, loaded if given is None else None):
             result = run(module, data, settings, before)
         process = datamodule.source.pointwise_process
         if process is not None:
@@ -163,13 +211,14 @@ def _description() -> str:
     return "\n\n".join([opening.replace("``", ""), example, trade.replace("``", "")])
 
 
-def load_or_fit(cli: Any, ckpt_path: str | None) -> None:
-    """Load the grey-box's weights from ``ckpt_path``, or train it and load its best checkpoint."""
+def load_or_fit(cli: Any, ckpt_path: str | None) -> str | None:
+    """Load the grey-box's weights from ``ckpt_path``, or train it and load its best checkpoint; returns the checkpoint
+    loaded."""
     if ckpt_path is None:
         progress("learning: training the OT grey-box on the measured training part")
         cli.trainer.fit(cli.model, cli.datamodule)
-        best = getattr(cli.trainer.checkpoint_callback, "best_model_path", "")
-        if not best:
-            return
-        ckpt_path = best
+        ckpt_path = getattr(cli.trainer.checkpoint_callback, "best_model_path", "") or None
+        if ckpt_path is None:
+            return None
     load_weights(cli.model, ckpt_path)
+    return ckpt_path

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -87,6 +88,8 @@ class DiscoverySettings:
         seed: Seed of every draw of the workflow.
         fit_cache: A folder where each finished coefficient fit is stored and from which a run that asks for the same
             fit reads it (:mod:`otgb.discovery.fit_cache`): a stopped run started again with the same folder resumes.
+            ``auto``: ``fit_cache`` beside the run directories (``runs/<config stem>/fit_cache``) under ``otgb discover``,
+            none where the workflow is called directly; ``null``: no fit is stored.
     """
 
     def __init__(
@@ -105,7 +108,7 @@ class DiscoverySettings:
         families: tuple[str, ...] = FAMILIES,
         c2st_classifier: str = "auto",
         seed: int = 0,
-        fit_cache: str | None = None,
+        fit_cache: str | None = "auto",
     ) -> None:
         if n_permutations < 19 or not 0 < alpha < 1 or regions_per_axis < 1 or min(locate_rows, score_rows) < 10:
             raise InputError(
@@ -125,7 +128,12 @@ class DiscoverySettings:
         self.strong_candidates, self.fit_steps, self.fit_batch = strong_candidates, fit_steps, fit_batch
         self.families, self.c2st_classifier, self.seed = tuple(families), c2st_classifier, seed
         self.fit_cache = fit_cache
-        self.cache = None if fit_cache is None else FitCache(fit_cache)  # refuses a file before any work
+        self.cache = None if fit_cache in (None, "auto") else FitCache(fit_cache)  # refuses a file before any work
+
+    def cache_beside(self, runs: Path) -> None:
+        """Resolve ``fit_cache: auto`` to the folder ``runs/fit_cache`` (``runs``: where the run directories are)."""
+        if self.fit_cache == "auto":
+            self.cache = FitCache(runs / "fit_cache")
 
 
 @dataclass
