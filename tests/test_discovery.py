@@ -808,7 +808,7 @@ def _clone(data: Measurements) -> Measurements:
     return Measurements(data.train.clone(), data.val.clone(), data.test.clone())
 
 
-def test_the_fit_cache_says_a_stored_fits_divergences_again_and_refuses_a_file(tmp_path):
+def test_the_fit_cache_says_a_stored_fits_divergences_again_refuses_a_file_and_warns_where_it_cannot_write(tmp_path):
     cache, calls = FitCache(tmp_path / "fits"), []
 
     def fit():
@@ -827,6 +827,17 @@ def test_the_fit_cache_says_a_stored_fits_divergences_again_and_refuses_a_file(t
     (tmp_path / "file").write_text("")
     with pytest.raises(InputError, match="discover.fit_cache=.*expected a folder"):
         DiscoverySettings(fit_cache=str(tmp_path / "file"))
+    blocked = FitCache(tmp_path / "file" / "fits")  # under a file: no user, root included, can write there
+    said, logger = [], logging.getLogger("otgb.discover")  # its own handler: otgb discover's stderr handler stops propagation
+    handler = logging.Handler(logging.WARNING)
+    handler.emit = lambda record: said.append(record.getMessage())
+    logger.addHandler(handler)
+    try:
+        assert blocked.fitted(key, fit) == {"coefficient": 2.5} and blocked.fitted(other, fit) == {"coefficient": 2.5}
+    finally:
+        logger.removeHandler(handler)
+    warned = [line for line in said if "fit cache" in line]
+    assert len(warned) == 1 and "cannot write" in warned[0] and not blocked.writable, "one warning, and the run goes on"
 
 
 @pytest.mark.slow

@@ -95,8 +95,8 @@ class Stopped(BaseException):
 
     def __init__(self, signum: int, cache: FitCache | None, trained: str | None) -> None:
         self.signum, name = signum, signal.Signals(signum).name
-        if cache is None:
-            super().__init__(f"otgb discover: stopped by {name}; with --discover.fit_cache DIR a stopped run resumes")
+        if cache is None or not cache.writable:
+            super().__init__(f"otgb discover: stopped by {name}; no fit was kept (--discover.fit_cache: a writable folder)")
             return
         n = len(list(cache.folder.glob("*.pt")))
         skip = f" (add --ckpt_path {trained} to skip training the grey-box again)" if trained else ""

@@ -15,6 +15,7 @@ discovery run makes dozens, so such a run can take longer than one session or jo
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import os
@@ -27,7 +28,7 @@ import torch
 from torch import Tensor
 
 import otgb
-from otgb.discovery.log import DivergenceLog, diverged, progress
+from otgb.discovery.log import DivergenceLog, diverged, logger, progress
 from otgb.errors import InputError
 
 
@@ -40,6 +41,7 @@ class FitCache:
             raise InputError(f"discover.fit_cache={str(folder)!r}: expected a folder (or a path to create one), got a file")
         self.read = 0  # fits this run read back instead of fitting
         self.seconds_read = 0.0  # the time those fits took when they ran
+        self.writable = True  # False after a write failed: the fits are then not kept
 
     def key(self, physics: Any, measured: Tensor, heldout: Tensor, **inputs: Any) -> str:
         """The hash of a fit's inputs: ``physics`` (its class, settings and measurement noise in force), the
@@ -89,11 +91,21 @@ class FitCache:
         return stored
 
     def put(self, key: str, record: dict[str, Any]) -> None:
-        """Store ``record`` under ``key``, written whole or not at all (a stop mid-write leaves no file)."""
-        self.folder.mkdir(parents=True, exist_ok=True)
+        """Store ``record`` under ``key``, written whole or not at all (a stop mid-write leaves no file). A folder that
+        cannot be written costs one warning, not the run: its fits are then not kept."""
+        if not self.writable:
+            return
         partial = self.folder / f".{key}.{os.getpid()}.partial"
-        torch.save(record, partial)
-        os.replace(partial, self.folder / f"{key}.pt")
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            torch.save(record, partial)
+            os.replace(partial, self.folder / f"{key}.pt")
+        except (OSError, RuntimeError) as error:  # RuntimeError: torch.save's writer on a full disk
+            self.writable = False
+            with contextlib.suppress(OSError):  # a partial file of a full disk
+                partial.unlink(missing_ok=True)
+            reason = error.strerror or type(error).__name__
+            logger.warning(f"fit cache: cannot write {self.folder} ({reason}); this run's fits are not kept for a rerun")
 
 
 @functools.cache
