@@ -804,6 +804,30 @@ def test_a_stopped_run_resumed_from_its_fit_cache_reaches_the_result_of_a_run_ne
     assert resumed.cross_check == whole.cross_check and resumed.gap == whole.gap
 
 
+def test_fits_on_a_device_that_fails_fall_back_to_the_cpu_with_one_warning_and_give_the_cpu_result():
+    """The coefficient fits run on the trainer's device; one that fails there (here the meta device, which holds no
+    numbers) is fitted on the CPU after one warning, and so is every later fit: the CPU's result, to the last bit."""
+    pendulum = Pendulum()
+    dgp = pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))])
+    train, val, velocity = _draws(dgp, 200, 1), _draws(dgp, 60, 2), Candidate("velocity", "velocity")
+    on_meta = Fitting(pendulum, train, val, 20, 128, 0, device=torch.device("meta"))
+    said, logger = [], logging.getLogger("otgb.discover")
+    handler = logging.Handler(logging.WARNING)
+    handler.emit = lambda record: said.append(record.getMessage())
+    logger.addHandler(handler)
+    try:
+        fitted = [on_meta([velocity], [start]) for start in (-1.0, -1.1)]
+    finally:
+        logger.removeHandler(handler)
+    on_cpu = Fitting(pendulum, train, val, 20, 128, 0)
+    for one, start in zip(fitted, (-1.0, -1.1)):
+        expected = on_cpu([velocity], [start])
+        assert repr(one.priors) == repr(expected.priors) and one.heldout.draws == expected.heldout.draws
+    assert len(said) == 1 and "the coefficient fits run on the CPU: a fit on meta failed" in said[0], said
+    assert "cannot be called on meta tensors" in said[0], "the solve and the loss ran on the device; reading the loss failed"
+    assert on_meta.device.type == "cpu" and abs(fitted[0].priors[0].value + 1.2) < 0.15
+
+
 def _clone(data: Measurements) -> Measurements:
     return Measurements(data.train.clone(), data.val.clone(), data.test.clone())
 

@@ -4,6 +4,7 @@ Marked ``gpu``; skipped where no CUDA device is present (``pytest -m gpu`` on a 
 """
 
 import json
+import logging
 import math
 
 import pytest
@@ -11,7 +12,11 @@ import torch
 from test_cli import CONFIGS, _tiny
 
 from otgb.cli import main
+from otgb.data import generate_measured
+from otgb.discovery.library import Candidate
+from otgb.discovery.refine import Fitting
 from otgb.metrics.c2st import c2st
+from otgb.physics import Constant, LibraryTerm, ReactionDiffusion
 
 pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")]
 SYSTEMS = [c for c in CONFIGS if c.stem in ("pendulum", "advdiff", "reactdiff")]
@@ -75,3 +80,24 @@ def _decay_solved_without_gradients(device: str) -> float:
         solvers.reset()
     exact = torch.exp(-rate * times)[:, :, None].expand_as(states)
     return float(((states - exact).abs() / exact).max())
+
+
+def test_coefficient_fits_on_the_gpu_reach_the_cpus_coefficients_without_falling_back():
+    """otgb discover's coefficient fits on the trainer's device: a reaction-diffusion fit of the hidden reaction's cubic
+    term on the GPU, no fallback warning, its coefficient and held-out score within float rounding of the CPU's."""
+    physics = ReactionDiffusion(n_grid=16)
+    dgp = physics.with_hidden_effect([LibraryTerm("u^3", "u", Constant(-1.0))])
+    train, val, cubic = generate_measured(dgp, 120, 1)["y"], generate_measured(dgp, 40, 2)["y"], Candidate("u^3", "u")
+    said, logger = [], logging.getLogger("otgb.discover")
+    handler = logging.Handler(logging.WARNING)
+    handler.emit = lambda record: said.append(record.getMessage())
+    logger.addHandler(handler)
+    try:
+        on_gpu = Fitting(physics, train, val, 20, 128, 0, device=torch.device("cuda"))([cubic], [-0.7])
+    finally:
+        logger.removeHandler(handler)
+    on_cpu = Fitting(physics, train, val, 20, 128, 0)([cubic], [-0.7])
+    assert not said, said
+    gpu, cpu = on_gpu.priors[0].value, on_cpu.priors[0].value
+    assert abs(gpu - cpu) < 1e-3 * abs(cpu), (gpu, cpu)
+    assert abs(on_gpu.heldout_energy - on_cpu.heldout_energy) < 1e-3 * abs(on_cpu.heldout_energy) + 1e-6

@@ -153,6 +153,7 @@ def discover_run(args: list[str]) -> Finished:
     settings: DiscoverySettings = cli.config_init["discover"]
     refuse_written_log_dirs(cli.trainer)  # the report goes into the trainer's log folder
     settings.cache_beside(Path(cli.trainer.log_dir).parent)
+    settings.device = cli.trainer.strategy.root_device  # the coefficient fits run where the grey-box trains
     if cli.config.get("ckpt_path") is None:
         check_validation_in_budget(cli.datamodule, cli.trainer)
     show_on_stderr()

@@ -22,6 +22,7 @@ held-out parts, which a spread that varies over time needs to be seen.
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -33,7 +34,7 @@ from torch import Tensor
 from otgb.discovery.chunked import backward_in_chunks, chunk_size
 from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.library import Candidate
-from otgb.discovery.log import diverged
+from otgb.discovery.log import diverged, logger
 from otgb.metrics.energy import batched_energy, cross_row_means, within_means
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
@@ -41,6 +42,7 @@ from otgb.physics.priors import Choice, Constant, Normal, Prior, Uniform
 from otgb.physics.terms import LibraryTerm
 
 FAMILIES = ("constant", "uniform", "normal", "two_point")  # simplest first
+CPU = torch.device("cpu")
 HELDOUT_REPEATS = 10  # simulation draws per held-out score
 FAMILY_REPEATS = 20  # simulation draws per score of a prior family on the training measurements
 # The loss a fit's L-BFGS sees where the model diverges: finite, so that its strong-Wolfe line search
@@ -181,6 +183,9 @@ class FitSample:
         x0, theta = base.sample_initial_state(batch, g), base.sample_theta(batch, g)
         return cls(targets, x0, theta, standard_noise(family, (batch, terms), g))
 
+    def to(self, device: torch.device) -> FitSample:
+        return FitSample(*(t.to(device) for t in (self.targets, self.x0, self.theta, self.noise)))
+
 
 def simulate_finite(model: Augmented, x0: Tensor, theta: Tensor) -> tuple[Tensor, Tensor]:
     """Observed trajectories (n', T, *obs) of the augmented model without those that diverged (a coefficient
@@ -261,6 +266,7 @@ def fit(
     seed: int = 0,
     score: bool = True,
     scales: list[float] | None = None,
+    device: torch.device = CPU,
 ) -> FittedTerms:
     """Fit the coefficients' prior of one ``family`` to ``measured`` (m, T, *obs); score on ``heldout`` (if ``score``).
 
@@ -270,11 +276,13 @@ def fit(
     L-BFGS (``steps`` iterations, strong-Wolfe line search) can follow the narrow valleys that
     correlated terms make. Where its last step leaves the prior's parameters non-finite (a line search
     that ran into coefficients whose solves diverge), the fit keeps the best iterate it evaluated.
+    It runs on ``device``; its draws are made on the CPU, the same on every device.
     """
-    prior = CoefficientPrior(family, init, scales)
-    model = Augmented(base, [LibraryTerm(c.feature, c.component, Constant(v)) for c, v in zip(candidates, init)])
+    prior = CoefficientPrior(family, init, scales).to(device)
+    terms = [LibraryTerm(c.feature, c.component, Constant(v)) for c, v in zip(candidates, init)]
+    model = Augmented(on_device(base, device), terms).to(device)
     n = batch
-    sample = FitSample.draw(base, measured, family, len(candidates), batch, seed)
+    sample = FitSample.draw(base, measured, family, len(candidates), batch, seed).to(device)
     target, x0, theta, noise = Target.of(sample.targets), sample.x0, sample.theta, sample.noise
     optimiser = torch.optim.LBFGS(prior.parameters(), lr=1, max_iter=steps, max_eval=2 * steps, line_search_fn="strong_wolfe")
     losses: list[float] = []
@@ -306,8 +314,14 @@ def fit(
         priors = [Constant(v) for v in init]
         return FittedTerms(family, list(candidates), priors, Scores.diverged(HELDOUT_REPEATS), losses, list(init), scales)
     priors = prior.priors()
-    scored = discrepancies(base, candidates, priors, heldout, seed) if score else Scores([])
+    scored = discrepancies(base, candidates, priors, heldout, seed, device=device) if score else Scores([])
     return FittedTerms(family, list(candidates), priors, scored, losses, list(init), scales)
+
+
+def on_device(physics: PhysicsModel, device: torch.device) -> PhysicsModel:
+    """``physics`` itself on the CPU; elsewhere a copy moved to ``device`` (moving a module moves it in place, and the rest
+    of discovery uses it on the CPU), in its current state (the measurement noise in force)."""
+    return physics if device.type == "cpu" else copy.deepcopy(physics).to(device)
 
 
 def prior_is_finite(prior: CoefficientPrior) -> bool:
@@ -328,6 +342,7 @@ class Fitting:
     seed: int
     natural: dict[Candidate, float] = field(default_factory=dict)
     cache: FitCache | None = None  # finished fits on disk (:mod:`otgb.discovery.fit_cache`)
+    device: torch.device = CPU  # where the fits run; the CPU from the first fit that fails elsewhere (:meth:`fit_on_device`)
 
     def __call__(self, candidates: list[Candidate], init: list[float], family: str = "constant", natural_scales: bool = True):
         """The fitted prior of ``family`` for ``candidates`` started at ``init``; without ``natural_scales`` each
@@ -337,13 +352,27 @@ class Fitting:
 
         def run() -> FittedTerms:
             data = (self.train, self.val, self.steps, self.batch, self.seed)
-            return fit(self.physics, candidates, init, family, *data, scales=scales)
+            return self.fit_on_device(
+                lambda device: fit(self.physics, candidates, init, family, *data, scales=scales, device=device)
+            )
 
         if self.cache is None:
             return run()
         terms = [(c.feature, c.component) for c in candidates]
         inputs = {"terms": terms, "init": init, "family": family, "scales": scales, "steps": self.steps, "batch": self.batch}
+        inputs["device"] = self.device.type  # another device rounds differently
         return self.cache.fitted(self.cache.key(self.physics, self.train, self.val, seed=self.seed, **inputs), run)
+
+    def fit_on_device(self, fit_on: Callable[[torch.device], FittedTerms]) -> FittedTerms:
+        """``fit_on(self.device)``; where it fails off the CPU, one warning and this and every later fit on the CPU."""
+        if self.device.type == "cpu":
+            return fit_on(self.device)
+        try:
+            return fit_on(self.device)
+        except RuntimeError as error:  # torch.cuda.OutOfMemoryError included
+            logger.warning(f"discover: the coefficient fits run on the CPU: a fit on {self.device} failed ({error})")
+            self.device = CPU
+            return fit_on(self.device)
 
 
 @torch.no_grad()
@@ -354,6 +383,7 @@ def discrepancies(
     measured: Tensor,
     seed: int,
     repeats: int = HELDOUT_REPEATS,
+    device: torch.device = CPU,
 ) -> Scores:
     """:class:`Scores` to ``measured`` of ``repeats`` fresh simulation draws as large as it, coefficients from ``priors``.
 
@@ -361,16 +391,17 @@ def discrepancies(
     model, so that two models' scores differ by their coefficients, not by the luck of the
     draws (common random numbers): their difference is then measured far more precisely.
     """
-    model = Augmented(base, [LibraryTerm(c.feature, c.component, Constant(0.0)) for c in candidates])
+    terms = [LibraryTerm(c.feature, c.component, Constant(0.0)) for c in candidates]
+    model = Augmented(on_device(base, device), terms).to(device)
     inputs, noise = torch.Generator().manual_seed(seed + 1), torch.Generator().manual_seed(seed + 2)
-    n, values, rows = len(measured), [], torch.zeros(len(measured), dtype=torch.float64)
-    target = Target.of(measured.double())
+    n, values, rows = len(measured), [], torch.zeros(len(measured), dtype=torch.float64, device=device)
+    target = Target.of(measured.double().to(device))
     for _ in range(repeats):
         x0, theta = base.sample_initial_state(n, inputs), base.sample_theta(n, inputs)
         coefficients = (
             torch.stack([p.quantile(torch.rand(n, generator=noise)) for p in priors], 1) if priors else torch.zeros(n, 0)
         )
-        simulated, bad = simulate_finite(model, x0, torch.cat([theta, coefficients.float()], dim=1))
+        simulated, bad = simulate_finite(model, x0.to(device), torch.cat([theta, coefficients.float()], dim=1).to(device))
         if bad.any():
             first = int(bad.nonzero()[0])
             diverged("score", term_names(candidates), int(bad.sum()), n, theta[first].tolist(), list(map(repr, priors)))
@@ -378,7 +409,7 @@ def discrepancies(
         value, row = discrepancy_and_rows(simulated.double(), target)
         values.append(float(value))
         rows += row / repeats
-    return Scores(values, rows)
+    return Scores(values, rows.cpu())
 
 
 @torch.no_grad()

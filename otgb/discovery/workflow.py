@@ -129,6 +129,7 @@ class DiscoverySettings:
         self.families, self.c2st_classifier, self.seed = tuple(families), c2st_classifier, seed
         self.fit_cache = fit_cache
         self.cache = None if fit_cache in (None, "auto") else FitCache(fit_cache)  # refuses a file before any work
+        self.device = torch.device("cpu")  # of the coefficient fits: otgb discover's is the trainer's
 
     def cache_beside(self, runs: Path) -> None:
         """Resolve ``fit_cache: auto`` to the folder ``runs/fit_cache`` (``runs``: where the run directories are)."""
@@ -331,7 +332,8 @@ def fitting_for(physics: PhysicsModel, data: Measurements, settings: DiscoverySe
     candidate's natural scale, the slope at which its term alone would be as large as f_phi on its component."""
     natural = {c: _natural_scale(c, design) for design in designs.values() for c in design.candidates}
     train, val = (at_most(part, settings.score_rows, settings.seed) for part in (data.train, data.val))
-    return Fitting(physics, train, val, settings.fit_steps, settings.fit_batch, settings.seed, natural, settings.cache)
+    steps = (settings.fit_steps, settings.fit_batch, settings.seed)
+    return Fitting(physics, train, val, *steps, natural, settings.cache, settings.device)
 
 
 def at_most(rows: Tensor, n: int, seed: int) -> Tensor:
