@@ -7,6 +7,8 @@ import re
 import signal
 import subprocess
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from functools import partial
 from pathlib import Path
 from types import SimpleNamespace
@@ -804,6 +806,20 @@ def test_a_stopped_run_resumed_from_its_fit_cache_reaches_the_result_of_a_run_ne
     assert resumed.cross_check == whole.cross_check and resumed.gap == whole.gap
 
 
+@contextmanager
+def warnings_said() -> Iterator[list[str]]:
+    """The warnings the ``otgb.discover`` logger says within it (its own handler: ``otgb discover``'s stderr handler
+    stops propagation to the root logger, where pytest's caplog listens)."""
+    said, logger = [], logging.getLogger("otgb.discover")
+    handler = logging.Handler(logging.WARNING)
+    handler.emit = lambda record: said.append(record.getMessage())
+    logger.addHandler(handler)
+    try:
+        yield said
+    finally:
+        logger.removeHandler(handler)
+
+
 def test_fits_on_a_device_that_fails_fall_back_to_the_cpu_with_one_warning_and_give_the_cpu_result():
     """The coefficient fits run on the trainer's device; one that fails there (here the meta device, which holds no
     numbers) is fitted on the CPU after one warning, and so is every later fit: the CPU's result, to the last bit."""
@@ -811,14 +827,8 @@ def test_fits_on_a_device_that_fails_fall_back_to_the_cpu_with_one_warning_and_g
     dgp = pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))])
     train, val, velocity = _draws(dgp, 200, 1), _draws(dgp, 60, 2), Candidate("velocity", "velocity")
     on_meta = Fitting(pendulum, train, val, 20, 128, 0, device=torch.device("meta"))
-    said, logger = [], logging.getLogger("otgb.discover")
-    handler = logging.Handler(logging.WARNING)
-    handler.emit = lambda record: said.append(record.getMessage())
-    logger.addHandler(handler)
-    try:
+    with warnings_said() as said:
         fitted = [on_meta([velocity], [start]) for start in (-1.0, -1.1)]
-    finally:
-        logger.removeHandler(handler)
     on_cpu = Fitting(pendulum, train, val, 20, 128, 0)
     for one, start in zip(fitted, (-1.0, -1.1)):
         expected = on_cpu([velocity], [start])
@@ -852,14 +862,8 @@ def test_the_fit_cache_says_a_stored_fits_divergences_again_refuses_a_file_and_w
     with pytest.raises(InputError, match="discover.fit_cache=.*expected a folder"):
         DiscoverySettings(fit_cache=str(tmp_path / "file"))
     blocked = FitCache(tmp_path / "file" / "fits")  # under a file: no user, root included, can write there
-    said, logger = [], logging.getLogger("otgb.discover")  # its own handler: otgb discover's stderr handler stops propagation
-    handler = logging.Handler(logging.WARNING)
-    handler.emit = lambda record: said.append(record.getMessage())
-    logger.addHandler(handler)
-    try:
+    with warnings_said() as said:
         assert blocked.fitted(key, fit) == {"coefficient": 2.5} and blocked.fitted(other, fit) == {"coefficient": 2.5}
-    finally:
-        logger.removeHandler(handler)
     warned = [line for line in said if "fit cache" in line]
     assert len(warned) == 1 and "cannot write" in warned[0] and not blocked.writable, "one warning, and the run goes on"
 

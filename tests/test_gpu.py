@@ -4,12 +4,12 @@ Marked ``gpu``; skipped where no CUDA device is present (``pytest -m gpu`` on a 
 """
 
 import json
-import logging
 import math
 
 import pytest
 import torch
 from test_cli import CONFIGS, _tiny
+from test_discovery import warnings_said
 
 from otgb.cli import main
 from otgb.data import generate_measured
@@ -88,14 +88,8 @@ def test_coefficient_fits_on_the_gpu_reach_the_cpus_coefficients_without_falling
     physics = ReactionDiffusion(n_grid=16)
     dgp = physics.with_hidden_effect([LibraryTerm("u^3", "u", Constant(-1.0))])
     train, val, cubic = generate_measured(dgp, 120, 1)["y"], generate_measured(dgp, 40, 2)["y"], Candidate("u^3", "u")
-    said, logger = [], logging.getLogger("otgb.discover")
-    handler = logging.Handler(logging.WARNING)
-    handler.emit = lambda record: said.append(record.getMessage())
-    logger.addHandler(handler)
-    try:
+    with warnings_said() as said:
         on_gpu = Fitting(physics, train, val, 20, 128, 0, device=torch.device("cuda"))([cubic], [-0.7])
-    finally:
-        logger.removeHandler(handler)
     on_cpu = Fitting(physics, train, val, 20, 128, 0)([cubic], [-0.7])
     assert not said, said
     gpu, cpu = on_gpu.priors[0].value, on_cpu.priors[0].value
