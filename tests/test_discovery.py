@@ -820,52 +820,68 @@ def warnings_said() -> Iterator[list[str]]:
         logger.removeHandler(handler)
 
 
-def test_fits_on_a_device_that_fails_fall_back_to_the_cpu_with_one_warning_and_give_the_cpu_result():
+def test_fits_on_a_device_that_fails_fall_back_to_the_cpu_with_one_warning_and_give_the_cpu_result(tmp_path):
     """The coefficient fits run on the trainer's device; one that fails there (here the meta device, which holds no
     numbers) is fitted on the CPU after one warning, and so is every later fit: the CPU's result, to the last bit."""
     pendulum = Pendulum()
     dgp = pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))])
     train, val, velocity = _draws(dgp, 200, 1), _draws(dgp, 60, 2), Candidate("velocity", "velocity")
-    on_meta = Fitting(pendulum, train, val, 20, 128, 0, device=torch.device("meta"))
-    with warnings_said() as said:
-        fitted = [on_meta([velocity], [start]) for start in (-1.0, -1.1)]
+    fitted, said = {}, {}
+    for attempt in ("first", "resumed"):  # the resumed run reads both fits back, and moves to the CPU where the first did
+        on_meta = Fitting(pendulum, train, val, 20, 128, 0, cache=FitCache(tmp_path / "fits"), device=torch.device("meta"))
+        with warnings_said() as said[attempt]:
+            fitted[attempt] = [on_meta([velocity], [start]) for start in (-1.0, -1.1)]
+        assert on_meta.device.type == "cpu" and on_meta.cache.read == (2 if attempt == "resumed" else 0)
+    assert len(list((tmp_path / "fits").glob("*.pt"))) == 2
     on_cpu = Fitting(pendulum, train, val, 20, 128, 0)
-    for one, start in zip(fitted, (-1.0, -1.1)):
+    for first, resumed, start in zip(fitted["first"], fitted["resumed"], (-1.0, -1.1)):
         expected = on_cpu([velocity], [start])
-        assert repr(one.priors) == repr(expected.priors) and one.heldout.draws == expected.heldout.draws
-    assert len(said) == 1 and "the coefficient fits run on the CPU: a fit on meta failed" in said[0], said
-    assert "cannot be called on meta tensors" in said[0], "the solve and the loss ran on the device; reading the loss failed"
-    assert on_meta.device.type == "cpu" and abs(fitted[0].priors[0].value + 1.2) < 0.15
+        assert repr(first.priors) == repr(resumed.priors) == repr(expected.priors)
+        assert first.heldout.draws == resumed.heldout.draws == expected.heldout.draws
+    assert said["first"] == said["resumed"] and len(said["first"]) == 1, said
+    assert "the coefficient fits run on the CPU: a fit on meta failed" in said["first"][0]
+    assert "cannot be called on meta tensors" in said["first"][0], "the solve and the loss ran on the device; reading failed"
+    assert abs(fitted["first"][0].priors[0].value + 1.2) < 0.15
 
 
 def _clone(data: Measurements) -> Measurements:
     return Measurements(data.train.clone(), data.val.clone(), data.test.clone())
 
 
-def test_the_fit_cache_says_a_stored_fits_divergences_again_refuses_a_file_and_warns_where_it_cannot_write(tmp_path):
+def test_the_fit_cache_says_a_stored_fits_divergences_again_refuses_a_file_and_warns_where_it_cannot_write(tmp_path, monkeypatch):
     cache, calls = FitCache(tmp_path / "fits"), []
 
     def fit():
         calls.append(1)
         diverged("fit (constant)", ["u^3 on du/dt"], 3, 64)
-        return {"coefficient": 2.5}
+        return {"coefficient": 2.5, "rows": torch.arange(3.0)}
 
     key = cache.key(Pendulum(), torch.zeros(4, 3), torch.ones(4, 3), terms=[("u^3", "u")], init=[0.1])
-    for _ in range(2):
+    later = FitCache(tmp_path / "fits")
+    for reader in (cache, cache, later):
         with DivergenceLog() as log:
-            assert cache.fitted(key, fit) == {"coefficient": 2.5}
+            record = reader.record(key, fit)
+        assert record["coefficient"] == 2.5 and torch.equal(record["rows"], torch.arange(3.0))
         assert [(r["what"], r["diverged"], r["of"]) for r in log.records] == [("fit (constant)", 3, 64)]
-    assert calls == [1] and FitCache(tmp_path / "fits").read == 0
+    assert calls == [1] and cache.read == 0, "a repeat of this run's own fit is no fit of an earlier attempt"
+    assert later.read == 1 and later.seconds_read > 0 and later.finished() == 1
     other = cache.key(Pendulum(), torch.zeros(4, 3), torch.ones(4, 3), terms=[("u^3", "u")], init=[0.1000001])
     assert other != key and cache.get(other) is None, "another start is another fit"
     (tmp_path / "file").write_text("")
     with pytest.raises(InputError, match="discover.fit_cache=.*expected a folder"):
         DiscoverySettings(fit_cache=str(tmp_path / "file"))
-    blocked = FitCache(tmp_path / "file" / "fits")  # under a file: no user, root included, can write there
-    with warnings_said() as said:
-        assert blocked.fitted(key, fit) == {"coefficient": 2.5} and blocked.fitted(other, fit) == {"coefficient": 2.5}
-    warned = [line for line in said if "fit cache" in line]
-    assert len(warned) == 1 and "cannot write" in warned[0] and not blocked.writable, "one warning, and the run goes on"
+
+    def full_disk(*args, **kwargs):
+        raise RuntimeError("PytorchStreamWriter failed writing file data/0: file write failed")
+
+    for blocked, broken in [(FitCache(tmp_path / "file" / "fits"), None), (FitCache(tmp_path / "full"), full_disk)]:
+        if broken is not None:
+            monkeypatch.setattr(torch, "save", broken)
+        with warnings_said() as said:
+            assert blocked.record(key, fit)["coefficient"] == blocked.record(other, fit)["coefficient"] == 2.5
+        warned = [line for line in said if "fit cache" in line]
+        assert len(warned) == 1 and "cannot write" in warned[0] and not blocked.writable, "one warning, the run goes on"
+        assert not blocked.folder.is_dir() or not list(blocked.folder.glob(".*")), "no partial file left"
 
 
 @pytest.mark.slow
@@ -1021,6 +1037,7 @@ def test_discover_stopped_by_sigterm_says_how_to_resume_and_the_same_command_end
     assert last.startswith("otgb discover: stopped by SIGTERM; ") and "Traceback" not in "".join(lines), last
     folder, checkpoint = tmp_path / "runs" / "pendulum" / "fit_cache", last.split("--ckpt_path ")[1].split(" ")[0]
     assert f"finished fits are in {folder.relative_to(tmp_path)}" in last and list(folder.glob("*.pt")), last
+    assert int(last.split("this run's ")[1].split(" ")[0]) == len(list(folder.glob("*.pt"))), last
     resumed = subprocess.run([*args, f"--ckpt_path={checkpoint}"], cwd=tmp_path, capture_output=True, text=True)
     unstopped = [*args, f"--ckpt_path={checkpoint}", "--discover.fit_cache=null"]
     unstopped = subprocess.run(unstopped, cwd=tmp_path, capture_output=True, text=True)

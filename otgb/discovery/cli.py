@@ -89,18 +89,18 @@ class Finished:
     report: dict
 
 
-class Stopped(BaseException):
+class Stopped(KeyboardInterrupt):
     """``otgb discover`` stopped by a signal while it named and fitted terms; the message says how to resume. A
-    BaseException, as KeyboardInterrupt: no ``except Exception`` on the way swallows it."""
+    KeyboardInterrupt: no ``except Exception`` on the way swallows it, and a notebook treats it as an interrupt."""
 
     def __init__(self, signum: int, cache: FitCache | None, trained: str | None) -> None:
         self.signum, name = signum, signal.Signals(signum).name
         if cache is None or not cache.writable:
             super().__init__(f"otgb discover: stopped by {name}; no fit was kept (--discover.fit_cache: a writable folder)")
             return
-        n = len(list(cache.folder.glob("*.pt")))
+        n = cache.finished()
         skip = f" (add --ckpt_path {trained} to skip training the grey-box again)" if trained else ""
-        resume = f"{n} finished fits are in {cache.folder}: the same command resumes{skip}"
+        resume = f"this run's {n} finished fits are in {cache.folder}: the same command resumes{skip}"
         super().__init__(f"otgb discover: stopped by {name}; {resume}")
 
 
@@ -119,10 +119,12 @@ def stopped_by_signals(cache: FitCache | None, trained: str | None) -> Iterator[
     previous = signal.signal(signal.SIGTERM, stop)
     try:
         yield
+    except Stopped:
+        raise
     except KeyboardInterrupt:
         raise Stopped(signal.SIGINT, cache, trained) from None
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+    finally:  # None: a handler installed outside Python, which cannot be put back; the default then
+        signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
 
 
 def discover(args: list[str]) -> Path:
@@ -153,7 +155,8 @@ def discover_run(args: list[str]) -> Finished:
     settings: DiscoverySettings = cli.config_init["discover"]
     refuse_written_log_dirs(cli.trainer)  # the report goes into the trainer's log folder
     settings.cache_beside(Path(cli.trainer.log_dir).parent)
-    settings.device = cli.trainer.strategy.root_device  # the coefficient fits run where the grey-box trains
+    device = cli.trainer.strategy.root_device  # the coefficient fits run where the grey-box trains, on a CUDA device
+    settings.device = device if device.type == "cuda" else torch.device("cpu")  # (Apple's MPS has no float64 for scores)
     if cli.config.get("ckpt_path") is None:
         check_validation_in_budget(cli.datamodule, cli.trainer)
     show_on_stderr()

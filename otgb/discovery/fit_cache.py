@@ -28,19 +28,24 @@ import torch
 from torch import Tensor
 
 import otgb
-from otgb.discovery.log import DivergenceLog, diverged, logger, progress
+from otgb.discovery.log import DivergenceLog, logger, progress, say_again
 from otgb.errors import InputError
 
 
 class FitCache:
-    """A folder of finished fits, one file per fit, named by the hash of everything the fit depends on."""
+    """A folder of finished fits, one file per fit, named by the hash of everything the fit depends on.
+
+    A file holds plain data (numbers, strings, lists, tensors), read back with ``torch.load(weights_only=True)``: a
+    folder shared with others cannot make a run execute code.
+    """
 
     def __init__(self, folder: str | Path) -> None:
         self.folder = Path(folder)
         if self.folder.exists() and not self.folder.is_dir():
             raise InputError(f"discover.fit_cache={str(folder)!r}: expected a folder (or a path to create one), got a file")
-        self.read = 0  # fits this run read back instead of fitting
+        self.read = 0  # fits of earlier, stopped attempts that this run read back instead of fitting
         self.seconds_read = 0.0  # the time those fits took when they ran
+        self.written: set[str] = set()  # the keys of the fits this run made
         self.writable = True  # False after a write failed: the fits are then not kept
 
     def key(self, physics: Any, measured: Tensor, heldout: Tensor, **inputs: Any) -> str:
@@ -56,19 +61,28 @@ class FitCache:
             digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
         return digest.hexdigest()[:32]
 
-    def fitted(self, key: str, fit: Callable[[], Any]) -> Any:
-        """The fit stored under ``key``, its divergence warnings said again as when it ran; else ``fit()``, stored."""
+    def record(self, key: str, fit: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+        """The record stored under ``key``, its divergence warnings said again as when it ran; else ``fit()``'s record
+        (plain data), stored."""
         stored = self.get(key)
         if stored is not None:
-            for d in stored["divergences"]:
-                diverged(d["what"], d["terms"], d["diverged"], d["of"], d["first_inputs"], d["coefficients"])
-            self.seconds_read += stored["seconds"]
-            return stored["fitted"]
+            say_again(stored["divergences"])
+            if key not in self.written:  # not a repeat of this run's own fit
+                if self.read == 0:
+                    progress(f"fit cache: reading finished fits from {self.folder}")
+                self.read += 1
+                self.seconds_read += stored["seconds"]
+            return stored["record"]
         started = time.perf_counter()
         with DivergenceLog() as log:
-            result = fit()
-        self.put(key, {"fitted": result, "divergences": log.records, "seconds": time.perf_counter() - started})
-        return result
+            record = fit()
+        self.written.add(key)
+        self.put(key, {"record": record, "divergences": log.records, "seconds": time.perf_counter() - started})
+        return record
+
+    def finished(self) -> int:
+        """The fits of this run that are on disk: those it made and those of earlier attempts it read back."""
+        return (len(self.written) if self.writable else 0) + self.read
 
     def summary(self) -> dict[str, Any]:
         """Where the fits are stored, how many this run read back, and the seconds they took when they ran (a resumed
@@ -76,35 +90,31 @@ class FitCache:
         return {"folder": str(self.folder), "fits_read": self.read, "seconds_read": self.seconds_read}
 
     def get(self, key: str) -> dict[str, Any] | None:
-        """The record stored under ``key``, or None (none stored, or a file that cannot be read: it is fitted again)."""
+        """The file stored under ``key``, or None (none stored, or a file that cannot be read: it is fitted again)."""
         path = self.folder / f"{key}.pt"
         if not path.is_file():
             return None
         try:
-            stored = torch.load(path, weights_only=False)
-        except Exception as error:  # a file cut short outside otgb's atomic writes: fit again and replace it
+            return torch.load(path, weights_only=True)
+        except Exception as error:  # a file cut short outside otgb's atomic writes, or not otgb's: fit again, replace it
             progress(f"fit cache: {path.name} could not be read ({type(error).__name__}); fitting again")
             return None
-        if self.read == 0:
-            progress(f"fit cache: reading finished fits from {self.folder}")
-        self.read += 1
-        return stored
 
-    def put(self, key: str, record: dict[str, Any]) -> None:
-        """Store ``record`` under ``key``, written whole or not at all (a stop mid-write leaves no file). A folder that
+    def put(self, key: str, stored: dict[str, Any]) -> None:
+        """Store ``stored`` under ``key``, written whole or not at all (a stop mid-write leaves no file). A folder that
         cannot be written costs one warning, not the run: its fits are then not kept."""
         if not self.writable:
             return
         partial = self.folder / f".{key}.{os.getpid()}.partial"
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
-            torch.save(record, partial)
+            torch.save(stored, partial)
             os.replace(partial, self.folder / f"{key}.pt")
         except (OSError, RuntimeError) as error:  # RuntimeError: torch.save's writer on a full disk
             self.writable = False
-            with contextlib.suppress(OSError):  # a partial file of a full disk
+            with contextlib.suppress(OSError):
                 partial.unlink(missing_ok=True)
-            reason = error.strerror or type(error).__name__
+            reason = getattr(error, "strerror", None) or str(error) or type(error).__name__
             logger.warning(f"fit cache: cannot write {self.folder} ({reason}); this run's fits are not kept for a rerun")
 
 

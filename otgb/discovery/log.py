@@ -13,6 +13,8 @@ from __future__ import annotations
 import logging
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 logger = logging.getLogger("otgb.discover")
@@ -56,6 +58,32 @@ def diverged(
         f"{what}: f_p + {terms or 'nothing'}{with_} diverged in {bad} of {total} trajectories{where}",
         extra={"divergence": details},
     )
+
+
+def say_again(divergences: list[dict[str, Any]]) -> None:
+    """Say divergence records (:func:`diverged`'s details) again: a fit read back from disk, or held back until its
+    attempt succeeded (:func:`held_divergences`)."""
+    for d in divergences:
+        diverged(d["what"], d["terms"], d["diverged"], d["of"], d["first_inputs"], d["coefficients"])
+
+
+@contextmanager
+def held_divergences() -> Iterator[list[dict[str, Any]]]:
+    """Within it, divergence records are held back (collected, not said): the caller says them with :func:`say_again`
+    or drops them (an attempt that failed and is made again elsewhere)."""
+    held: list[dict[str, Any]] = []
+
+    def hold(record: logging.LogRecord) -> bool:
+        if hasattr(record, "divergence"):
+            held.append(record.divergence)
+            return False
+        return True
+
+    logger.addFilter(hold)
+    try:
+        yield held
+    finally:
+        logger.removeFilter(hold)
 
 
 class OncePerModel(logging.Filter):

@@ -34,11 +34,12 @@ from torch import Tensor
 from otgb.discovery.chunked import backward_in_chunks, chunk_size
 from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.library import Candidate
-from otgb.discovery.log import diverged, logger
+from otgb.discovery.log import diverged, held_divergences, logger, say_again
 from otgb.metrics.energy import batched_energy, cross_row_means, within_means
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 from otgb.physics.priors import Choice, Constant, Normal, Prior, Uniform
+from otgb.physics.solvers import current_solver
 from otgb.physics.terms import LibraryTerm
 
 FAMILIES = ("constant", "uniform", "normal", "two_point")  # simplest first
@@ -100,6 +101,29 @@ class FittedTerms:
 
     def model(self, base: PhysicsModel) -> Augmented:
         return Augmented(base, self.terms())
+
+    def as_record(self) -> dict:
+        """Plain data (numbers, strings, lists, a tensor) that :meth:`from_record` turns back into these terms."""
+        return {
+            "family": self.family,
+            "candidates": [[c.feature, c.component] for c in self.candidates],
+            "priors": [[type(p).__name__, dict(p.init_args)] for p in self.priors],
+            "heldout": {"draws": list(self.heldout.draws), "rows": self.heldout.rows},
+            "loss": list(self.loss),
+            "start": list(self.start),
+            "scales": self.scales,
+        }
+
+    @classmethod
+    def from_record(cls, record: dict) -> FittedTerms:
+        candidates = [Candidate(feature, component) for feature, component in record["candidates"]]
+        priors = [PRIOR_CLASSES[name](**arguments) for name, arguments in record["priors"]]
+        heldout = Scores(list(record["heldout"]["draws"]), record["heldout"]["rows"])
+        rest = (list(record["loss"]), list(record["start"]), record["scales"])
+        return cls(record["family"], candidates, priors, heldout, *rest)
+
+
+PRIOR_CLASSES = {prior.__name__: prior for prior in (Constant, Uniform, Normal, Choice)}  # the families' priors
 
 
 class CoefficientPrior(torch.nn.Module):
@@ -343,6 +367,7 @@ class Fitting:
     natural: dict[Candidate, float] = field(default_factory=dict)
     cache: FitCache | None = None  # finished fits on disk (:mod:`otgb.discovery.fit_cache`)
     device: torch.device = CPU  # where the fits run; the CPU from the first fit that fails elsewhere (:meth:`fit_on_device`)
+    fallback: str | None = None  # why the fits moved to the CPU
 
     def __call__(self, candidates: list[Candidate], init: list[float], family: str = "constant", natural_scales: bool = True):
         """The fitted prior of ``family`` for ``candidates`` started at ``init``; without ``natural_scales`` each
@@ -352,27 +377,46 @@ class Fitting:
 
         def run() -> FittedTerms:
             data = (self.train, self.val, self.steps, self.batch, self.seed)
-            return self.fit_on_device(
-                lambda device: fit(self.physics, candidates, init, family, *data, scales=scales, device=device)
-            )
+            return self.fit_on_device(lambda on: fit(self.physics, candidates, init, family, *data, scales=scales, device=on))
 
         if self.cache is None:
             return run()
         terms = [(c.feature, c.component) for c in candidates]
         inputs = {"terms": terms, "init": init, "family": family, "scales": scales, "steps": self.steps, "batch": self.batch}
-        inputs["device"] = self.device.type  # another device rounds differently
-        return self.cache.fitted(self.cache.key(self.physics, self.train, self.val, seed=self.seed, **inputs), run)
+        inputs |= {"device": device_name(self.device), "solver": current_solver()}  # each rounds differently
+
+        def stored() -> dict:
+            before = self.device
+            fitted = run()
+            return {"fitted": fitted.as_record(), "fallback": self.fallback if self.device != before else None}
+
+        record = self.cache.record(self.cache.key(self.physics, self.train, self.val, seed=self.seed, **inputs), stored)
+        if record["fallback"] is not None and self.device.type != "cpu":  # the run that made this fit moved to the CPU here
+            self.fall_back(record["fallback"])
+        return FittedTerms.from_record(record["fitted"])
 
     def fit_on_device(self, fit_on: Callable[[torch.device], FittedTerms]) -> FittedTerms:
-        """``fit_on(self.device)``; where it fails off the CPU, one warning and this and every later fit on the CPU."""
+        """``fit_on(self.device)``; where it fails off the CPU, one warning and this and every later fit on the CPU (the
+        divergences the failed attempt logged are dropped: the CPU's fit logs its own)."""
         if self.device.type == "cpu":
             return fit_on(self.device)
         try:
-            return fit_on(self.device)
+            with held_divergences() as held:
+                fitted = fit_on(self.device)
         except RuntimeError as error:  # torch.cuda.OutOfMemoryError included
-            logger.warning(f"discover: the coefficient fits run on the CPU: a fit on {self.device} failed ({error})")
-            self.device = CPU
+            self.fall_back(f"a fit on {self.device} failed ({error})")
             return fit_on(self.device)
+        say_again(held)
+        return fitted
+
+    def fall_back(self, reason: str) -> None:
+        logger.warning(f"discover: the coefficient fits run on the CPU: {reason}")
+        self.device, self.fallback = CPU, reason
+
+
+def device_name(device: torch.device) -> str:
+    """``cpu``, or the type and model of a CUDA device (another model rounds differently)."""
+    return f"{device.type}:{torch.cuda.get_device_name(device)}" if device.type == "cuda" else device.type
 
 
 @torch.no_grad()
