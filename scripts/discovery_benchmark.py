@@ -134,6 +134,7 @@ def discover(case: str, seed: int, noise: float, folder: Path) -> None:
         f"--data.seed={seed}",
         f"--discover.seed={seed}",
         "--trainer.enable_progress_bar=false",
+        "--discover.fit_cache=null",  # timed: every fit made, also when a stopped benchmark runs the case again
         *overrides,
     ]
     start = time.time()
