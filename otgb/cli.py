@@ -21,6 +21,7 @@ import signal
 import sys
 from pathlib import Path
 
+from lightning.fabric.utilities.rank_zero import rank_zero_only
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from otgb.command import OTGBCLI
@@ -42,10 +43,24 @@ def closing_line(subcommand: str, run: Path) -> str:
     return f"otgb {subcommand}: results in {run}: {', '.join(present) or 'nothing written'}"
 
 
+def show_notices() -> None:
+    """otgb's notices while a run works (INFO of the ``otgb.solvers`` logger: a solve being compiled) and its warnings
+    on stderr, one line each, from the first process only (idempotent)."""
+    logger = logging.getLogger("otgb.solvers")
+    if any(getattr(handler, "otgb_notices", False) for handler in logger.handlers):
+        return
+    handler = logging.StreamHandler(sys.stderr)
+    handler.addFilter(lambda _: getattr(rank_zero_only, "rank", 0) == 0)
+    handler.otgb_notices = True
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+
+
 def main(args: list[str] | None = None) -> None:
     """Run the ``otgb`` command; bad user input ends it with one line on stderr and status 2."""
     logging.getLogger("lightning.fabric.utilities.seed").setLevel(logging.WARNING)  # the seed is in config.yaml
     quiet_known_harmless()
+    show_notices()
     argv = sys.argv[1:] if args is None else args
     try:
         if argv[:1] == ["tune"]:

@@ -146,7 +146,14 @@ def summary_of(run_dir: Path) -> str:
     if not path.is_file():
         return ""
     content = json.loads(path.read_text())
-    return summary({source: content.get(source, {}) for source in SOURCES}).strip()
+    sentence = summary({source: content.get(source, {}) for source in SOURCES}).strip()
+    trained_on = content.get("run", {}).get("trained_on")
+    return f"{sentence[:-1]} ({elsewhere(trained_on)})." if sentence and trained_on else sentence
+
+
+def elsewhere(trained_on: str) -> str:
+    """The caveat of a report on a checkpoint that was trained on other measurements than those it was scored on."""
+    return f"the checkpoint was trained on {trained_on}, not on these measurements"
 
 
 def per_time_section(per_time: dict[str, Any], times: list[float], components: list[str]) -> str:
@@ -193,6 +200,8 @@ def write_report(
         f"Evaluation mode **{run.get('mode')}**: {run.get('description', '')}\n\n"
         f"checkpoint `{run.get('ckpt_path')}` (step {run.get('global_step')}), {run.get('sample_sizes')}\n\n"
     )
+    if run.get("trained_on"):
+        header += f"**Note: {elsewhere(run['trained_on'])}.**\n\n"
     over = ("test inputs (ABS ERR, N-RMSE) or " if "abs_err" in by_source["model"] else "") + "C2ST folds"
     note = f"\nmean ± std: over {over} for model and f_p; over {run.get('reference_note')} for the Reference.\n"
     section = per_time_section(vectors, labels["times"], labels["components"]) if vectors and labels else ""

@@ -94,12 +94,14 @@ def load_run(config: str | Path | Sequence[str | Path], *overrides: str, ckpt_pa
     with _quiet():
         cli = RunLoader(MapTraining, SimulationDataModule, run=False, args=args, parser_class=ConciseParser)
     if ckpt_path is not None:
-        load_weights(cli.model, ckpt_path)
+        load_weights(cli.model, ckpt_path, cli.datamodule)
     return Run(cli.model, cli.datamodule, cli.trainer, cli.config)
 
 
-def load_weights(model: MapTraining, ckpt_path: str | Path) -> None:
-    """The checkpoint's weights into ``model``; a missing file or another model's checkpoint is an :class:`InputError`."""
+def load_weights(model: MapTraining, ckpt_path: str | Path, datamodule: SimulationDataModule | None = None) -> None:
+    """The checkpoint's weights into ``model``; a missing file or another model's checkpoint is an :class:`InputError`.
+    With ``datamodule``, a checkpoint trained on other measurements than its own costs a warning
+    (:meth:`~otgb.data.SimulationDataModule.compare_with_training`)."""
     path = Path(ckpt_path)
     if not path.is_file():
         raise InputError(f"ckpt_path={str(ckpt_path)!r}: no such checkpoint file")
@@ -109,6 +111,8 @@ def load_weights(model: MapTraining, ckpt_path: str | Path) -> None:
     except (KeyError, RuntimeError) as error:
         first = str(error).splitlines()[0]
         raise InputError(f"ckpt_path={str(ckpt_path)!r}: not a checkpoint of this config's model ({first})") from None
+    if datamodule is not None:
+        datamodule.compare_with_training(state.get(type(datamodule).__qualname__, {}))
 
 
 @contextmanager

@@ -85,6 +85,21 @@ def test_fit_and_test_on_a_measured_file(tmp_path):
     assert measured.read_bytes() == before, "the user's file is never modified"
     cached = {path.name.split("-")[0] for path in (tmp_path / "cache").iterdir()}
     assert cached == {"baselines"}, "no set is generated for a file; only f_p's and the Reference's scores are kept"
+    assert "trained_on" not in report["run"] and "Note:" not in table
+
+
+def test_a_checkpoint_tested_on_other_measurements_says_so_in_the_report_and_its_summary(tmp_path, capsys):
+    measured = export(tmp_path, "friction.npz")
+    main(["fit", *marginal_args(tmp_path, measured, "--trainer.max_steps=2", "--evaluation.tests_every=0")])
+    joint = [a for a in marginal_args(tmp_path, tmp_path) if not a.startswith(("--data.hidden_effect", "--data.measured"))]
+    main(["test", *joint, "--data.n_test=20", f"--ckpt_path={tmp_path / 'run' / 'version_0' / 'checkpoints' / 'last.ckpt'}"])
+    report_dir = tmp_path / "run" / "version_1"
+    trained_on = f"the measurements in {measured.resolve()}"
+    assert json.loads((report_dir / "metrics.json").read_text())["run"]["trained_on"] == trained_on
+    note = f"the checkpoint was trained on {trained_on}, not on these measurements"
+    assert f"**Note: {note}.**" in (report_dir / "metrics.md").read_text()
+    summary = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("otgb test:"))
+    assert summary.endswith(f"({note}).")
 
 
 def test_recorded_inputs_give_joint_metrics_on_real_data(tmp_path):

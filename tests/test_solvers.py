@@ -125,8 +125,9 @@ def _inputs(greybox: GreyBoxODE, n: int) -> tuple[torch.Tensor, torch.Tensor, to
     return physics.sample_initial_state(n, g), physics.sample_theta(n, g), torch.randn(n, greybox.z_dim, generator=g)
 
 
-def test_auto_solves_eagerly_until_a_models_field_has_been_solved_often(monkeypatch):
+def test_auto_solves_eagerly_until_a_models_field_has_been_solved_often(monkeypatch, caplog):
     monkeypatch.setattr(solvers, "COMPILE_AFTER", 3)
+    caplog.set_level(logging.INFO, logger="otgb.solvers")
     compiled_solves = []
 
     def recording_solve(device_type):
@@ -141,6 +142,10 @@ def test_auto_solves_eagerly_until_a_models_field_has_been_solved_often(monkeypa
         _simulate(Pendulum(), "auto")
     assert counts == [0, 0, 0, 1], "the 4th solve of the model's field is its first compiled one"
     assert len(compiled_solves) == 1, "another model (as each of discovery's fits makes) counts its own solves"
+    assert [r.getMessage() for r in caplog.records] == [
+        "otgb: compiling the solve of Pendulum.vector_field (solver auto: 3 solves of it run or planned): once a run, a "
+        "minute or more on a few cores, less where torch's compile cache holds it"
+    ], "a compile is announced once, when it starts"
 
 
 def test_a_small_state_is_solved_as_one_compiled_loop_and_a_field_step_by_step(monkeypatch):

@@ -222,8 +222,10 @@ class Evaluation(Callback):
 
     @staticmethod
     def mode_facts(datamodule: Any) -> dict[str, Any]:
-        """What produced the numbers: the mode, and the measured file and its split when marginal."""
-        return datamodule.source.facts()
+        """What produced the numbers: the mode, the measured file and its split when marginal, and the measurements the
+        checkpoint was trained on where they are others."""
+        trained_on = getattr(datamodule, "trained_on", None)
+        return datamodule.source.facts() | ({"trained_on": trained_on} if trained_on else {})
 
     @staticmethod
     def _labels(pl_module: LightningModule) -> dict[str, list]:

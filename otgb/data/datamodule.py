@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Sequence
 from typing import Any
 
 import torch
 from lightning import LightningDataModule
-from lightning.pytorch.utilities import rank_zero_info
+from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
@@ -16,6 +17,8 @@ from otgb.data.sources import FileMeasurements, GeneratedMeasurements, Measureme
 from otgb.data.stream import SourceStream, StreamLoader
 from otgb.errors import InputError
 from otgb.physics.base import PhysicsModel, Term
+
+log = logging.getLogger("otgb.data")  # a warning prints as its one line
 
 
 class JointDataset(Dataset):
@@ -142,6 +145,7 @@ class SimulationDataModule(LightningDataModule):
         self.eval_batch_size, self.seed, self.stream_seed = eval_batch_size, seed, stream_seed
         self.cache_dir, self.num_workers = cache_dir, num_workers
         self.items_consumed = 0
+        self.trained_on: str | None = None  # the measurements a loaded checkpoint was trained on, where not these
         self.measured: Tensor | None = None
         self.val_set: dict[str, Tensor] | None = None
         self.test_set: dict[str, Tensor] | None = None
@@ -245,11 +249,32 @@ class SimulationDataModule(LightningDataModule):
         return self.items_consumed * self.batch_size * self.batches_per_step * world
 
     def state_dict(self) -> dict[str, Any]:
-        return {"items_consumed": self.items_consumed, "stream_seed": self.stream_seed}
+        return {"items_consumed": self.items_consumed, "stream_seed": self.stream_seed, "measurements": self.source.identity}
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         self.items_consumed = int(state_dict["items_consumed"])
         self.stream_seed = state_dict["stream_seed"]
+        self.compare_with_training(state_dict)
+
+    def compare_with_training(self, state_dict: dict[str, Any]) -> None:
+        """Warn, once, where the checkpoint whose datamodule state is ``state_dict`` was trained on other measurements
+        than this run's; :attr:`trained_on` then names them (the reports say it beside the figures)."""
+        saved = state_dict.get("measurements")  # older checkpoints hold none: nothing to compare
+        if saved is None or saved["key"] == self.source.identity["key"] or self.trained_on is not None:
+            return
+        now = self.source.identity["what"]
+        self.trained_on = saved["what"] + (", split differently" if saved["what"] == now else "")
+        if saved["what"] == now:
+            consequence = (
+                "split differently (data.seed, data.val_fraction or data.test_fraction): its held-out parts may hold "
+                "trajectories the map trained on"
+            )
+        else:
+            consequence = f"this run uses {now}: its figures score the map on data it was not trained for"
+        rank_zero_only(log.warning)(
+            f"otgb: the checkpoint was trained on {saved['what']}; {consequence} (give the fit's data settings to "
+            "evaluate it on its own)"
+        )
 
 
 def check_measurement_noise(sd: float, measured_path: str | None) -> None:

@@ -224,5 +224,5 @@ def load_or_fit(cli: Any, ckpt_path: str | None) -> str | None:
         ckpt_path = getattr(cli.trainer.checkpoint_callback, "best_model_path", "") or None
         if ckpt_path is None:
             return None
-    load_weights(cli.model, ckpt_path)
+    load_weights(cli.model, ckpt_path, cli.datamodule)
     return ckpt_path

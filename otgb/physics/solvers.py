@@ -69,6 +69,7 @@ _setting: dict[str, object] = {"solver": "auto", "planned": 0}
 _solves: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # per field owner (a model): solves per (method, grad mode)
 _not_compilable: set[tuple] = set()
 _gradients_checked: set[tuple] = set()  # fields whose compiled gradients have been compared with the eager loop's
+_announced: set[tuple] = set()  # fields whose compile has been announced (INFO of the ``otgb.solvers`` logger)
 GRADIENT_TOLERANCE = 1e-3  # of the largest gradient: a compiled solve further from the eager loop's is not used
 
 
@@ -92,6 +93,7 @@ def reset() -> None:
     _solves.clear()
     _not_compilable.clear()
     _gradients_checked.clear()
+    _announced.clear()
 
 
 def checked_solver(name: object, where: str = "solver") -> str:
@@ -200,6 +202,7 @@ def integrate(
     if not compiled:
         return _stepwise_solve(field, *arguments)
     device = initial_state.device.type
+    _announce_compile(key, field, solver)
     if device != "cuda" and initial_state[0].numel() <= WHOLE_SOLVE_MAX_STATE and n_times > 1:
         fast = functools.partial(_fallback(key, _compiled_whole_solve(device), _stepwise_solve), field)
     else:
@@ -293,6 +296,20 @@ def _compiles(solver: str, key: tuple, owner: object) -> bool:
     counts = _solves.setdefault(owner, {})
     counts[key] = counts.get(key, 0) + 1
     return solver != "auto" or counts[key] + int(_setting["planned"]) > COMPILE_AFTER
+
+
+def _announce_compile(key: tuple, field: Field, solver: str) -> None:
+    """One INFO line where a field's solve is compiled for the first time in this process: the compile holds a run up
+    for a minute or more on a few cores (less from torch's on-disk compile cache)."""
+    if key in _announced or key in _not_compilable:
+        return
+    _announced.add(key)
+    why = f"(solver auto: {COMPILE_AFTER} solves of it run or planned)" if solver == "auto" else f"(solver {solver})"
+    gradients = "and its gradients " if key[2] else ""
+    log.info(
+        f"otgb: compiling the solve of {_field_name(field)} {gradients}{why}: once a run, a minute or more on a few "
+        "cores, less where torch's compile cache holds it"
+    )
 
 
 def _fallback(key: tuple, compiled: Callable, eager: Callable) -> EagerFallback:
