@@ -405,8 +405,8 @@ def test_the_named_models_own_divergences_are_said_apart_from_the_candidates():
 
 def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it_at_the_start_of_the_verdict():
     """Friction found, quadratic drag within two standard errors of it: the verdict's first clause names friction *or*
-    drag. Where the closest alternative is clearly worse (Coulomb friction, +2.1 standard errors), it is a preference
-    after the first clause."""
+    drag (the alternatives that fit better first, and what their negative standard errors mean). Where the closest
+    alternative is clearly worse (Coulomb friction, +2.1 standard errors), it is a preference after the first clause."""
     friction, drag, coulomb = (Candidate(f, "velocity") for f in ("velocity", "velocity*|velocity|", "sign(velocity)"))
 
     def said(*evidence, f_p=None):
@@ -428,13 +428,13 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
     assert head == (
         "missing effect found, the gap is closed as far as the test part can tell: viscous friction (velocity on "
         "dvelocity/dt) or quadratic drag (velocity*|velocity|) (the measurements cannot tell them apart: -0.9 standard "
-        "errors) removes 90% of f_p's energy distance to the 30 test trajectories, and no test tells the augmented "
-        "physics from them"
+        "errors; below 0, the alternative fits the validation measurements better, by less than that noise) removes 90% "
+        "of f_p's energy distance to the 30 test trajectories, and no test tells the augmented physics from them"
     ), head
     assert rest == ["they agree everywhere"] and said.confirmed
     head, *rest = said(Comparison(friction, coulomb, -0.48, 0.05, 0.072), Comparison(friction, drag, -0.37, -0.043, 0.046))
-    assert "viscous friction (velocity on dvelocity/dt) or Coulomb friction (sign(velocity)) or quadratic drag " in head
-    assert "(the measurements cannot tell them apart: +0.7, -0.9 standard errors) removes 90%" in head, head
+    assert "viscous friction (velocity on dvelocity/dt) or quadratic drag (velocity*|velocity|) or Coulomb friction " in head
+    assert "(the measurements cannot tell them apart: -0.9, +0.7 standard errors; below 0, the alternative" in head, head
     head, *rest = said(to_coulomb)
     assert head.startswith("missing effect found, the gap is closed as far as the test part can tell: viscous friction (")
     assert rest == ["they agree everywhere", "velocity preferred over Coulomb friction (sign(velocity)) by 2.1 standard errors"]
@@ -448,7 +448,8 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
     head, *rest = said(Comparison(friction, drag, -0.37, -0.043, 0.046), f_p={"energy": 1.0, "c2st": 0.58})
     assert head.startswith(
         "missing effect named, not confirmed: viscous friction (velocity on dvelocity/dt) or quadratic drag "
-        "(velocity*|velocity|) (the measurements cannot tell them apart: -0.9 standard errors), but the 30 test"
+        "(velocity*|velocity|) (the measurements cannot tell them apart: -0.9 standard errors; below 0, the alternative "
+        "fits the validation measurements better, by less than that noise), but the 30 test"
     ), head
     assert not said.confirmed, "a test part that cannot tell f_p apart confirms nothing"
 

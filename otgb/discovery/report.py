@@ -90,7 +90,7 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
             *low_power(result),
         ]
     ambiguous: dict[tuple[str, str], list] = {}
-    for c in sorted(result.evidence, key=lambda c: abs(c.standard_errors)):  # closest first
+    for c in sorted(result.evidence, key=lambda c: c.standard_errors):  # those that fit better than the named term first
         if c.ambiguous and math.isfinite(c.difference):
             ambiguous.setdefault((c.replaced.feature, c.replaced.component), []).append(c)
     names = ", ".join(
@@ -259,13 +259,15 @@ def closest_alternatives(result: Discovery) -> list:
 
 
 def _or_alike(alternatives: list | None, physics: PhysicsModel) -> str:
-    """For a named term that the measurements cannot tell from ``alternatives`` (closest first): each of them, at the
-    term's name, so that the verdict's first words give them all."""
+    """For a named term that the measurements cannot tell from ``alternatives`` (those that fit better first): each of
+    them, at the term's name, so that the verdict's first words give them all."""
     if not alternatives:
         return ""
     others = "".join(f" or {term_name(a.by, a.coefficient, physics)} ({a.by.feature})" for a in alternatives)
     errors = ", ".join(f"{a.standard_errors:+.1f}" for a in alternatives)
-    return f"{others} (the measurements cannot tell them apart: {errors} standard errors)"
+    better = any(a.standard_errors < 0 for a in alternatives)
+    sign = "; below 0, the alternative fits the validation measurements better, by less than that noise" if better else ""
+    return f"{others} (the measurements cannot tell them apart: {errors} standard errors{sign})"
 
 
 def preferences(result: Discovery, physics: PhysicsModel) -> list[str]:
@@ -399,7 +401,8 @@ def _ambiguous(result: Discovery, physics: PhysicsModel) -> list[dict[str, Any]]
     """Per kept term, the alternatives that the validation measurements cannot tell from it, with their numbers."""
     entries = []
     for candidate in result.fitted.candidates if result.found else []:
-        close = [_comparison_dict(c, physics) for c in result.evidence if c.replaced == candidate and c.ambiguous]
+        mine = sorted((c for c in result.evidence if c.replaced == candidate and c.ambiguous), key=lambda c: c.standard_errors)
+        close = [_comparison_dict(c, physics) for c in mine]
         if close:
             entries.append({"feature": candidate.feature, "component": candidate.component, "alternatives": close})
     return entries
@@ -559,7 +562,12 @@ def _naming_section(report: dict[str, Any]) -> list[str]:
                 f"| {inclusion} | {slope} | {share} | {dist} |"
             )
     if report["terms"] and report["interval_method"]:
-        lines.append(f"\n95 % intervals: {report['interval_method']} (docs/discovery.md gives their measured coverage).")
+        form = (
+            " They hold for the named term's form; an ambiguous alternative (below) has its own coefficient."
+            if report["ambiguous"]
+            else ""
+        )
+        lines.append(f"\n95 % intervals: {report['interval_method']} (docs/discovery.md gives their measured coverage).{form}")
     elif report["terms"]:
         lines.append("\nNo intervals: the fit's discrepancy is not at a minimum there (its Hessian is not positive definite).")
     for t in report["terms"]:
@@ -679,7 +687,7 @@ def _family_section(report: dict[str, Any]) -> list[str]:
         )
     for family in report["family_stopped_short"]:
         lines.append(
-            f"The {family} fit scored worse than the constant, which its family contains (zero width): "
+            f"The {family} fit scored no better than the constant, which its family contains (zero width): "
             "it was taken at zero width."
         )
     for t in report["terms"]:
