@@ -409,10 +409,11 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
     alternative is clearly worse (Coulomb friction, +2.1 standard errors), it is a preference after the first clause."""
     friction, drag, coulomb = (Candidate(f, "velocity") for f in ("velocity", "velocity*|velocity|", "sign(velocity)"))
 
-    def said(*evidence, f_p=None):
+    def said(*evidence, f_p=None, f_p_on_test=None):
         result = Discovery(
             before=SimpleNamespace(any_significant=True),
             sentence_before="",
+            before_on_test=f_p_on_test,
             fitted=FittedTerms("constant", [friction], [Constant(-0.4)], Scores([0.1]), []),
             evidence=list(evidence),
             after=SimpleNamespace(any_significant=False),
@@ -452,6 +453,10 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
         "fits the validation measurements better, by less than that noise), but the 30 test"
     ), head
     assert not said.confirmed, "a test part that cannot tell f_p apart confirms nothing"
+    blind_c2st = {"energy": 1.0, "c2st": 0.58}
+    head, *rest = said(to_coulomb, f_p=blind_c2st, f_p_on_test=SimpleNamespace(any_significant=True))
+    assert head.startswith("missing effect found, the gap is closed as far as the test part can tell: viscous friction")
+    assert said.confirmed, "the disagreement map that verifies the augmented physics tells f_p from the same test part"
 
 
 def test_terms_that_leave_the_test_part_no_closer_than_f_p_are_not_called_found_and_point_outside_the_library():

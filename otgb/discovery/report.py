@@ -222,12 +222,14 @@ def inexact(result: Discovery) -> bool:
 
 
 def test_part_blind(result: Discovery) -> str | None:
-    """When the test part cannot tell f_p itself from the measurements (f_p's C2ST within two of the Reference's
-    standard deviations of 0.5), the numbers that say so; else None. A verification on such a part cannot confirm a
-    closed gap: it would also have passed f_p."""
+    """When the test part cannot tell f_p itself from the measurements, neither by the disagreement map that verifies
+    the augmented physics nor by f_p's C2ST (within two of the Reference's standard deviations of 0.5), the numbers
+    that say so; else None. A verification on such a part cannot confirm a closed gap: it would also have passed f_p."""
     f_p, reference = result.gap.get("f_p", {}), result.gap.get("reference", {})
     if "c2st" not in f_p or "c2st_std" not in reference:
         return None
+    if getattr(result.before_on_test, "any_significant", False):
+        return None  # the verification's own test tells f_p from this part
     if not math.isfinite(f_p["c2st"]) or f_p["c2st"] - 0.5 > 2 * reference["c2st_std"]:
         return None
     return f"C2ST {f_p['c2st']:.2f}, the Reference's {reference['c2st']:.2f} +- {reference['c2st_std']:.2f}"
