@@ -213,14 +213,15 @@ def test_progress_written_to_a_file_is_whole_lines_up_to_the_last_step(tmp_path)
     assert "to go" in lines[2] and lines[-1].endswith("simulations 96/3200"), lines
 
 
-def test_a_resumed_runs_progress_line_counts_its_time_to_go_from_the_steps_it_has_run(monkeypatch):
+def test_the_time_to_go_counts_the_steps_a_resumed_run_has_run_at_the_rate_since_its_first_line(monkeypatch):
     bar = SimulationProgressBar(lines=True)
     bar._started, bar._first_step = 100.0, 500  # resumed at step 500
-    monkeypatch.setattr(progress, "perf_counter", lambda: 160.0)  # 100 steps in 60 s since
+    clock = iter([160.0, 170.0, 100.0 + 3900])
+    monkeypatch.setattr(progress, "perf_counter", lambda: next(clock))
     line = bar.progress_line(600, 1000, {"v_num": 0, "train/wasserstein": 0.123456, "simulations": "9600/16000"})
     assert line == "step 600/1000 (60%) | 1m00s, about 4m00s to go | train/wasserstein 0.1235 | simulations 9600/16000"
-    monkeypatch.setattr(progress, "perf_counter", lambda: 100.0 + 3900)
-    assert "1h05m, about 4h20m to go" in bar.progress_line(600, 1000, {})
+    assert "1m10s, about 30s to go" in bar.progress_line(700, 1000, {}), "a start-up cost (a compile) is not paid again"
+    assert "1h05m, about 1h04m to go" in bar.progress_line(800, 1000, {})
 
 
 def test_bad_input_is_one_line_status_2_and_no_run_directory(tmp_path):

@@ -29,6 +29,7 @@ class SimulationProgressBar(TQDMProgressBar):
         super().__init__(*args, **kwargs)
         self.lines = lines
         self._started, self._first_step = 0.0, 0
+        self._since: tuple[float, int] | None = None  # the clock and step of the first line: the rate is counted from it
 
     @property
     def writes_lines(self) -> bool:
@@ -50,6 +51,7 @@ class SimulationProgressBar(TQDMProgressBar):
         self.train_progress_bar.reset(total=convert_inf(self.total_train_batches))
         self.train_progress_bar.set_description(f"Epoch {trainer.current_epoch}")
         self._started, self._first_step = perf_counter(), trainer.global_step  # a resumed run starts past 0
+        self._since = None
 
     def on_train_batch_end(self, trainer: Trainer, pl_module: LightningModule, *args: Any, **kwargs: Any) -> None:
         """The bar's update, or a line every 1/:data:`LINES` of the run (the metrics, read back from the device, only
@@ -62,12 +64,18 @@ class SimulationProgressBar(TQDMProgressBar):
             print(self.progress_line(step, total, self.get_metrics(trainer, pl_module)), flush=True)
 
     def progress_line(self, step: int, total: int | float, metrics: dict[str, Any]) -> str:
-        """``step 100/1000 (10%) | 1m04s, about 9m36s to go | simulations 1600/16000 | loss_T -0.0123``."""
-        elapsed = perf_counter() - self._started
+        """``step 100/1000 (10%) | 1m04s, about 9m36s to go | simulations 1600/16000 | loss_T -0.0123``.
+
+        The time to go is at the rate since the first line, once there is one: what a run pays once at its start
+        (compiling its solves, scoring f_p alone and the Reference at the first validation) is not paid again."""
+        now = perf_counter()
+        elapsed = now - self._started
         where = f"step {step}/{total} ({100 * step / total:.0f}%)" if math.isfinite(total) else f"step {step}"
-        done = step - self._first_step
+        since, first = self._since or (self._started, self._first_step)
+        self._since = self._since or (now, step)
+        done = step - first
         if math.isfinite(total) and done > 0 and step < total:
-            where += f" | {_clock(elapsed)}, about {_clock(elapsed * (total - step) / done)} to go"
+            where += f" | {_clock(elapsed)}, about {_clock((now - since) * (total - step) / done)} to go"
         shown = [f"{name} {value:.4g}" if isinstance(value, float) else f"{name} {value}" for name, value in metrics.items()]
         return " | ".join([where, *[m for m in shown if not m.startswith("v_num ")]])
 
