@@ -610,7 +610,8 @@ def _naming_section(report: dict[str, Any]) -> list[str]:
     lines += _search_section(report)
     if report["dropped_by_heldout_check"]:
         lines.append("")
-        lines.append("Dropped (no held-out gain): " + ", ".join(f"`{d['feature']}`" for d in report["dropped_by_heldout_check"]))
+        dropped = ", ".join(f"`{d['feature']}`" for d in report["dropped_by_heldout_check"])
+        lines.append(f"Dropped (no held-out gain beside the kept terms; swapped for a named term: the evidence above): {dropped}")
     lines += _family_section(report)
     if report["locate"]["sentence_after"]:
         lines += ["", f"After the fix: {report['locate']['sentence_after']}."]
