@@ -82,11 +82,24 @@ def concise(message: str, parser: ArgumentParser) -> tuple[str, bool]:
     if bad_class or missing:
         path = bad_class or f"{missing.group(1)}.{missing.group(2)}"
         return f"{place}no class '{path}'{_did_you_mean(closest(path, class_names(path)))}", True
+    no_file = re.search(r"File does not exist: '([^']+)'", message)
+    if no_file:
+        path = Path(no_file.group(1))
+        siblings = closest(path.name, _names_in(path.parent), n=2)  # beside it, as names
+        return f"--{where or 'config'}: no such file {str(path)!r}{_did_you_mean(siblings)}", False
     expected = re.search(r"Expected a <class '(\w+)'>\. Got value: (.*)", message)
     if expected:
         return f"{place}expected {expected.group(1)}, got {expected.group(2).strip()}", False
     lines = [line.strip(" -") for line in message.splitlines() if line.strip(" -")]
     return (f"{place}{lines[-1]}" if where and len(lines) > 1 else "; ".join(lines) or message), False
+
+
+def _names_in(folder: Path) -> list[str]:
+    """The names of the files in ``folder``; none where it cannot be read."""
+    try:
+        return [entry.name for entry in folder.iterdir() if entry.is_file()]
+    except OSError:
+        return []
 
 
 def _owner(message: str, at: int) -> str | None:

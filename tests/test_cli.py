@@ -269,6 +269,7 @@ def test_bad_input_is_one_line_status_2_and_no_run_directory(tmp_path):
             ["--config", "critic.yaml"],
             "--model.critic: otgb.models.MLPCritic has no option 'hiden' (did you mean hidden?) in critic.yaml",
         ),
+        (["--config", "critc.yaml"], "--config: no such file '{tmp_path}/critc.yaml' (did you mean critic.yaml"),
         (["--trainer.accelerator=gpux"], "trainer: You selected an invalid accelerator name"),
         (["--trainer.precision=bf16-mixed"], "--trainer.precision=bf16-mixed: otgb trains in float32 (expected 32-true)"),
         (["--model.objective.gamma=-1"], "model.objective.gamma=-1.0: expected a value in [0, 1]"),  # raised while built
@@ -293,7 +294,7 @@ def test_parser_errors_are_a_few_lines_ending_with_the_closest_names(tmp_path, m
         main(["fit", "--config", CONFIG, f"--data.cache_dir={tmp_path / 'cache'}", *args])
     lines = capsys.readouterr().err.splitlines()
     assert exit_info.value.code == 2 and len(lines) <= 3, lines
-    assert lines[-1].startswith(f"otgb: error: {last}"), lines[-1]
+    assert lines[-1].startswith(f"otgb: error: {last.format(tmp_path=tmp_path)}"), lines[-1]
     assert not (tmp_path / "runs").exists(), "nothing written"
 
 
