@@ -45,7 +45,7 @@ class BestAndLastCheckpoint(ModelCheckpoint):
         """On SIGTERM (Lightning stops between two steps), save that state as ``last.ckpt`` to resume from."""
         if isinstance(exception, SIGTERMException) and self.dirpath is not None and trainer.state.fn == "fit":
             path = Path(self.dirpath) / "last.ckpt"
-            trainer.save_checkpoint(path)
+            trainer.save_checkpoint(path, weights_only=False)  # the whole state, said explicitly (Lightning logs a default)
             rank_zero_info(f"otgb: stopped by SIGTERM after step {trainer.global_step}; resume with --ckpt_path {path}")
 
     def on_train_end(self, trainer: Trainer, pl_module: LightningModule) -> None:

@@ -335,7 +335,7 @@ class MapTraining(LightningModule):
         saved = None
         if checkpoint is not None and checkpoint.dirpath is not None:
             saved = str(Path(checkpoint.dirpath) / "last.ckpt")
-            self.trainer.save_checkpoint(saved)
+            self.trainer.save_checkpoint(saved, weights_only=False)
         raise TrainingDiverged(self.guard.message(self._learning_rates(), saved))
 
     def _learning_rates(self) -> dict[str, float]:
