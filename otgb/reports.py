@@ -129,7 +129,9 @@ def _summary_clause(name: str, by_source: dict[str, dict[str, dict[str, float | 
     """The clause of ``name`` and where it puts the model: ``f_p at the floor``, ``at the floor``, ``no closer`` (than
     f_p) or ``closer``."""
     model, fp, ref = (by_source[s][name]["mean"] for s in SOURCES)
-    values = f"{LABELS[name]}: model {model:.3g}, f_p alone {fp:.3g}, Reference (noise floor) {ref:.3g}"
+    spread = by_source["reference"][name].get("std")  # how much the floor itself varies at this sample size
+    noise = f" ± {spread:.2g}" if spread is not None and math.isfinite(spread) and spread > 0 else ""
+    values = f"{LABELS[name]}: model {model:.3g}, f_p alone {fp:.3g}, Reference (noise floor) {ref:.3g}{noise}"
     if not math.isfinite(fp - ref) or fp <= ref:
         return f"{values}: by this metric f_p alone is already at the noise floor", "f_p at the floor"
     if model <= ref:  # below the floor: the sampling noise of small held-out sets, not a model better than the data

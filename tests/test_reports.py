@@ -24,10 +24,10 @@ def test_report_files(tmp_path):
     assert content["seconds"]["model"] == 3.0
     table = (tmp_path / "metrics.md").read_text()
     assert "| C2ST accuracy | 0.5: cannot be told apart; 1: always can | 0.7 ± 0.02 | 0.99 ± 0 | 0.5 ± 0.01 |" in table
-    assert "C2ST accuracy: model 0.7, f_p alone 0.99, Reference (noise floor) 0.5: the model closes 59% of f_p's" in table
+    assert "C2ST accuracy: model 0.7, f_p alone 0.99, Reference (noise floor) 0.5 ± 0.01: the model closes 59% of f_p's" in table
     _write(tmp_path, "small_held_out_set", 0.28)  # below the Reference: noise of 30 held-out rows, not a share > 100 %
     assert (
-        "model 0.28, f_p alone 0.99, Reference (noise floor) 0.5: the model is at the noise floor"
+        "model 0.28, f_p alone 0.99, Reference (noise floor) 0.5 ± 0.01: the model is at the noise floor"
         in (tmp_path / "metrics.md").read_text()
     )
 
