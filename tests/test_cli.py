@@ -606,10 +606,12 @@ def test_a_second_run_reads_f_p_and_the_reference_from_the_cache_and_gives_the_s
     logging.getLogger("lightning.pytorch.utilities.rank_zero").addHandler(caplog.handler)  # lightning's own does not propagate
     main(["fit", *_args(tmp_path, "--trainer.max_steps=3")])
     assert len(list((tmp_path / "cache").glob("baselines-*.pt"))) == 1, "the validation set's f_p and Reference scores"
-    assert "baselines-" not in caplog.text
+    assert "read from" not in caplog.text and "scoring f_p alone and the Reference on this set (once: kept in" in caplog.text
+    caplog.clear()
     main(["fit", *_args(tmp_path, "--trainer.max_steps=3")])
     logging.getLogger("lightning.pytorch.utilities.rank_zero").removeHandler(caplog.handler)
     assert f"the Reference on this set: read from {tmp_path / 'cache'}/baselines-" in caplog.text
+    assert "scoring f_p alone" not in caplog.text
     timing = ("eval_seconds", "wall_time_s")
     first, second = (_rows(tmp_path / "run" / f"version_{v}") for v in (0, 1))
     assert _last(second, "val/ref_eval_seconds") == 0.0 < _last(first, "val/ref_eval_seconds"), "read, not scored"

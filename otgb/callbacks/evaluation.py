@@ -255,6 +255,7 @@ class Evaluation(Callback):
             rank_zero_info(f"otgb: f_p alone and the Reference on this set: read from {path}")
             results = torch.load(path, map_location="cpu", weights_only=True)
             return results | {"fp_eval_seconds": torch.tensor(time.perf_counter() - started), "ref_eval_seconds": torch.zeros(())}
+        rank_zero_info(f"otgb: scoring f_p alone and the Reference on this set (once: kept in {path.parent} for later runs)")
         results = self._score_baselines(data)
         try:
             save_atomically(results, path)
