@@ -473,10 +473,14 @@ def test_terms_that_leave_the_test_part_no_closer_than_f_p_are_not_called_found_
         draws={"f_p": torch.zeros(150, 2)},
     )
     head, after, outside = verdict(result, Pendulum())
+    assert "0.262 against f_p's 0.134)" in head, "no Reference energy, no floor given"
+    result.gap["reference"]["energy"] = -0.0123
+    head, after, outside = verdict(result, Pendulum())
     assert head.startswith("missing effect named, not confirmed: ") and "found" not in head, head
     assert head.endswith(
         "fit the validation part better than f_p alone, but on the 150 test trajectories, which no fit saw, the augmented "
-        "physics is no closer to the measurements than f_p (energy distance 0.262 against f_p's 0.134)"
+        "physics is no closer to the measurements than f_p (energy distance 0.262 against f_p's 0.134; half the test "
+        "measurements against the other half: -0.0123)"
     ), head
     assert after == result.sentence_after and outside == OUTSIDE_THE_LIBRARY and not confirmed(result)
     nothing = Discovery(before=SimpleNamespace(any_significant=True), sentence_before="they differ")

@@ -108,10 +108,12 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
         ]
     elif kind == "named, not confirmed":
         energy = {name: result.gap[name]["energy"] for name in ("augmented", "f_p")}
+        floor = result.gap.get("reference", {}).get("energy")
+        halves = f"; half the test measurements against the other half: {floor:.3g}" if floor is not None else ""
         answer = [
             f"missing effect named, not confirmed: {names} fit the validation part better than f_p alone, but on the "
             f"{len(result.draws['f_p'])} test trajectories, which no fit saw, the augmented physics is no closer to the "
-            f"measurements than f_p (energy distance {energy['augmented']:.3g} against f_p's {energy['f_p']:.3g})",
+            f"measurements than f_p (energy distance {energy['augmented']:.3g} against f_p's {energy['f_p']:.3g}{halves})",
             result.sentence_after,
             OUTSIDE_THE_LIBRARY,
         ]
