@@ -52,6 +52,7 @@ from otgb.discovery.report import (
     confirmed,
     distribution,
     distribution_text,
+    grey_box_elsewhere,
     low_power,
     named_divergences,
     outcome,
@@ -1366,3 +1367,11 @@ def test_the_terminal_shows_a_models_divergence_once_per_kind_of_step_and_the_re
         logging.getLogger("otgb.discover").removeHandler(handler)
     assert len(log.records) == 6 and len(shown) == 3, shown
     assert [m.split(":")[0] for m in shown] == ["score", "fit (uniform)", "score"]
+
+
+def test_report_md_says_when_the_grey_box_was_trained_on_other_measurements():
+    assert grey_box_elsewhere({"description": "x"}) == []
+    assert grey_box_elsewhere({"grey_box_trained_on": "the measurements in /a.csv"}) == [
+        "**Note: the grey-box's checkpoint was trained on the measurements in /a.csv, not on these measurements.**",
+        "",
+    ]

@@ -195,6 +195,8 @@ def discover_run(args: list[str]) -> Finished:
     samples = {"measured": data.test, **{k: v for k, v in result.draws.items() if k != "greybox"}}
     facts = {"description": datamodule.describe(), "config": [str(c) for c in cli.config.get("config") or []]}
     facts["measurement_noise"] = datamodule.measurement_noise
+    if datamodule.trained_on:  # the grey-box's checkpoint came from other measurements (said at load, kept here)
+        facts["grey_box_trained_on"] = datamodule.trained_on
     if settings.cache is not None:
         facts["fit_cache"] = settings.cache.summary()
     run_dir.mkdir(parents=True, exist_ok=True)

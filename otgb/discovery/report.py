@@ -469,6 +469,14 @@ def write_report(
     return report
 
 
+def grey_box_elsewhere(facts: dict[str, Any]) -> list[str]:
+    """report.md's note, where the grey-box's checkpoint was trained on other measurements than these."""
+    trained_on = facts.get("grey_box_trained_on")
+    return (
+        [f"**Note: the grey-box's checkpoint was trained on {trained_on}, not on these measurements.**", ""] if trained_on else []
+    )
+
+
 def markdown(report: dict[str, Any], facts: dict[str, Any]) -> str:
     lines = [
         "# Missing-effect discovery",
@@ -479,6 +487,7 @@ def markdown(report: dict[str, Any], facts: dict[str, Any]) -> str:
         *([""] if len(report["verdict_parts"]) > 1 else []),
         f"Measurements: {facts.get('description', '')}",
         "",
+        *grey_box_elsewhere(facts),
         "## Where f_p and the measurements disagree",
         "",
         f"{report['locate']['sentence_before']}.",
