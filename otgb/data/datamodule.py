@@ -262,15 +262,16 @@ class SimulationDataModule(LightningDataModule):
         saved = state_dict.get("measurements")  # older checkpoints hold none: nothing to compare
         if saved is None or saved["key"] == self.source.identity["key"] or self.trained_on is not None:
             return
-        now = self.source.identity["what"]
-        self.trained_on = saved["what"] + (", split differently" if saved["what"] == now else "")
-        if saved["what"] == now:
+        now, resplit = self.source.identity["what"], saved.get("data") == self.source.identity["data"]
+        self.trained_on = saved["what"] + (", split differently" if resplit else "")
+        if resplit:
             consequence = (
                 "split differently (data.seed, data.val_fraction or data.test_fraction): its held-out parts may hold "
                 "trajectories the map trained on"
             )
         else:
-            consequence = f"this run uses {now}: its figures score the map on data it was not trained for"
+            other = " (with other settings)" if saved["what"] == now else ""
+            consequence = f"this run uses {now}{other}: its figures score the map on data it was not trained for"
         rank_zero_only(log.warning)(
             f"otgb: the checkpoint was trained on {saved['what']}; {consequence} (give the fit's data settings to "
             "evaluate it on its own)"
