@@ -23,11 +23,12 @@ from torch import nn
 from otgb.data import generate_measured
 from otgb.data.measured import CHUNK, simulate_in_chunks
 from otgb.discovery import refine
+from otgb.discovery.closer import Closeness, closer
 from otgb.discovery.evidence import Comparison, choose_swap, weigh
 from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.intervals import sandwich_intervals
 from otgb.discovery.library import Candidate, build_library, physical_name
-from otgb.discovery.locate import describe, locate, permutation_energy
+from otgb.discovery.locate import describe, locate, permutation_energy, z_scored
 from otgb.discovery.log import DivergenceLog, OncePerModel, diverged, rounded, short
 from otgb.discovery.paired import paired_check
 from otgb.discovery.refine import (
@@ -78,6 +79,7 @@ from otgb.discovery.workflow import (
     undertrained_text,
 )
 from otgb.errors import InputError
+from otgb.metrics.energy import batched_energy
 from otgb.models import GreyBoxODE, MLPCritic
 from otgb.physics import (
     Advection,
@@ -410,7 +412,7 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
     alternative is clearly worse (Coulomb friction, +2.1 standard errors), it is a preference after the first clause."""
     friction, drag, coulomb = (Candidate(f, "velocity") for f in ("velocity", "velocity*|velocity|", "sign(velocity)"))
 
-    def said(*evidence, f_p=None, f_p_on_test=None):
+    def said(*evidence, f_p=None, f_p_on_test=None, pvalue=0.001):
         result = Discovery(
             before=SimpleNamespace(any_significant=True),
             sentence_before="",
@@ -420,6 +422,7 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
             after=SimpleNamespace(any_significant=False),
             sentence_after="they agree everywhere",
             gap={"f_p": f_p or {"energy": 1.0}, "augmented": {"energy": 0.1}, "reference": {"c2st": 0.57, "c2st_std": 0.05}},
+            closer=Closeness(-0.9, pvalue, 999, 0.05),
             draws={"f_p": torch.zeros(30, 2)},
         )
         said.confirmed = confirmed(result)
@@ -431,7 +434,8 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
         "missing effect found, the gap is closed as far as the test part can tell: viscous friction (velocity on "
         "dvelocity/dt) or quadratic drag (velocity*|velocity|) (the measurements cannot tell them apart: -0.9 standard "
         "errors; below 0, the alternative fits the validation measurements better, by less than that noise) removes 90% "
-        "of f_p's energy distance to the 30 test trajectories, and no test tells the augmented physics from them"
+        "of f_p's energy distance to the 30 test trajectories (nearer to them than f_p alone by a permutation test, "
+        "p = 0.001), and no test tells the augmented physics from them"
     ), head
     assert rest == ["they agree everywhere"] and said.confirmed
     head, *rest = said(Comparison(friction, coulomb, -0.48, 0.05, 0.072), Comparison(friction, drag, -0.37, -0.043, 0.046))
@@ -440,24 +444,29 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
     head, *rest = said(to_coulomb)
     assert head.startswith("missing effect found, the gap is closed as far as the test part can tell: viscous friction (")
     assert rest == ["they agree everywhere", "velocity preferred over Coulomb friction (sign(velocity)) by 2.1 standard errors"]
-    head, *rest = said(to_coulomb, f_p={"energy": 1.0, "c2st": 0.58})  # a test part that cannot tell f_p apart either
+    blind_c2st = {"energy": 1.0, "c2st": 0.58}
+    head, *rest = said(to_coulomb, f_p=blind_c2st, pvalue=0.31)  # a test part that cannot tell f_p apart either
     assert head == (
         "missing effect named, not confirmed: viscous friction (velocity on dvelocity/dt), but the 30 test trajectories "
-        "cannot tell even f_p from the measurements (C2ST 0.58, the Reference's 0.57 +- 0.05), so their agreeing with "
-        "the augmented physics confirms nothing: more measurements are needed to confirm it"
+        "cannot tell even f_p from the measurements (C2ST 0.58, the Reference's 0.57 +- 0.05; permutation test of which "
+        "is nearer: p = 0.31), so their agreeing with the augmented physics confirms nothing: more measurements are "
+        "needed to confirm it"
     ), head
     assert rest == ["velocity preferred over Coulomb friction (sign(velocity)) by 2.1 standard errors"]
-    head, *rest = said(Comparison(friction, drag, -0.37, -0.043, 0.046), f_p={"energy": 1.0, "c2st": 0.58})
+    head, *rest = said(Comparison(friction, drag, -0.37, -0.043, 0.046), f_p=blind_c2st, pvalue=0.31)
     assert head.startswith(
         "missing effect named, not confirmed: viscous friction (velocity on dvelocity/dt) or quadratic drag "
         "(velocity*|velocity|) (the measurements cannot tell them apart: -0.9 standard errors; below 0, the alternative "
         "fits the validation measurements better, by less than that noise), but the 30 test"
     ), head
     assert not said.confirmed, "a test part that cannot tell f_p apart confirms nothing"
-    blind_c2st = {"energy": 1.0, "c2st": 0.58}
-    head, *rest = said(to_coulomb, f_p=blind_c2st, f_p_on_test=SimpleNamespace(any_significant=True))
+    head, *rest = said(to_coulomb, f_p=blind_c2st)
     assert head.startswith("missing effect found, the gap is closed as far as the test part can tell: viscous friction")
-    assert said.confirmed, "the disagreement map that verifies the augmented physics tells f_p from the same test part"
+    assert said.confirmed, "the test of which model is nearer tells the augmented physics from f_p on this part"
+    head, *rest = said(to_coulomb, f_p=blind_c2st, f_p_on_test=SimpleNamespace(any_significant=True), pvalue=0.31)
+    assert head.startswith("missing effect named, not confirmed: viscous friction (velocity on dvelocity/dt) fit the")
+    assert "not measurably closer to the measurements than f_p (energy distance 0.1 against f_p's 1; permutation" in head
+    assert not said.confirmed, "agreeing with a part that tells f_p apart, but not measurably nearer than f_p: not confirmed"
 
 
 def test_terms_that_leave_the_test_part_no_closer_than_f_p_are_not_called_found_and_point_outside_the_library():
@@ -471,17 +480,18 @@ def test_terms_that_leave_the_test_part_no_closer_than_f_p_are_not_called_found_
         after=SimpleNamespace(any_significant=True),
         sentence_after="augmented-physics and measured trajectories agree up to t = 2",
         gap={"f_p": {"energy": 0.134}, "augmented": {"energy": 0.262}, "reference": {"c2st": 0.49, "c2st_std": 0.04}},
+        closer=Closeness(0.128, 0.97, 999, 0.05),
         draws={"f_p": torch.zeros(150, 2)},
     )
     head, after, outside = verdict(result, Pendulum())
-    assert "0.262 against f_p's 0.134)" in head, "no Reference energy, no floor given"
+    assert "0.262 against f_p's 0.134; permutation test of which is nearer: p = 0.97)" in head, "no Reference energy, no floor"
     result.gap["reference"]["energy"] = -0.0123
     head, after, outside = verdict(result, Pendulum())
     assert head.startswith("missing effect named, not confirmed: ") and "found" not in head, head
     assert head.endswith(
         "fit the validation part better than f_p alone, but on the 150 test trajectories, which no fit saw, the augmented "
-        "physics is no closer to the measurements than f_p (energy distance 0.262 against f_p's 0.134; half the test "
-        "measurements against the other half: -0.0123)"
+        "physics is not measurably closer to the measurements than f_p (energy distance 0.262 against f_p's 0.134; "
+        "permutation test of which is nearer: p = 0.97; half the test measurements against the other half: -0.0123)"
     ), head
     assert after == result.sentence_after and outside == OUTSIDE_THE_LIBRARY and not confirmed(result)
     nothing = Discovery(before=SimpleNamespace(any_significant=True), sentence_before="they differ")
@@ -582,6 +592,7 @@ def test_constant_terms_are_checked_on_the_test_parts_recorded_inputs_and_an_ine
     spread = FittedTerms("uniform", [friction], [Uniform(-0.6, -0.4)], Scores([0.1]), [])
     assert paired_after(spread, pendulum, data, 0.05) is None, "a coefficient per trajectory is unknown: nothing pairs"
     assert paired_after(named(-0.5), pendulum, Measurements(test, test, test), 0.05) is None, "no inputs, no check"
+    weak_model = pendulum.with_hidden_effect([ViscousFriction(Constant(0.3))])
     result = Discovery(
         before=SimpleNamespace(any_significant=True),
         sentence_before="",
@@ -590,13 +601,36 @@ def test_constant_terms_are_checked_on_the_test_parts_recorded_inputs_and_an_ine
         sentence_after="no test tells them apart; " + weak.sentence(),
         paired_after=weak,
         gap={"f_p": {"energy": 0.3}, "augmented": {"energy": 0.01}, "reference": {"c2st": 0.5, "c2st_std": 0.01}},
+        closer=closer(*(generate_measured(p, 120, s)["y"] for p, s in ((weak_model, 6), (pendulum, 7))), test, 199, 0.05, 0),
         draws={"f_p": torch.zeros(60, 2)},
     )
+    assert result.closer.significant, "a friction 40 % too weak is still nearer to the measurements than none"
     head, after = verdict(result, Pendulum())[:2]
     assert head.startswith("missing effect found, not exactly: viscous friction") and after == result.sentence_after, head
     assert not confirmed(result)
     result.paired_after = exact
     assert verdict(result, Pendulum())[0].startswith("missing effect found, the gap is closed") and confirmed(result)
+
+
+def test_the_test_of_which_model_is_nearer_holds_its_level_and_sees_a_nearer_model():
+    """Two models drawn from one distribution: the one-sided permutation test rejects at about its level (measured over
+    400 repetitions; 99 relabellings, so p < 0.05 means p <= 0.04). A model whose mean sits where the measurements' does,
+    against one shifted by half a standard deviation, is called nearer; the other way round it is not; the statistic is
+    the difference of the two energy distances on the standardised pooled features."""
+    g = torch.Generator().manual_seed(3)
+    draw = lambda shift, n=30: torch.randn(n, 4, 5, generator=g) + shift  # noqa: E731
+    rejections = sum(closer(draw(0.5), draw(0.5), draw(0.0), 99, 0.05, seed).significant for seed in range(400))
+    assert 0.01 < rejections / 400 < 0.075, rejections
+    measured, right, wrong = draw(0.0), draw(0.0, 25), draw(0.5, 35)
+    nearer = closer(right, wrong, measured, 199, 0.05, 0)
+    assert nearer.significant and nearer.pvalue == 1 / 200 and nearer.difference < 0, nearer
+    assert not closer(wrong, right, measured, 199, 0.05, 0).significant
+    models, scaled = z_scored(torch.cat([right, wrong]).flatten(1).double(), measured.flatten(1).double())
+    by_hand = [float(batched_energy(part[None], scaled[None], False)[0]) for part in (models[:25], models[25:])]
+    assert nearer.difference == pytest.approx(by_hand[0] - by_hand[1], rel=1e-9)
+    assert nearer.to_dict()["significant"] is True and "nearer to them than f_p alone" in nearer.clause()
+    with pytest.raises(ValueError, match="closer: need at least 2 trajectories of each model"):
+        closer(right[:1], wrong, measured, 99, 0.05, 0)
 
 
 def test_the_paired_check_holds_f_p_to_the_stated_noise_on_the_recorded_inputs():
@@ -790,6 +824,7 @@ def test_workflow_names_adds_and_closes_the_gap():
     assert abs(result.fitted.priors[0].value + 1.2) < 0.12 and result.fitted.family == "constant"
     assert result.gap["f_p"]["c2st"] > 0.85 and result.gap["augmented"]["c2st"] < 0.7
     assert result.after is not None and result.after.significant.sum() < before.significant.sum()
+    assert result.closer.significant and result.closer.difference < 0, "friction added: nearer to the test part than f_p"
 
 
 @pytest.mark.slow
@@ -1143,6 +1178,8 @@ def test_discover_from_python_as_the_tutorial_does_finds_friction_and_writes_a_c
     assert "litlogger" not in printed.err + printed.out and "TPU available" not in printed.err + printed.out
     assert report == json.loads((finder.run_dir_ / "report.json").read_text()) and finder.verdict_ == report["verdict"]
     assert finder.found_ and finder.outcome_ == report["outcome"] in OUTCOMES[:4], report["outcome"]
+    assert report["closer"]["significant"] and report["closer"]["pvalue"] < 0.05, report["closer"]
+    assert "permutation p = " in (finder.run_dir_ / "report.md").read_text()
     assert [t["feature"] for t in report["terms"]] == ["velocity"], report["terms"]
     assert abs(report["terms"][0]["coefficient"] + 1.2) < 0.12 and report["terms"][0]["name"] == "viscous friction"
     named = [(t.feature, t.priors["coefficient"].value) for t in finder.terms_]

@@ -132,11 +132,7 @@ def cell_values(y: Tensor, grid_shape: tuple[int, ...], per_axis: int) -> tuple[
 def permutation_energy(a: Tensor, b: Tensor, n_permutations: int, seed: int) -> tuple[Tensor, Tensor]:
     """Unbiased energy distance per cell and its permutation p-value: a (G, n, d), b (G, m, d) -> (G,), (G,)."""
     n, m = a.shape[1], b.shape[1]
-    g = torch.Generator().manual_seed(seed)
-    labels = torch.zeros(n_permutations + 1, n + m, dtype=torch.float64)
-    labels[0, :n] = 1
-    for k in range(1, n_permutations + 1):
-        labels[k, torch.randperm(n + m, generator=g)[:n]] = 1
+    labels = permutation_labels(n, n + m, n_permutations, seed)
     stats, block = [], max(1, DISTANCE_BYTES // (8 * (n + m) ** 2))
     for start in range(0, len(a), block):
         pooled = torch.cat([a[start : start + block], b[start : start + block]], dim=1)
@@ -151,6 +147,17 @@ def permutation_energy(a: Tensor, b: Tensor, n_permutations: int, seed: int) -> 
     observed = stats[:, 0]
     pvalue = (1 + (stats[:, 1:] >= observed[:, None] - 1e-12).sum(1)) / (n_permutations + 1)
     return observed, pvalue
+
+
+def permutation_labels(n: int, total: int, n_permutations: int, seed: int) -> Tensor:
+    """(n_permutations + 1, total) float64 indicators of the first sample: row 0 the observed labels (the first ``n``),
+    then ``n_permutations`` random relabellings drawn with ``seed``."""
+    g = torch.Generator().manual_seed(seed)
+    labels = torch.zeros(n_permutations + 1, total, dtype=torch.float64)
+    labels[0, :n] = 1
+    for k in range(1, n_permutations + 1):
+        labels[k, torch.randperm(total, generator=g)[:n]] = 1
+    return labels
 
 
 def z_scored(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:

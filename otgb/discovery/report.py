@@ -60,13 +60,14 @@ OUTCOMES = ("gap closed", "found, not exactly", "named, not confirmed", "partly 
 
 
 def outcome(result: Discovery) -> str:
-    """Which of :data:`OUTCOMES` the verdict is (``report.json``'s ``outcome``): "partly found" names the terms
-    that came closest, not the missing effect itself."""
+    """Which of :data:`OUTCOMES` the verdict is (``report.json``'s ``outcome``): named terms are confirmed only where the
+    augmented physics is nearer to the test part than f_p alone beyond chance (:func:`closer_on_test`), else "named,
+    not confirmed"; "partly found" names the terms that came closest, not the missing effect itself."""
     if not result.before.any_significant:
         return "nothing detected"
     if not result.found:
         return "nothing found"
-    if (closed_on_test(result) and test_part_blind(result)) or gap_closed(result.gap) <= 0:
+    if not closer_on_test(result):
         return "named, not confirmed"
     if closed_on_test(result):
         return "gap closed"
@@ -103,8 +104,8 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
     if blind:
         answer = [
             f"missing effect named, not confirmed: {names}, but the {len(result.draws['f_p'])} test trajectories cannot "
-            f"tell even f_p from the measurements ({blind}), so their agreeing with the augmented physics confirms "
-            "nothing: more measurements are needed to confirm it"
+            f"tell even f_p from the measurements ({blind}; {result.closer.clause()}), so their agreeing with the "
+            "augmented physics confirms nothing: more measurements are needed to confirm it"
         ]
     elif kind == "named, not confirmed":
         energy = {name: result.gap[name]["energy"] for name in ("augmented", "f_p")}
@@ -112,20 +113,22 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
         halves = f"; half the test measurements against the other half: {floor:.3g}" if floor is not None else ""
         answer = [
             f"missing effect named, not confirmed: {names} fit the validation part better than f_p alone, but on the "
-            f"{len(result.draws['f_p'])} test trajectories, which no fit saw, the augmented physics is no closer to the "
-            f"measurements than f_p (energy distance {energy['augmented']:.3g} against f_p's {energy['f_p']:.3g}{halves})",
+            f"{len(result.draws['f_p'])} test trajectories, which no fit saw, the augmented physics is not measurably "
+            f"closer to the measurements than f_p (energy distance {energy['augmented']:.3g} against f_p's "
+            f"{energy['f_p']:.3g}; {result.closer.clause()}{halves})",
             result.sentence_after,
             OUTSIDE_THE_LIBRARY,
         ]
     elif kind == "gap closed":
         answer = [
             f"missing effect found, the gap is closed as far as the test part can tell: {names} {removes} "
-            f"{share_removed(result)}, and no test tells the augmented physics from them",
+            f"{share_removed(result)} ({result.closer.clause()}), and no test tells the augmented physics from them",
             result.sentence_after,
         ]
     elif kind == "found, not exactly":  # the distributions agree, the recorded inputs do not
         answer = [
-            f"missing effect found, not exactly: {names} {removes} {share_removed(result)} and the distribution tests "
+            f"missing effect found, not exactly: {names} {removes} {share_removed(result)} ({result.closer.clause()}) "
+            "and the distribution tests "
             "see no difference on the test part, but solved on its recorded inputs the augmented physics misses the "
             "measurements by more than their noise: the coefficients (fitted to distributions) or the terms' form are "
             "off",
@@ -133,7 +136,7 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
         ]
     else:
         answer = [
-            f"missing effect partly found: {names} {closes} {share_removed(result)}",
+            f"missing effect partly found: {names} {closes} {share_removed(result)} ({result.closer.clause()})",
             result.sentence_after,
             "no library term fits exactly, these are the best approximation",
             OUTSIDE_THE_LIBRARY,
@@ -208,8 +211,15 @@ def share_removed(result: Discovery) -> str:
 
 
 def confirmed(result: Discovery) -> bool:
-    """Whether the test part confirms the named terms: the gap closed there, on a part that tells f_p apart."""
-    return bool(result.found and closed_on_test(result) and not test_part_blind(result))
+    """Whether the test part confirms the named terms: the augmented physics is nearer to it than f_p alone and no test
+    tells it from the measurements."""
+    return bool(result.found and closer_on_test(result) and closed_on_test(result))
+
+
+def closer_on_test(result: Discovery) -> bool:
+    """Whether the augmented physics is nearer to the test measurements than f_p alone, beyond chance
+    (:mod:`otgb.discovery.closer`)."""
+    return result.closer is not None and result.closer.significant
 
 
 def closed_on_test(result: Discovery) -> bool:
@@ -226,7 +236,8 @@ def inexact(result: Discovery) -> bool:
 def test_part_blind(result: Discovery) -> str | None:
     """When the test part cannot tell f_p itself from the measurements, neither by the disagreement map that verifies
     the augmented physics nor by f_p's C2ST (within two of the Reference's standard deviations of 0.5), the numbers
-    that say so; else None. A verification on such a part cannot confirm a closed gap: it would also have passed f_p."""
+    that say so; else None: why an augmented physics that agrees with such a part is not confirmed (the agreement would
+    also have passed f_p), where it is not measurably nearer to it than f_p (:func:`closer_on_test`)."""
     f_p, reference = result.gap.get("f_p", {}), result.gap.get("reference", {})
     if "c2st" not in f_p or "c2st_std" not in reference:
         return None
@@ -348,6 +359,7 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
         "added_by_evidence": result.added,
         "explained_r2": {s.component: s.explained_r2 for s in result.selections},
         "gap": result.gap,
+        "closer": result.closer.to_dict() if result.closer else None,
         "locate": {
             "before": result.before.to_dict(),
             "sentence_before": result.sentence_before,
@@ -524,6 +536,7 @@ def markdown(report: dict[str, Any], facts: dict[str, Any]) -> str:
         if key in report["gap"]:
             g = report["gap"][key]
             lines.append(f"| {label} | {g['mmd']:.4g} | {g['c2st']:.3f} ± {g['c2st_std']:.3f} | {g['energy']:.4g} |")
+    lines += _closer_line(report.get("closer"))
     lines += _pointwise_section(report["pointwise"])
     lines += [
         "",
@@ -537,6 +550,21 @@ def markdown(report: dict[str, Any], facts: dict[str, Any]) -> str:
         "",
     ]
     return "\n".join(lines) + "\n"
+
+
+def _closer_line(closer: dict[str, Any] | None) -> list[str]:
+    """Under the gap table: whether the augmented physics is nearer to the test part than f_p (``report.json``'s
+    ``closer``)."""
+    if closer is None:
+        return []
+    said = "is nearer than f_p alone" if closer["significant"] else "is not measurably nearer than f_p alone"
+    return [
+        "",
+        f"The augmented physics {said}: energy distance to the test measurements, the augmented physics's minus f_p's, "
+        f"{closer['difference']:.4g} (features standardised over the three samples together), permutation p = "
+        f"{closer['pvalue']:.3g} ({closer['n_permutations']} relabellings of the two models' trajectories; one-sided, "
+        f"threshold {closer['alpha']:g}). This test decides whether the named terms are confirmed.",
+    ]
 
 
 def _naming_section(report: dict[str, Any]) -> list[str]:

@@ -34,6 +34,7 @@ from torch import Tensor
 
 from otgb.data.measured import CHUNK, simulate_in_chunks
 from otgb.data.seeding import generator_for
+from otgb.discovery.closer import Closeness, closer
 from otgb.discovery.evidence import Comparison, weigh
 from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.intervals import Intervals, sandwich_intervals
@@ -183,6 +184,7 @@ class Discovery:
     sentence_after: str | None = None
     paired_after: PairedCheck | None = None  # constant named terms on the test part's recorded inputs (.paired)
     gap: dict[str, dict[str, float]] = field(default_factory=dict)
+    closer: Closeness | None = None  # whether the augmented physics is nearer to the test part than f_p (.closer)
     correction_share: float | None = None
     pointwise: dict[str, dict[str, float]] = field(default_factory=dict)  # against a known DGP (otgb.discovery.known)
     draws: dict[str, Tensor] = field(default_factory=dict)  # the gap table's samples, as many as the test part
@@ -573,7 +575,21 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
             result.sentence_after += f"; {result.paired_after.sentence()}"
     progress("verifying on the test part")
     result.gap, result.draws = gap_step(sources, data.test, settings), sources
+    if result.found:
+        result.closer = closer_step(result.fitted.model(physics), physics, data.test, settings)
     return result
+
+
+CLOSER_DRAWS = 4  # trajectories of each model per test trajectory in the test of which is nearer: more draws, more power
+
+
+def closer_step(model: Augmented, physics: PhysicsModel, test: Tensor, settings: DiscoverySettings) -> Closeness:
+    """Whether the augmented physics ``model`` is nearer to the test measurements than f_p alone (:mod:`.closer`), on
+    fresh draws of both, ``CLOSER_DRAWS`` times the test part (at most ``locate_rows``, at least the test part)."""
+    n = max(len(test), min(CLOSER_DRAWS * len(test), settings.locate_rows))
+    augmented = simulate_candidate(model, n, settings.seed, "closer-augmented")
+    f_p = simulate_from_priors(physics, n, settings.seed, "closer-f_p")
+    return closer(augmented, f_p, test, settings.n_permutations, settings.alpha, settings.seed)
 
 
 def paired_after(fitted: FittedTerms, physics: PhysicsModel, data: Measurements, alpha: float) -> PairedCheck | None:
