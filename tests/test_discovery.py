@@ -422,7 +422,7 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
             after=SimpleNamespace(any_significant=False),
             sentence_after="they agree everywhere",
             gap={"f_p": f_p or {"energy": 1.0}, "augmented": {"energy": 0.1}, "reference": {"c2st": 0.57, "c2st_std": 0.05}},
-            closer=Closeness(-0.9, pvalue, 999, 0.05),
+            closer=Closeness(0.1, 1.0, 30, pvalue, 999, 0.05),
             draws={"f_p": torch.zeros(30, 2)},
         )
         said.confirmed = confirmed(result)
@@ -465,7 +465,7 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
     assert said.confirmed, "the test of which model is nearer tells the augmented physics from f_p on this part"
     head, *rest = said(to_coulomb, f_p=blind_c2st, f_p_on_test=SimpleNamespace(any_significant=True), pvalue=0.31)
     assert head.startswith("missing effect named, not confirmed: viscous friction (velocity on dvelocity/dt) fit the")
-    assert "not measurably closer to the measurements than f_p (energy distance 0.1 against f_p's 1; permutation" in head
+    assert "not measurably closer to the measurements than f_p (energy distance 0.1 against f_p's 1, 30 draws" in head
     assert not said.confirmed, "agreeing with a part that tells f_p apart, but not measurably nearer than f_p: not confirmed"
 
 
@@ -480,18 +480,19 @@ def test_terms_that_leave_the_test_part_no_closer_than_f_p_are_not_called_found_
         after=SimpleNamespace(any_significant=True),
         sentence_after="augmented-physics and measured trajectories agree up to t = 2",
         gap={"f_p": {"energy": 0.134}, "augmented": {"energy": 0.262}, "reference": {"c2st": 0.49, "c2st_std": 0.04}},
-        closer=Closeness(0.128, 0.97, 999, 0.05),
+        closer=Closeness(0.262, 0.134, 150, 0.97, 999, 0.05),
         draws={"f_p": torch.zeros(150, 2)},
     )
     head, after, outside = verdict(result, Pendulum())
-    assert "0.262 against f_p's 0.134; permutation test of which is nearer: p = 0.97)" in head, "no Reference energy, no floor"
+    assert "0.262 against f_p's 0.134, 150 draws of each; permutation test of which is nearer: p = 0.97)" in head, head
     result.gap["reference"]["energy"] = -0.0123
     head, after, outside = verdict(result, Pendulum())
     assert head.startswith("missing effect named, not confirmed: ") and "found" not in head, head
     assert head.endswith(
         "fit the validation part better than f_p alone, but on the 150 test trajectories, which no fit saw, the augmented "
-        "physics is not measurably closer to the measurements than f_p (energy distance 0.262 against f_p's 0.134; "
-        "permutation test of which is nearer: p = 0.97; half the test measurements against the other half: -0.0123)"
+        "physics is not measurably closer to the measurements than f_p (energy distance 0.262 against f_p's 0.134, 150 "
+        "draws of each; permutation test of which is nearer: p = 0.97; half the test measurements against the other "
+        "half: -0.0123)"
     ), head
     assert after == result.sentence_after and outside == OUTSIDE_THE_LIBRARY and not confirmed(result)
     nothing = Discovery(before=SimpleNamespace(any_significant=True), sentence_before="they differ")
@@ -627,9 +628,9 @@ def test_the_test_of_which_model_is_nearer_holds_its_level_and_sees_a_nearer_mod
     assert not closer(wrong, right, measured, 199, 0.05, 0).significant
     models, scaled = z_scored(torch.cat([right, wrong]).flatten(1).double(), measured.flatten(1).double())
     by_hand = [float(batched_energy(part[None], scaled[None], False)[0]) for part in (models[:25], models[25:])]
-    assert nearer.difference == pytest.approx(by_hand[0] - by_hand[1], rel=1e-9)
+    assert [nearer.augmented, nearer.f_p] == pytest.approx(by_hand, rel=1e-6) and nearer.draws == 25
     assert nearer.to_dict()["significant"] is True and "nearer to them than f_p alone" in nearer.clause()
-    with pytest.raises(ValueError, match="closer: need at least 2 trajectories of each model"):
+    with pytest.raises(ValueError, match="closer: need at least 2 trajectories of each model and 2 measured; got 1, 35"):
         closer(right[:1], wrong, measured, 99, 0.05, 0)
 
 

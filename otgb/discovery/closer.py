@@ -24,20 +24,28 @@ from otgb.discovery.locate import permutation_labels, z_scored
 
 @dataclass
 class Closeness:
-    """The test's result: ``difference`` = E(augmented, measured) - E(f_p, measured) (< 0: the augmented physics is
-    nearer), its one-sided permutation p-value, and whether it is below ``alpha``."""
+    """The test's result: each model's energy distance to the measurements (on the common standardisation; ``draws``
+    trajectories of each model), the one-sided permutation p-value of their difference, and whether it is below
+    ``alpha``."""
 
-    difference: float
+    augmented: float
+    f_p: float
+    draws: int
     pvalue: float
     n_permutations: int
     alpha: float
+
+    @property
+    def difference(self) -> float:
+        """E(augmented, measured) - E(f_p, measured): below 0, the augmented physics is nearer."""
+        return self.augmented - self.f_p
 
     @property
     def significant(self) -> bool:
         return self.pvalue < self.alpha
 
     def to_dict(self) -> dict:
-        return {**asdict(self), "significant": self.significant}
+        return {**asdict(self), "difference": self.difference, "significant": self.significant}
 
     def clause(self) -> str:
         """The test in words, for the verdict."""
@@ -49,15 +57,19 @@ class Closeness:
 def closer(augmented: Tensor, f_p: Tensor, measured: Tensor, n_permutations: int, alpha: float, seed: int) -> Closeness:
     """Whether ``augmented`` (n, ...) is nearer to ``measured`` (m, ...) than ``f_p`` (k, ...), by the energy distance."""
     n, k = len(augmented), len(f_p)
-    if min(n, k) < 2 or len(measured) < 1:
-        raise ValueError(f"closer: need at least 2 trajectories of each model and 1 measured; got {n}, {k}, {len(measured)}")
+    if min(n, k, len(measured)) < 2:
+        raise ValueError(f"closer: need at least 2 trajectories of each model and 2 measured; got {n}, {k}, {len(measured)}")
     models, measured = z_scored(torch.cat([augmented, f_p]).flatten(1).double(), measured.flatten(1).double())
     to_measured = torch.cdist(models, measured).mean(1)  # (n + k,): each model trajectory's mean distance to M
     within = torch.cdist(models, models)
     labels = permutation_labels(n, n + k, n_permutations, seed)  # (P + 1, n + k): 1 marks the augmented sample
     differences = _differences(labels, to_measured, within, n, k)
     pvalue = (1 + int((differences[1:] <= differences[0] + 1e-12).sum())) / (n_permutations + 1)
-    return Closeness(float(differences[0]), pvalue, n_permutations, alpha)
+    m = len(measured)
+    spread_m = float(torch.cdist(measured, measured).sum()) / (m * (m - 1))
+    augmented_energy = float(2 * to_measured[:n].mean() - within[:n, :n].sum() / (n * (n - 1))) - spread_m
+    f_p_energy = augmented_energy - float(differences[0])
+    return Closeness(augmented_energy, f_p_energy, min(n, k), pvalue, n_permutations, alpha)
 
 
 def _differences(labels: Tensor, to_measured: Tensor, within: Tensor, n: int, k: int) -> Tensor:

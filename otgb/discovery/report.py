@@ -108,14 +108,14 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
             "augmented physics confirms nothing: more measurements are needed to confirm it"
         ]
     elif kind == "named, not confirmed":
-        energy = {name: result.gap[name]["energy"] for name in ("augmented", "f_p")}
+        test = result.closer
         floor = result.gap.get("reference", {}).get("energy")
         halves = f"; half the test measurements against the other half: {floor:.3g}" if floor is not None else ""
         answer = [
             f"missing effect named, not confirmed: {names} fit the validation part better than f_p alone, but on the "
             f"{len(result.draws['f_p'])} test trajectories, which no fit saw, the augmented physics is not measurably "
-            f"closer to the measurements than f_p (energy distance {energy['augmented']:.3g} against f_p's "
-            f"{energy['f_p']:.3g}; {result.closer.clause()}{halves})",
+            f"closer to the measurements than f_p (energy distance {test.augmented:.3g} against f_p's {test.f_p:.3g}, "
+            f"{test.draws} draws of each; {test.clause()}{halves})",
             result.sentence_after,
             OUTSIDE_THE_LIBRARY,
         ]
@@ -560,10 +560,11 @@ def _closer_line(closer: dict[str, Any] | None) -> list[str]:
     said = "is nearer than f_p alone" if closer["significant"] else "is not measurably nearer than f_p alone"
     return [
         "",
-        f"The augmented physics {said}: energy distance to the test measurements, the augmented physics's minus f_p's, "
-        f"{closer['difference']:.4g} (features standardised over the three samples together), permutation p = "
-        f"{closer['pvalue']:.3g} ({closer['n_permutations']} relabellings of the two models' trajectories; one-sided, "
-        f"threshold {closer['alpha']:g}). This test decides whether the named terms are confirmed.",
+        f"The augmented physics {said}: energy distance to the test measurements {closer['augmented']:.4g} against "
+        f"f_p's {closer['f_p']:.4g} ({closer['draws']} fresh draws of each, features standardised over the three samples "
+        f"together), permutation p = {closer['pvalue']:.3g} ({closer['n_permutations']} relabellings of the two models' "
+        f"trajectories; one-sided, threshold {closer['alpha']:g}). This test decides whether the named terms are "
+        "confirmed.",
     ]
 
 
