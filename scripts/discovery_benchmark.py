@@ -217,9 +217,17 @@ def _prior_text(prior) -> str:
 
 
 HEADER = (
-    "| case | seed | named: coefficient [95 %] | truth | f_p C2ST | grey-box C2ST | augmented C2ST | Reference C2ST "
-    "| round 2 on augmented.yaml | wall time |\n|---|---|---|---|---|---|---|---|---|---|"
+    "| case | seed | named: coefficient [95 %] | truth | outcome | f_p C2ST | grey-box C2ST | augmented C2ST "
+    "| Reference C2ST | round 2 on augmented.yaml | wall time |\n|---|---|---|---|---|---|---|---|---|---|---|"
 )
+
+
+def outcome_text(report: dict) -> str:
+    """The verdict's outcome and the p-value of the test that decides it (nearer to the test part than f_p alone)."""
+    closer, said = report.get("closer"), report.get("outcome") or report["verdict"].split(":")[0]  # older: no outcome
+    if closer:
+        return f"{said} (nearer than f_p: p = {closer['pvalue']:.2g})"
+    return f"{said} (run before the nearer-than-f_p test)" if report["found"] else said
 
 
 def table(out: Path) -> str:
@@ -247,6 +255,7 @@ def table(out: Path) -> str:
             seed,
             named,
             truth_text(case),
+            outcome_text(report),
             *(f"{gap[k]['c2st']:.3f}" if k in gap else "-" for k in ("f_p", "greybox", "augmented")),
             reference,
             round2,
