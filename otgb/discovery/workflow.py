@@ -584,12 +584,14 @@ CLOSER_DRAWS = 4  # trajectories of each model per test trajectory in the test o
 
 
 def closer_step(model: Augmented, physics: PhysicsModel, test: Tensor, settings: DiscoverySettings) -> Closeness:
-    """Whether the augmented physics ``model`` is nearer to the test measurements than f_p alone (:mod:`.closer`), on
-    fresh draws of both, ``CLOSER_DRAWS`` times the test part (at most ``locate_rows``, at least the test part)."""
-    n = max(len(test), min(CLOSER_DRAWS * len(test), settings.locate_rows))
+    """Whether the augmented physics ``model`` is nearer to the test measurements (at most ``locate_rows`` of them,
+    drawn at random) than f_p alone (:mod:`.closer`), on fresh draws of both: ``CLOSER_DRAWS`` per test trajectory, at
+    most ``locate_rows`` and at least as many as the test trajectories."""
+    tested = at_most(test, settings.locate_rows, settings.seed)
+    n = max(len(tested), min(CLOSER_DRAWS * len(tested), settings.locate_rows))
     augmented = simulate_candidate(model, n, settings.seed, "closer-augmented")
     f_p = simulate_from_priors(physics, n, settings.seed, "closer-f_p")
-    return closer(augmented, f_p, test, settings.n_permutations, settings.alpha, settings.seed)
+    return closer(augmented, f_p, tested, settings.n_permutations, settings.alpha, settings.seed)
 
 
 def paired_after(fitted: FittedTerms, physics: PhysicsModel, data: Measurements, alpha: float) -> PairedCheck | None:
