@@ -495,6 +495,13 @@ def test_terms_that_leave_the_test_part_no_closer_than_f_p_are_not_called_found_
         "half: -0.0123)"
     ), head
     assert after == result.sentence_after and outside == OUTSIDE_THE_LIBRARY and not confirmed(result)
+    result.closer = None  # the augmented physics's solves diverged: no test could run
+    assert verdict(result, Pendulum())[0].endswith(
+        "closer to the measurements than f_p (no test of which is nearer: fewer than two of the augmented physics's "
+        "trajectories stayed finite; half the test measurements against the other half: -0.0123)"
+    )
+    assert outcome(result) == "named, not confirmed"
+    result.closer = Closeness(0.262, 0.134, 150, 0.97, 999, 0.05)
     nothing = Discovery(before=SimpleNamespace(any_significant=True), sentence_before="they differ")
     assert verdict(nothing, Pendulum()) == [
         "no missing effect found in the library: the measurements differ from f_p (they differ), but no candidate term "

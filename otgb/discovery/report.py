@@ -104,30 +104,31 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
     if blind:
         answer = [
             f"missing effect named, not confirmed: {names}, but the {len(result.draws['f_p'])} test trajectories cannot "
-            f"tell even f_p from the measurements ({blind}; {result.closer.clause()}), so their agreeing with the "
+            f"tell even f_p from the measurements ({blind}; {closer_clause(result)}), so their agreeing with the "
             "augmented physics confirms nothing: more measurements are needed to confirm it"
         ]
     elif kind == "named, not confirmed":
-        test = result.closer
-        floor = result.gap.get("reference", {}).get("energy")
+        test, floor = result.closer, result.gap.get("reference", {}).get("energy")
+        versus = (
+            f"energy distance {test.augmented:.3g} against f_p's {test.f_p:.3g}, {test.draws} draws of each; " if test else ""
+        )
         halves = f"; half the test measurements against the other half: {floor:.3g}" if floor is not None else ""
         answer = [
             f"missing effect named, not confirmed: {names} fit the validation part better than f_p alone, but on the "
             f"{len(result.draws['f_p'])} test trajectories, which no fit saw, the augmented physics is not measurably "
-            f"closer to the measurements than f_p (energy distance {test.augmented:.3g} against f_p's {test.f_p:.3g}, "
-            f"{test.draws} draws of each; {test.clause()}{halves})",
+            f"closer to the measurements than f_p ({versus}{closer_clause(result)}{halves})",
             result.sentence_after,
             OUTSIDE_THE_LIBRARY,
         ]
     elif kind == "gap closed":
         answer = [
             f"missing effect found, the gap is closed as far as the test part can tell: {names} {removes} "
-            f"{share_removed(result)} ({result.closer.clause()}), and no test tells the augmented physics from them",
+            f"{share_removed(result)} ({closer_clause(result)}), and no test tells the augmented physics from them",
             result.sentence_after,
         ]
     elif kind == "found, not exactly":  # the distributions agree, the recorded inputs do not
         answer = [
-            f"missing effect found, not exactly: {names} {removes} {share_removed(result)} ({result.closer.clause()}) "
+            f"missing effect found, not exactly: {names} {removes} {share_removed(result)} ({closer_clause(result)}) "
             "and the distribution tests "
             "see no difference on the test part, but solved on its recorded inputs the augmented physics misses the "
             "measurements by more than their noise: the coefficients (fitted to distributions) or the terms' form are "
@@ -136,7 +137,7 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
         ]
     else:
         answer = [
-            f"missing effect partly found: {names} {closes} {share_removed(result)} ({result.closer.clause()})",
+            f"missing effect partly found: {names} {closes} {share_removed(result)} ({closer_clause(result)})",
             result.sentence_after,
             "no library term fits exactly, these are the best approximation",
             OUTSIDE_THE_LIBRARY,
@@ -214,6 +215,13 @@ def confirmed(result: Discovery) -> bool:
     """Whether the test part confirms the named terms: the augmented physics is nearer to it than f_p alone and no test
     tells it from the measurements."""
     return bool(result.found and closer_on_test(result) and closed_on_test(result))
+
+
+def closer_clause(result: Discovery) -> str:
+    """The test of which model is nearer, in words; where it could not run, why."""
+    if result.closer is None:
+        return "no test of which is nearer: fewer than two of the augmented physics's trajectories stayed finite"
+    return result.closer.clause()
 
 
 def closer_on_test(result: Discovery) -> bool:

@@ -583,13 +583,16 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
 CLOSER_DRAWS = 4  # trajectories of each model per test trajectory in the test of which is nearer: more draws, more power
 
 
-def closer_step(model: Augmented, physics: PhysicsModel, test: Tensor, settings: DiscoverySettings) -> Closeness:
+def closer_step(model: Augmented, physics: PhysicsModel, test: Tensor, settings: DiscoverySettings) -> Closeness | None:
     """Whether the augmented physics ``model`` is nearer to the test measurements (at most ``locate_rows`` of them,
     drawn at random) than f_p alone (:mod:`.closer`), on fresh draws of both: ``CLOSER_DRAWS`` per test trajectory, at
-    most ``locate_rows`` and at least as many as the test trajectories."""
+    most ``locate_rows`` and at least as many as the test trajectories. None where fewer than two of the augmented
+    physics's trajectories stay finite (its divergences are logged)."""
     tested = at_most(test, settings.locate_rows, settings.seed)
     n = max(len(tested), min(CLOSER_DRAWS * len(tested), settings.locate_rows))
     augmented = simulate_candidate(model, n, settings.seed, "closer-augmented")
+    if len(augmented) < 2:
+        return None
     f_p = simulate_from_priors(physics, n, settings.seed, "closer-f_p")
     return closer(augmented, f_p, tested, settings.n_permutations, settings.alpha, settings.seed)
 
