@@ -224,10 +224,11 @@ HEADER = (
 
 def outcome_text(report: dict) -> str:
     """The verdict's outcome and the p-value of the test that decides it (nearer to the test part than f_p alone)."""
-    closer, said = report.get("closer"), report.get("outcome") or report["verdict"].split(":")[0]  # older: no outcome
-    if closer:
-        return f"{said} (nearer than f_p: p = {closer['pvalue']:.2g})"
-    return f"{said} (run before the nearer-than-f_p test)" if report["found"] else said
+    said = report.get("outcome") or report["verdict"].split(":")[0]  # older reports have no outcome
+    if "closer" not in report:
+        return f"{said} (run before the nearer-than-f_p test)" if report["found"] else said
+    closer = report["closer"]
+    return f"{said} (nearer than f_p: p = {closer['pvalue']:.2g})" if closer else said
 
 
 def table(out: Path) -> str:

@@ -422,7 +422,7 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
             after=SimpleNamespace(any_significant=False),
             sentence_after="they agree everywhere",
             gap={"f_p": f_p or {"energy": 1.0}, "augmented": {"energy": 0.1}, "reference": {"c2st": 0.57, "c2st_std": 0.05}},
-            closer=Closeness(0.1, 1.0, 30, pvalue, 999, 0.05),
+            closer=closeness(0.1, 1.0, 30, pvalue),
             draws={"f_p": torch.zeros(30, 2)},
         )
         said.confirmed = confirmed(result)
@@ -434,8 +434,8 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
         "missing effect found, the gap is closed as far as the test part can tell: viscous friction (velocity on "
         "dvelocity/dt) or quadratic drag (velocity*|velocity|) (the measurements cannot tell them apart: -0.9 standard "
         "errors; below 0, the alternative fits the validation measurements better, by less than that noise) removes 90% "
-        "of f_p's energy distance to the 30 test trajectories (nearer to them than f_p alone by a permutation test, "
-        "p = 0.001), and no test tells the augmented physics from them"
+        "of f_p's energy distance to the 30 test trajectories (nearer than f_p alone: one-sided test, p <= 0.001), and "
+        "no test tells the augmented physics from them"
     ), head
     assert rest == ["they agree everywhere"] and said.confirmed
     head, *rest = said(Comparison(friction, coulomb, -0.48, 0.05, 0.072), Comparison(friction, drag, -0.37, -0.043, 0.046))
@@ -448,9 +448,9 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
     head, *rest = said(to_coulomb, f_p=blind_c2st, pvalue=0.31)  # a test part that cannot tell f_p apart either
     assert head == (
         "missing effect named, not confirmed: viscous friction (velocity on dvelocity/dt), but the 30 test trajectories "
-        "cannot tell even f_p from the measurements (C2ST 0.58, the Reference's 0.57 +- 0.05; permutation test of which "
-        "is nearer: p = 0.31), so their agreeing with the augmented physics confirms nothing: more measurements are "
-        "needed to confirm it"
+        "cannot tell even f_p from the measurements (C2ST 0.58, the Reference's 0.57 +- 0.05), nor the augmented physics "
+        "as nearer to them than f_p (one-sided test, p = 0.31, threshold 0.05), so their agreeing with the augmented "
+        "physics confirms nothing: more measurements are needed to confirm it"
     ), head
     assert rest == ["velocity preferred over Coulomb friction (sign(velocity)) by 2.1 standard errors"]
     head, *rest = said(Comparison(friction, drag, -0.37, -0.043, 0.046), f_p=blind_c2st, pvalue=0.31)
@@ -465,7 +465,7 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
     assert said.confirmed, "the test of which model is nearer tells the augmented physics from f_p on this part"
     head, *rest = said(to_coulomb, f_p=blind_c2st, f_p_on_test=SimpleNamespace(any_significant=True), pvalue=0.31)
     assert head.startswith("missing effect named, not confirmed: viscous friction (velocity on dvelocity/dt) fit the")
-    assert "not measurably closer to the measurements than f_p (energy distance 0.1 against f_p's 1, 30 draws" in head
+    assert "not significantly nearer to the measurements than f_p alone (energy distance 0.1 against f_p's 1, from 120" in head
     assert not said.confirmed, "agreeing with a part that tells f_p apart, but not measurably nearer than f_p: not confirmed"
 
 
@@ -480,28 +480,31 @@ def test_terms_that_leave_the_test_part_no_closer_than_f_p_are_not_called_found_
         after=SimpleNamespace(any_significant=True),
         sentence_after="augmented-physics and measured trajectories agree up to t = 2",
         gap={"f_p": {"energy": 0.134}, "augmented": {"energy": 0.262}, "reference": {"c2st": 0.49, "c2st_std": 0.04}},
-        closer=Closeness(0.262, 0.134, 150, 0.97, 999, 0.05),
+        closer=closeness(0.262, 0.134, 150, 0.97),
         draws={"f_p": torch.zeros(150, 2)},
     )
-    head, after, outside = verdict(result, Pendulum())
-    assert "0.262 against f_p's 0.134, 150 draws of each; permutation test of which is nearer: p = 0.97)" in head, head
-    result.gap["reference"]["energy"] = -0.0123
     head, after, outside = verdict(result, Pendulum())
     assert head.startswith("missing effect named, not confirmed: ") and "found" not in head, head
     assert head.endswith(
         "fit the validation part better than f_p alone, but on the 150 test trajectories, which no fit saw, the augmented "
-        "physics is not measurably closer to the measurements than f_p (energy distance 0.262 against f_p's 0.134, 150 "
-        "draws of each; permutation test of which is nearer: p = 0.97; half the test measurements against the other "
-        "half: -0.0123)"
+        "physics is not significantly nearer to the measurements than f_p alone (energy distance 0.262 against f_p's "
+        "0.134, from 600 and 600 draws; half the test measurements against the other half: -0.0123; one-sided test, "
+        "p = 0.97, threshold 0.05)"
     ), head
     assert after == result.sentence_after and outside == OUTSIDE_THE_LIBRARY and not confirmed(result)
     result.closer = None  # the augmented physics's solves diverged: no test could run
     assert verdict(result, Pendulum())[0].endswith(
-        "closer to the measurements than f_p (no test of which is nearer: fewer than two of the augmented physics's "
-        "trajectories stayed finite; half the test measurements against the other half: -0.0123)"
+        "nearer to the measurements than f_p alone (no test of which is nearer could run: too few of the models' "
+        "trajectories stayed finite)"
     )
     assert outcome(result) == "named, not confirmed"
-    result.closer = Closeness(0.262, 0.134, 150, 0.97, 999, 0.05)
+    result.closer = closeness(0.262, 0.134, 150, 0.97)
+    result.closer.diverged = 3  # nearer by the numbers, but some of its trajectories blew up
+    result.closer.augmented, result.closer.permutation_pvalue, result.closer.normal_pvalue = 0.01, 0.001, 0.001
+    assert "(energy distance 0.01 against f_p's 0.134, from 600 and 600 draws; half the test measurements against the " \
+        "other half: -0.0123; 3 of its 603 trajectories diverged)" in verdict(result, Pendulum())[0]  # fmt: skip
+    assert outcome(result) == "named, not confirmed"
+    result.closer = closeness(0.262, 0.134, 150, 0.97)
     nothing = Discovery(before=SimpleNamespace(any_significant=True), sentence_before="they differ")
     assert verdict(nothing, Pendulum()) == [
         "no missing effect found in the library: the measurements differ from f_p (they differ), but no candidate term "
@@ -620,25 +623,44 @@ def test_constant_terms_are_checked_on_the_test_parts_recorded_inputs_and_an_ine
     assert verdict(result, Pendulum())[0].startswith("missing effect found, the gap is closed") and confirmed(result)
 
 
+def closeness(augmented: float, f_p: float, measured: int, pvalue: float) -> Closeness:
+    """A test of which model is nearer with these figures (4 draws of each model per test trajectory)."""
+    return Closeness(augmented, f_p, -0.0123, measured, 4 * measured, 4 * measured, 0, pvalue, pvalue, 999, 0.05)
+
+
 def test_the_test_of_which_model_is_nearer_holds_its_level_and_sees_a_nearer_model():
-    """Two models drawn from one distribution: the one-sided permutation test rejects at about its level (measured over
-    400 repetitions; 99 relabellings, so p < 0.05 means p <= 0.04). A model whose mean sits where the measurements' does,
-    against one shifted by half a standard deviation, is called nearer; the other way round it is not; the statistic is
-    the difference of the two energy distances on the standardised pooled features."""
+    """Its level, measured: two models drawn from one distribution (the permutation test is exact there: it rejects at
+    about its level over 400 repetitions, 99 relabellings, so p < 0.05 means p <= 0.04), and two models that differ but
+    sit equally far from the measurements (half a standard deviation either side, 50 measured, 200 of each model):
+    relabelling the models alone rejects far above the level there, the test with the measurements' own noise does not.
+    A model whose mean sits where the measurements' does, against one shifted by half a standard deviation, is nearer;
+    the other way round it is not; a diverged trajectory counts against it; the energies are the energy distances of
+    the standardised pooled features."""
     g = torch.Generator().manual_seed(3)
-    draw = lambda shift, n=30: torch.randn(n, 4, 5, generator=g) + shift  # noqa: E731
-    rejections = sum(closer(draw(0.5), draw(0.5), draw(0.0), 99, 0.05, seed).significant for seed in range(400))
-    assert 0.01 < rejections / 400 < 0.075, rejections
+    draw = lambda shift, n=30, width=5: torch.randn(n, 4, width, generator=g) + shift  # noqa: E731
+    same = [closer(draw(0.5), draw(0.5), draw(0.0), 99, 0.05, seed) for seed in range(400)]
+    assert 0.01 < sum(c.permutation_pvalue < 0.05 for c in same) / 400 < 0.075
+    assert sum(c.significant for c in same) <= sum(c.permutation_pvalue < 0.05 for c in same)
+    apart = [closer(draw(0.5, 200, 1), draw(-0.5, 200, 1), draw(0.0, 50, 1), 99, 0.05, seed) for seed in range(200)]
+    by_permutations = sum(c.permutation_pvalue < 0.05 for c in apart) / 200
+    by_both = sum(c.significant for c in apart) / 200
+    assert by_permutations > 0.15 and by_both < 0.09, (by_permutations, by_both)
     measured, right, wrong = draw(0.0), draw(0.0, 25), draw(0.5, 35)
     nearer = closer(right, wrong, measured, 199, 0.05, 0)
-    assert nearer.significant and nearer.pvalue == 1 / 200 and nearer.difference < 0, nearer
+    assert nearer.significant and nearer.permutation_pvalue == 1 / 200 and nearer.difference < 0, nearer
+    said = f"p = {nearer.pvalue:.2g}" if nearer.pvalue > 1 / 200 else "p <= 0.005"
+    assert nearer.clause() == f"one-sided test, {said}", nearer.clause()
     assert not closer(wrong, right, measured, 199, 0.05, 0).significant
     models, scaled = z_scored(torch.cat([right, wrong]).flatten(1).double(), measured.flatten(1).double())
     by_hand = [float(batched_energy(part[None], scaled[None], False)[0]) for part in (models[:25], models[25:])]
-    assert [nearer.augmented, nearer.f_p] == pytest.approx(by_hand, rel=1e-6) and nearer.draws == 25
-    assert nearer.to_dict()["significant"] is True and "nearer to them than f_p alone" in nearer.clause()
-    with pytest.raises(ValueError, match="closer: need at least 2 trajectories of each model and 2 measured; got 1, 35"):
-        closer(right[:1], wrong, measured, 99, 0.05, 0)
+    assert [nearer.augmented, nearer.f_p] == pytest.approx(by_hand, rel=1e-6) and nearer.augmented_draws == 25
+    assert nearer.to_dict()["significant"] is True and nearer.measured == 30 and nearer.floor < nearer.f_p
+    blown = right.clone()
+    blown[3] = float("nan")
+    diverged = closer(blown, wrong, measured, 199, 0.05, 0)
+    assert not diverged.significant and diverged.clause() == "1 of its 25 trajectories diverged", diverged
+    with pytest.raises(ValueError, match="closer: need at least 4 finite trajectories of each model and 4 measured; got 3, 35"):
+        closer(right[:3], wrong, measured, 99, 0.05, 0)
 
 
 def test_the_paired_check_holds_f_p_to_the_stated_noise_on_the_recorded_inputs():
@@ -1187,7 +1209,7 @@ def test_discover_from_python_as_the_tutorial_does_finds_friction_and_writes_a_c
     assert report == json.loads((finder.run_dir_ / "report.json").read_text()) and finder.verdict_ == report["verdict"]
     assert finder.found_ and finder.outcome_ == report["outcome"] in OUTCOMES[:4], report["outcome"]
     assert report["closer"]["significant"] and report["closer"]["pvalue"] < 0.05, report["closer"]
-    assert "permutation p = " in (finder.run_dir_ / "report.md").read_text()
+    assert "the larger of a permutation test" in (finder.run_dir_ / "report.md").read_text()
     assert [t["feature"] for t in report["terms"]] == ["velocity"], report["terms"]
     assert abs(report["terms"][0]["coefficient"] + 1.2) < 0.12 and report["terms"][0]["name"] == "viscous friction"
     named = [(t.feature, t.priors["coefficient"].value) for t in finder.terms_]
@@ -1360,8 +1382,8 @@ def test_the_report_says_when_the_measurements_cannot_tell_two_varying_families_
 
 def test_a_verdict_on_few_test_trajectories_says_what_the_noise_allows():
     def result(augmented_energy: float, reference_spread: float, n: int) -> SimpleNamespace:
-        gap = {"f_p": {"energy": 0.67}, "augmented": {"energy": augmented_energy}, "reference": {"c2st_std": reference_spread}}
-        return SimpleNamespace(gap=gap, draws={"f_p": torch.zeros(n, 50, 1)})
+        gap = {"reference": {"c2st_std": reference_spread}}
+        return SimpleNamespace(gap=gap, closer=closeness(augmented_energy, 0.67, n, 0.001), draws={"f_p": torch.zeros(n, 50, 1)})
 
     assert share_removed(result(0.067, 0.02, 270)) == "90% of f_p's energy distance to the 270 test trajectories"
     below = share_removed(result(-0.237, 0.18, 30))  # 135 % read as a share would be noise

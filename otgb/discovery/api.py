@@ -26,11 +26,12 @@ class MissingEffect:
             overrides, e.g. ``"--data.simulation_budget=32000"`` or ``"--discover.alpha=0.01"``.
 
     After :meth:`fit`:
-        verdict_: the report's verdict sentence (gap closed, named but not confirmed, partly closed, or nothing found).
+        verdict_: the report's verdict sentence (gap closed, named but not confirmed, partly found, or nothing found).
         outcome_: which verdict: "gap closed", "found, not exactly", "named, not confirmed", "partly found" (the
             library terms that came closest, not the missing effect itself), "nothing found" or "nothing detected".
         found_: whether terms were named and kept (any outcome but the last two).
-        confirmed_: whether the test part confirms them (the gap closed on a part that tells f_p apart).
+        confirmed_: whether the test part confirms them: the augmented physics significantly nearer to it than f_p
+            alone (:mod:`otgb.discovery.closer`) and no test telling it from the measurements.
         terms_: the kept terms, :class:`otgb.physics.LibraryTerm` with their fitted coefficient priors.
         augmented_physics_: f_p with the kept terms added (an :class:`otgb.physics.Augmented`), or None.
         report_: ``report.json`` as a dict (terms with intervals, evidence, gap table, ...).

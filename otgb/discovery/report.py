@@ -104,32 +104,36 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
     if blind:
         answer = [
             f"missing effect named, not confirmed: {names}, but the {len(result.draws['f_p'])} test trajectories cannot "
-            f"tell even f_p from the measurements ({blind}; {closer_clause(result)}), so their agreeing with the "
-            "augmented physics confirms nothing: more measurements are needed to confirm it"
+            f"tell even f_p from the measurements ({blind}), nor the augmented physics as nearer to them than f_p "
+            f"({closer_clause(result)}), so their agreeing with the augmented physics confirms nothing: more "
+            "measurements are needed to confirm it"
         ]
     elif kind == "named, not confirmed":
-        test, floor = result.closer, result.gap.get("reference", {}).get("energy")
+        test = result.closer
         versus = (
-            f"energy distance {test.augmented:.3g} against f_p's {test.f_p:.3g}, {test.draws} draws of each; " if test else ""
+            f"energy distance {test.augmented:.3g} against f_p's {test.f_p:.3g}, from {test.augmented_draws} and "
+            f"{test.f_p_draws} draws; half the test measurements against the other half: {test.floor:.3g}; "
+            if test
+            else ""
         )
-        halves = f"; half the test measurements against the other half: {floor:.3g}" if floor is not None else ""
         answer = [
             f"missing effect named, not confirmed: {names} fit the validation part better than f_p alone, but on the "
-            f"{len(result.draws['f_p'])} test trajectories, which no fit saw, the augmented physics is not measurably "
-            f"closer to the measurements than f_p ({versus}{closer_clause(result)}{halves})",
+            f"{tested(result)} test trajectories, which no fit saw, the augmented physics is not significantly nearer "
+            f"to the measurements than f_p alone ({versus}{closer_clause(result)})",
             result.sentence_after,
             OUTSIDE_THE_LIBRARY,
         ]
     elif kind == "gap closed":
         answer = [
             f"missing effect found, the gap is closed as far as the test part can tell: {names} {removes} "
-            f"{share_removed(result)} ({closer_clause(result)}), and no test tells the augmented physics from them",
+            f"{share_removed(result)} (nearer than f_p alone: {closer_clause(result)}), and no test tells the augmented "
+            "physics from them",
             result.sentence_after,
         ]
     elif kind == "found, not exactly":  # the distributions agree, the recorded inputs do not
         answer = [
-            f"missing effect found, not exactly: {names} {removes} {share_removed(result)} ({closer_clause(result)}) "
-            "and the distribution tests "
+            f"missing effect found, not exactly: {names} {removes} {share_removed(result)} (nearer than f_p alone: "
+            f"{closer_clause(result)}) and the distribution tests "
             "see no difference on the test part, but solved on its recorded inputs the augmented physics misses the "
             "measurements by more than their noise: the coefficients (fitted to distributions) or the terms' form are "
             "off",
@@ -137,7 +141,8 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
         ]
     else:
         answer = [
-            f"missing effect partly found: {names} {closes} {share_removed(result)} ({closer_clause(result)})",
+            f"missing effect partly found: {names} {closes} {share_removed(result)} (nearer than f_p alone: "
+            f"{closer_clause(result)})",
             result.sentence_after,
             "no library term fits exactly, these are the best approximation",
             OUTSIDE_THE_LIBRARY,
@@ -195,20 +200,21 @@ def undertrained_note(result: Discovery, so: str) -> list[str]:
     ]
 
 
-def gap_closed(gap: dict[str, dict[str, float]]) -> float:
-    """The share of f_p's energy distance to the test measurements that the augmented physics removes."""
-    before = gap["f_p"]["energy"]
-    return 1 - gap["augmented"]["energy"] / before if before > 0 else 0.0
-
-
 def share_removed(result: Discovery) -> str:
-    """How much of f_p's energy distance to the test measurements the augmented physics removes, in words. The
-    unbiased energy distance scatters around 0 when two samples agree, so a share over 100 % is noise, said so."""
-    share, tested = gap_closed(result.gap), f"to the {len(result.draws['f_p'])} test trajectories"
+    """How much of f_p's energy distance to the test measurements the augmented physics removes, in words, from the
+    test of which is nearer (:mod:`otgb.discovery.closer`; said only where it ran). The unbiased energy distance
+    scatters around 0 when two samples agree, so a share over 100 % is noise, said so."""
+    test, where = result.closer, f"to the {tested(result)} test trajectories"
+    share = 1 - test.augmented / test.f_p if test.f_p > 0 else 0.0
     if share < 1:
-        return f"{share:.0%} of f_p's energy distance {tested}"
-    left = result.gap["augmented"]["energy"]
-    return f"all of f_p's energy distance {tested} (what is left, {left:.3g}, is not above zero: the test sample's noise)"
+        return f"{share:.0%} of f_p's energy distance {where}"
+    left = test.augmented
+    return f"all of f_p's energy distance {where} (what is left, {left:.3g}, is not above zero: the test sample's noise)"
+
+
+def tested(result: Discovery) -> int:
+    """How many test trajectories the test of which model is nearer used (all, up to ``discover.locate_rows``)."""
+    return result.closer.measured if result.closer else len(result.draws["f_p"])
 
 
 def confirmed(result: Discovery) -> bool:
@@ -220,7 +226,7 @@ def confirmed(result: Discovery) -> bool:
 def closer_clause(result: Discovery) -> str:
     """The test of which model is nearer, in words; where it could not run, why."""
     if result.closer is None:
-        return "no test of which is nearer: fewer than two of the augmented physics's trajectories stayed finite"
+        return "no test of which is nearer could run: too few of the models' trajectories stayed finite"
     return result.closer.clause()
 
 
@@ -544,7 +550,7 @@ def markdown(report: dict[str, Any], facts: dict[str, Any]) -> str:
         if key in report["gap"]:
             g = report["gap"][key]
             lines.append(f"| {label} | {g['mmd']:.4g} | {g['c2st']:.3f} ± {g['c2st_std']:.3f} | {g['energy']:.4g} |")
-    lines += _closer_line(report.get("closer"))
+    lines += _closer_line(report)
     lines += _pointwise_section(report["pointwise"])
     lines += [
         "",
@@ -560,19 +566,24 @@ def markdown(report: dict[str, Any], facts: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _closer_line(closer: dict[str, Any] | None) -> list[str]:
+def _closer_line(report: dict[str, Any]) -> list[str]:
     """Under the gap table: whether the augmented physics is nearer to the test part than f_p (``report.json``'s
-    ``closer``)."""
+    ``closer``), or that no such test could run."""
+    closer = report.get("closer")
     if closer is None:
-        return []
-    said = "is nearer than f_p alone" if closer["significant"] else "is not measurably nearer than f_p alone"
+        return ["", "No test of which model is nearer could run: too few trajectories stayed finite."] if report["found"] else []
+    said = "is nearer than f_p alone" if closer["significant"] else "is not significantly nearer than f_p alone"
+    diverged = f"; {closer['diverged']} of its trajectories diverged, which counts against it" if closer["diverged"] else ""
     return [
         "",
-        f"The augmented physics {said}: energy distance to the test measurements {closer['augmented']:.4g} against "
-        f"f_p's {closer['f_p']:.4g} ({closer['draws']} fresh draws of each, features standardised over the three samples "
-        f"together), permutation p = {closer['pvalue']:.3g} ({closer['n_permutations']} relabellings of the two models' "
-        f"trajectories; one-sided, threshold {closer['alpha']:g}). This test decides whether the named terms are "
-        "confirmed.",
+        f"The augmented physics {said}: energy distance to {closer['measured']} test measurements "
+        f"{closer['augmented']:.4g} against f_p's {closer['f_p']:.4g} (from {closer['augmented_draws']} and "
+        f"{closer['f_p_draws']} fresh draws, features standardised over the three samples together; half the "
+        f"measurements against the other half: {closer['floor']:.4g}); one-sided p = {closer['pvalue']:.3g}, the larger "
+        f"of a permutation test ({closer['permutation_pvalue']:.3g}, {closer['n_permutations']} relabellings of the two "
+        f"models' trajectories) and a normal test that counts the measurements' own sampling noise "
+        f"({closer['normal_pvalue']:.3g}); threshold {closer['alpha']:g}{diverged}. This test decides whether the named "
+        "terms are confirmed.",
     ]
 
 

@@ -586,15 +586,16 @@ CLOSER_DRAWS = 4  # trajectories of each model per test trajectory in the test o
 def closer_step(model: Augmented, physics: PhysicsModel, test: Tensor, settings: DiscoverySettings) -> Closeness | None:
     """Whether the augmented physics ``model`` is nearer to the test measurements (at most ``locate_rows`` of them,
     drawn at random) than f_p alone (:mod:`.closer`), on fresh draws of both: ``CLOSER_DRAWS`` per test trajectory, at
-    most ``locate_rows`` and at least as many as the test trajectories. None where fewer than two of the augmented
-    physics's trajectories stay finite (its divergences are logged)."""
+    most ``locate_rows`` and at least as many as the test trajectories. None where too few trajectories of either
+    model stay finite to test (the augmented physics's divergences are logged and counted against it)."""
     tested = at_most(test, settings.locate_rows, settings.seed)
     n = max(len(tested), min(CLOSER_DRAWS * len(tested), settings.locate_rows))
     augmented = simulate_candidate(model, n, settings.seed, "closer-augmented")
-    if len(augmented) < 2:
-        return None
     f_p = simulate_from_priors(physics, n, settings.seed, "closer-f_p")
-    return closer(augmented, f_p, tested, settings.n_permutations, settings.alpha, settings.seed)
+    try:
+        return closer(augmented, f_p, tested, settings.n_permutations, settings.alpha, settings.seed, n - len(augmented))
+    except ValueError:  # too few finite trajectories: the verdict says no test could run
+        return None
 
 
 def paired_after(fitted: FittedTerms, physics: PhysicsModel, data: Measurements, alpha: float) -> PairedCheck | None:
