@@ -71,7 +71,8 @@ class DiscoverySettings:
 
     Args:
         n_permutations: Label permutations per p-value of the disagreement map.
-        alpha: False discovery rate of the disagreement map (Benjamini-Hochberg).
+        alpha: False discovery rate of the disagreement map (Benjamini-Hochberg), and the level of the paired check and of
+            the test of whether the augmented physics is nearer to the test part than f_p alone.
         regions_per_axis: Blocks per spatial axis in which a field's cells are compared.
         locate_rows: Most measured trajectories in a disagreement map (a random subset beyond, drawn with ``seed``),
             and as many simulated: the permutation tests' time and memory grow with the square of the rows.
