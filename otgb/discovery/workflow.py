@@ -70,7 +70,7 @@ class DiscoverySettings:
     """Settings of ``otgb discover`` (the ``discover:`` section of its config).
 
     Args:
-        n_permutations: Label permutations per p-value of the disagreement map.
+        n_permutations: Label permutations per p-value of the disagreement map and of the test of which model is nearer.
         alpha: False discovery rate of the disagreement map (Benjamini-Hochberg), and the level of the paired check and of
             the test of whether the augmented physics is nearer to the test part than f_p alone.
         regions_per_axis: Blocks per spatial axis in which a field's cells are compared.
