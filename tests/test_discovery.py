@@ -1385,9 +1385,12 @@ def test_a_verdict_on_few_test_trajectories_says_what_the_noise_allows():
         gap = {"reference": {"c2st_std": reference_spread}}
         return SimpleNamespace(gap=gap, closer=closeness(augmented_energy, 0.67, n, 0.001), draws={"f_p": torch.zeros(n, 50, 1)})
 
-    assert share_removed(result(0.067, 0.02, 270)) == "90% of f_p's energy distance to the 270 test trajectories"
+    assert share_removed(result(0.067, 0.02, 270)) == (
+        "90% of f_p's energy distance to the 270 test trajectories (nearer than f_p alone: one-sided test, p <= 0.001)"
+    )
     below = share_removed(result(-0.237, 0.18, 30))  # 135 % read as a share would be noise
     assert below.startswith("all of f_p's energy distance to the 30 test trajectories") and "-0.237, is not above zero" in below
+    assert below.endswith("the test sample's noise; nearer than f_p alone: one-sided test, p <= 0.001)"), below
     assert low_power(result(0.067, 0.02, 270)) == []
     assert "30 test trajectories the Reference C2ST spreads +- 0.18" in low_power(result(-0.237, 0.18, 30))[0]
 

@@ -126,14 +126,12 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
     elif kind == "gap closed":
         answer = [
             f"missing effect found, the gap is closed as far as the test part can tell: {names} {removes} "
-            f"{share_removed(result)} (nearer than f_p alone: {closer_clause(result)}), and no test tells the augmented "
-            "physics from them",
+            f"{share_removed(result)}, and no test tells the augmented physics from them",
             result.sentence_after,
         ]
     elif kind == "found, not exactly":  # the distributions agree, the recorded inputs do not
         answer = [
-            f"missing effect found, not exactly: {names} {removes} {share_removed(result)} (nearer than f_p alone: "
-            f"{closer_clause(result)}) and the distribution tests "
+            f"missing effect found, not exactly: {names} {removes} {share_removed(result)} and the distribution tests "
             "see no difference on the test part, but solved on its recorded inputs the augmented physics misses the "
             "measurements by more than their noise: the coefficients (fitted to distributions) or the terms' form are "
             "off",
@@ -141,8 +139,7 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
         ]
     else:
         answer = [
-            f"missing effect partly found: {names} {closes} {share_removed(result)} (nearer than f_p alone: "
-            f"{closer_clause(result)})",
+            f"missing effect partly found: {names} {closes} {share_removed(result)}",
             result.sentence_after,
             "no library term fits exactly, these are the best approximation",
             OUTSIDE_THE_LIBRARY,
@@ -202,14 +199,18 @@ def undertrained_note(result: Discovery, so: str) -> list[str]:
 
 def share_removed(result: Discovery) -> str:
     """How much of f_p's energy distance to the test measurements the augmented physics removes, in words, from the
-    test of which is nearer (:mod:`otgb.discovery.closer`; said only where it ran). The unbiased energy distance
-    scatters around 0 when two samples agree, so a share over 100 % is noise, said so."""
+    test of which is nearer (:mod:`otgb.discovery.closer`; said only where it found the augmented physics nearer), with
+    that test. The unbiased energy distance scatters around 0 when two samples agree, so a share over 100 % is noise,
+    said so."""
     test, where = result.closer, f"to the {tested(result)} test trajectories"
     share = 1 - test.augmented / test.f_p if test.f_p > 0 else 0.0
+    nearer = f"nearer than f_p alone: {test.clause()}"
     if share < 1:
-        return f"{share:.0%} of f_p's energy distance {where}"
+        return f"{share:.0%} of f_p's energy distance {where} ({nearer})"
     left = test.augmented
-    return f"all of f_p's energy distance {where} (what is left, {left:.3g}, is not above zero: the test sample's noise)"
+    return (
+        f"all of f_p's energy distance {where} (what is left, {left:.3g}, is not above zero: the test sample's noise; {nearer})"
+    )
 
 
 def tested(result: Discovery) -> int:
