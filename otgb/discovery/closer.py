@@ -28,6 +28,7 @@ import torch
 from torch import Tensor
 
 from otgb.discovery.locate import permutation_labels, z_scored
+from otgb.metrics.energy import batched_energy
 
 
 @dataclass
@@ -85,16 +86,22 @@ def closer(
     if min(n, k, m) < 4:
         raise ValueError(f"closer: need at least 4 finite trajectories of each model and 4 measured; got {n}, {k}, {m}")
     models, measured = z_scored(torch.cat([augmented, f_p]).flatten(1).double(), measured.flatten(1).double())
+    energies = [float(energy(models[rows], measured)) for rows in (slice(0, n), slice(n, None))]
     to_measured, within = torch.cdist(models, measured), torch.cdist(models, models)
     del models
     labels = permutation_labels(n, n + k, n_permutations, seed)  # (P + 1, n + k): 1 marks the augmented sample
     differences = _differences(labels, to_measured.mean(1), within, n, k)
     tolerance = 1e-9 * float(differences.abs().max())
     permutation_p = (1 + int((differences[1:] <= differences[0] + tolerance).sum())) / (n_permutations + 1)
-    energies = _energies(to_measured, within, torch.cdist(measured, measured), n)
     normal_p = _normal_pvalue(to_measured, within, n, k, m, float(differences[0]))
-    floor = _floor(measured, seed)
+    order = torch.randperm(m, generator=torch.Generator().manual_seed(seed))  # the floor: one half against the other
+    floor = float(energy(measured[order[: m // 2]], measured[order[m // 2 : 2 * (m // 2)]]))
     return Closeness(*energies, floor, m, n, k, diverged, permutation_p, normal_p, n_permutations, alpha)
+
+
+def energy(a: Tensor, b: Tensor) -> Tensor:
+    """The unbiased energy distance between the rows of ``a`` and ``b``, as they are (no standardising)."""
+    return batched_energy(a[None], b[None])[0]
 
 
 def _differences(labels: Tensor, to_measured: Tensor, within: Tensor, n: int, k: int) -> Tensor:
@@ -106,17 +113,6 @@ def _differences(labels: Tensor, to_measured: Tensor, within: Tensor, n: int, k:
     return cross - spread_a + spread_f
 
 
-def _energies(to_measured: Tensor, within: Tensor, among_measured: Tensor, n: int) -> tuple[float, float]:
-    """The unbiased energy distances E(A, M) and E(F, M) (A: the first ``n`` model rows)."""
-    m = len(among_measured)
-    spread_m = float(among_measured.sum()) / (m * (m - 1))
-
-    def energy(rows: slice, size: int) -> float:
-        return float(2 * to_measured[rows].mean() - within[rows, rows].sum() / (size * (size - 1))) - spread_m
-
-    return energy(slice(0, n), n), energy(slice(n, None), len(within) - n)
-
-
 def _normal_pvalue(to_measured: Tensor, within: Tensor, n: int, k: int, m: int, difference: float) -> float:
     """P(Z <= D / se) with se from D's first-order projections on A, F and M (each a mean over one sample's rows)."""
     a, f = slice(0, n), slice(n, None)
@@ -124,16 +120,6 @@ def _normal_pvalue(to_measured: Tensor, within: Tensor, n: int, k: int, m: int, 
     on_a = 2 * (to_measured[a].mean(1) - within[a, a].sum(1) / (n - 1))  # (n,)
     on_f = -2 * (to_measured[f].mean(1) - within[f, f].sum(1) / (k - 1))  # (k,)
     variance = float(on_m.var() / m + on_a.var() / n + on_f.var() / k)
-    if not math.isfinite(difference) or not variance > 0:
-        return 1.0 if not math.isfinite(difference) or difference >= 0 else 0.0
+    if not variance > 0:  # every row alike: D is exact
+        return 0.0 if difference < 0 else 1.0
     return 0.5 * math.erfc(-difference / math.sqrt(variance) / math.sqrt(2))
-
-
-def _floor(measured: Tensor, seed: int) -> float:
-    """The unbiased energy distance between two random halves of the (standardised) measured rows: the noise floor."""
-    order = torch.randperm(len(measured), generator=torch.Generator().manual_seed(seed))
-    half = len(measured) // 2
-    first, second = measured[order[:half]], measured[order[half : 2 * half]]
-    between = torch.cdist(first, second).mean()
-    spreads = [torch.cdist(x, x).sum() / (half * (half - 1)) for x in (first, second)]
-    return float(2 * between - spreads[0] - spreads[1])
