@@ -49,6 +49,7 @@ from otgb.discovery.report import (
     OUTCOMES,
     OUTSIDE_THE_LIBRARY,
     _family_section,
+    _search_section,
     augmented_config,
     confirmed,
     distribution,
@@ -61,7 +62,7 @@ from otgb.discovery.report import (
     verdict,
     write_report,
 )
-from otgb.discovery.search import SearchStep, best_subsets, sparsest_kept, subset_values
+from otgb.discovery.search import SearchStep, best_subsets, sparsest_kept, subset_values, supported
 from otgb.discovery.variation import choose_family
 from otgb.discovery.workflow import (
     Discovery,
@@ -1045,6 +1046,29 @@ def test_the_search_keeps_nothing_when_no_library_model_beats_f_p_alone():
     assert sparsest_kept([one], f_p) is None, "a model f_p alone fits as well is no finding"
     assert sparsest_kept([], f_p) is None
     assert sparsest_kept([one, two], Scores([0.66, 0.668, 0.664, 0.667])) is None, "f_p as good as the best"
+
+
+def test_the_search_drops_a_term_whose_interval_holds_zero_and_keeps_the_rest(tmp_path):
+    """Pendulum with viscous friction: a spring fitted beside the friction (as the benchmark's seed 4 searched its way
+    to, the pair beating friction alone by two standard errors on the validation part that chose the pair) comes out
+    near zero; its interval holds zero, so it goes, the friction is refitted alone and stays, and the report says so."""
+    pendulum = Pendulum()
+    dgp = pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))])
+    angle, velocity = (Candidate(f, "velocity") for f in ("angle", "velocity"))
+    fitting = Fitting(pendulum, _draws(dgp, 300, 1), _draws(dgp, 100, 2), 30, 256, 0)
+    alone = discrepancies(pendulum, [], [], fitting.val, 0)
+    pair = fitting([angle, velocity], [0.0, -1.2])
+    kept, dropped = supported(pair, alone, fitting, report=lambda line: None)
+    assert kept.candidates == [velocity] and abs(kept.priors[0].value + 1.2) < 0.12
+    assert [u.candidate for u in dropped] == [angle] and dropped[0].interval[0] <= 0 <= dropped[0].interval[1]
+    assert supported(kept, alone, fitting, report=lambda line: None) == (kept, []), "an interval apart from zero stays"
+    report = {"search": [], "search_unsupported": [{"feature": "angle", "component": "velocity", "coefficient": -0.04,
+              "interval": list(dropped[0].interval)}]}  # fmt: skip
+    assert _search_section(report) == [], "no section without a search path"
+    step = {"terms": [{"feature": "velocity", "component": "velocity"}], "g_residual": 0.2, "heldout_energy": 0.1,
+            "below_f_p": 7.0, "standard_error": 0.3, "validation_trajectories": 100}  # fmt: skip
+    text = "\n".join(_search_section(report | {"search": [step], "route": "library search"}))
+    assert "95 % intervals holding zero: `angle` on dvelocity/dt (coefficient -0.04, interval [" in text
 
 
 def test_best_subsets_tries_every_subset_where_forward_selection_fails():

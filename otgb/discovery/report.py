@@ -398,6 +398,15 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
             }
             for step in result.search
         ],
+        "search_unsupported": [
+            {
+                "feature": u.candidate.feature,
+                "component": u.candidate.component,
+                "coefficient": u.coefficient,
+                "interval": list(u.interval),
+            }
+            for u in result.unsupported
+        ],
         "family": result.fitted.family if result.fitted else None,
         "family_training_discrepancy": result.family.scores if result.family else {},
         "family_difference": {f: {"difference": d, "standard_error": e} for f, (d, e) in result.family.differences.items()}
@@ -792,6 +801,13 @@ def _search_section(report: dict) -> list[str]:
         terms = ", ".join(f"{code(t['feature'])} on d{t['component']}/dt" for t in step["terms"])
         below = f"{step['below_f_p']:.3g} ± {step['standard_error']:.2g}"
         lines.append(f"| {terms} | {step['g_residual']:.3f} | {step['heldout_energy']:.4g} | {below} |")
+    if unsupported := report.get("search_unsupported"):
+        dropped = "; ".join(
+            f"{code(u['feature'])} on d{u['component']}/dt (coefficient {u['coefficient']:.3g}, interval "
+            f"[{u['interval'][0]:.3g}, {u['interval'][1]:.3g}])"
+            for u in unsupported
+        )
+        lines += ["", f"Dropped from the search's model, their coefficients' 95 % intervals holding zero: {dropped}."]
     return lines + ["", f"Terms named by: **{report['route']}**." if report["route"] else "Nothing kept."]
 
 

@@ -27,7 +27,14 @@ measurements, this route:
    beats f_p alone and that the best does not beat, each by two standard errors
    (:func:`otgb.discovery.refine.beats`), is kept, and nothing when the best does not beat f_p
    alone: an effect outside the library is then not given the name of the library term that
-   happens to fit the validation part's noise best.
+   happens to fit the validation part's noise best;
+4. drops from the kept model, one at a time, a term whose coefficient's 95 % interval (fitted on the
+   training measurements, :mod:`otgb.discovery.intervals`) holds zero, the least certain first,
+   refitting the rest, as long as what is left beats f_p alone. The subsets of step 3 were chosen
+   on the validation part that then compares them, so a near-zero extra term can beat the sparser
+   model by two standard errors by chance (on a pendulum with viscous friction the search kept a
+   spring of coefficient -0.004, interval [-0.17, 0.165], beside the friction); the evidence step
+   takes an added term under the same rule.
 """
 
 from __future__ import annotations
@@ -41,6 +48,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from otgb.discovery.intervals import sandwich_intervals
 from otgb.discovery.library import Candidate
 from otgb.discovery.refine import FittedTerms, Fitting, Scores, beats, centre, difference, discrepancies
 from otgb.discovery.regression import design_matrix
@@ -64,6 +72,15 @@ class SearchStep:
     fitted: FittedTerms
     alternatives: list[list[Candidate]] = field(default_factory=list)  # subsets of this size it does not beat
     versus_f_p: tuple[float, float] = (float("nan"), float("nan"))  # f_p alone's held-out score minus its, standard error
+
+
+@dataclass
+class Unsupported:
+    """A term step 4 dropped from the search's model: its coefficient and that coefficient's 95 % interval."""
+
+    candidate: Candidate
+    coefficient: float
+    interval: tuple[float, float]
 
 
 @torch.no_grad()
@@ -144,18 +161,18 @@ def _best_of_size(
 
 def search(
     candidates: list[Candidate], init: list[float], fitting: Fitting, report: Any = print
-) -> tuple[FittedTerms | None, list[SearchStep]]:
-    """Steps 1-3 of the module docstring on ``candidates`` (started at ``init``), each fit made by ``fitting``: the
-    model kept and the path."""
+) -> tuple[FittedTerms | None, list[SearchStep], list[Unsupported]]:
+    """Steps 1-4 of the module docstring on ``candidates`` (started at ``init``), each fit made by ``fitting``: the
+    model kept, the path and the terms step 4 dropped."""
     physics, seed = fitting.physics, fitting.seed
     pairs = [(c, v) for c, v in zip(candidates, init) if is_local(c.feature, physics)]
     if not pairs:
-        return None, []
+        return None, [], []
     local, values = [c for c, _ in pairs], [v for _, v in pairs]
     dense = fitting(local, values)
     report(f"search: {len(local)} local candidates fitted together, held-out energy {dense.heldout_energy:.4g}")
     if not dense.heldout.finite:
-        return None, []
+        return None, [], []
     states, theta, correction = fitted_correction(physics, dense, TRAJECTORIES, seed)
     X, y = stacked_design(physics, local, states, theta, correction, seed)
     alone = discrepancies(physics, [], [], fitting.val, seed)  # f_p itself, size 0
@@ -175,7 +192,7 @@ def search(
             leader = size
         elif size - leader >= 2:
             break
-    return sparsest_kept([s.fitted for s in path], alone), path
+    return supported(sparsest_kept([s.fitted for s in path], alone), alone, fitting, report) + (path,)
 
 
 def sparsest_kept(fitted: list[FittedTerms], alone: Scores) -> FittedTerms | None:
@@ -185,3 +202,38 @@ def sparsest_kept(fitted: list[FittedTerms], alone: Scores) -> FittedTerms | Non
     if best is None or not beats(best.heldout, alone):
         return None
     return next(f for f in fitted if beats(f.heldout, alone) and not beats(best.heldout, f.heldout))
+
+
+def supported(
+    kept: FittedTerms | None, alone: Scores, fitting: Fitting, report: Any = print
+) -> tuple[FittedTerms | None, list[Unsupported]]:
+    """Step 4: ``kept`` without the terms whose 95 % interval holds zero (the least certain dropped first, the rest
+    refitted from their values), and the dropped terms; None where what is left does not beat f_p alone (``alone``).
+    A model whose intervals cannot be computed (not at a minimum) is kept as it is."""
+    dropped: list[Unsupported] = []
+    while kept is not None:
+        intervals = sandwich_intervals(fitting.physics, kept, fitting.train, fitting.batch, fitting.seed)
+        if intervals is None:
+            report("search: the kept model's intervals cannot be computed (not at a minimum): its terms are kept as they are")
+            return kept, dropped
+        holding = [(certainty(low, high), k) for k, (low, high) in enumerate(intervals.centre) if low <= 0 <= high]
+        if not holding:
+            return kept, dropped
+        k = min(holding)[1]
+        dropped.append(Unsupported(kept.candidates[k], centre(kept.priors[k]), intervals.centre[k]))
+        low, high = intervals.centre[k]
+        report(f"search: dropped {kept.candidates[k].feature} on d{kept.candidates[k].component}/dt: its coefficient's "
+               f"95 % interval [{low:.3g}, {high:.3g}] holds zero")  # fmt: skip
+        rest = [i for i in range(len(kept.candidates)) if i != k]
+        if not rest:
+            return None, dropped
+        kept = fitting([kept.candidates[i] for i in rest], [centre(kept.priors[i]) for i in rest], natural_scales=False)
+        if not beats(kept.heldout, alone):
+            report("search: without it, the model no longer beats f_p alone by two standard errors")
+            return None, dropped
+    return None, dropped
+
+
+def certainty(low: float, high: float) -> float:
+    """How far an interval's midpoint sits from zero, in half-widths (the estimate's |z| / 1.96)."""
+    return abs(low + high) / max(high - low, 1e-300)

@@ -55,7 +55,7 @@ from otgb.discovery.refine import (
     term_names,
 )
 from otgb.discovery.regression import SelectedTerm, Selection, describe_terms, design_matrix, regress, subset_coefficients
-from otgb.discovery.search import SearchStep, search
+from otgb.discovery.search import SearchStep, Unsupported, search
 from otgb.discovery.variation import FamilyChoice
 from otgb.discovery.variation import choose_prior as choose_family_of
 from otgb.errors import InputError
@@ -190,6 +190,7 @@ class Discovery:
     pointwise: dict[str, dict[str, float]] = field(default_factory=dict)  # against a known DGP (otgb.discovery.known)
     draws: dict[str, Tensor] = field(default_factory=dict)  # the gap table's samples, as many as the test part
     search: list[SearchStep] = field(default_factory=list)  # the library search's path, when it ran
+    unsupported: list[Unsupported] = field(default_factory=list)  # terms dropped from its model: intervals hold zero
     route: str = "f_phi regression"  # which route named the kept terms
     search_reason: str | None = None  # why the library search ran (None: it did not)
     diverged: list[dict] = field(default_factory=list)  # solves that diverged, per step and model (otgb.discovery.log)
@@ -638,7 +639,7 @@ def search_step(kept: FittedTerms | None, result: Discovery, designs: dict, fitt
     candidates = [c for design in designs.values() for c in design.candidates]
     current = {} if kept is None else {c: p.value for c, p in zip(kept.candidates, kept.priors)}
     init = [current.get(c, 0.0) for c in candidates]
-    found, result.search = search(candidates, init, fitting, progress)
+    found, result.search, result.unsupported = search(candidates, init, fitting, progress)
     if found is None or (kept is not None and not replaces(found, kept)):
         progress("search: nothing better than " + ("f_phi's terms" if kept else "f_p alone"))
         return kept
