@@ -192,7 +192,8 @@ def search(
             leader = size
         elif size - leader >= 2:
             break
-    return supported(sparsest_kept([s.fitted for s in path], alone), alone, fitting, report) + (path,)
+    kept, dropped = supported(sparsest_kept([s.fitted for s in path], alone), alone, fitting, report)
+    return kept, path, dropped
 
 
 def sparsest_kept(fitted: list[FittedTerms], alone: Scores) -> FittedTerms | None:
