@@ -48,6 +48,7 @@ from otgb.discovery.regression import SelectedTerm, Selection, design_matrix, re
 from otgb.discovery.report import (
     OUTCOMES,
     OUTSIDE_THE_LIBRARY,
+    _cross_check_row,
     _family_section,
     _search_section,
     augmented_config,
@@ -1069,6 +1070,20 @@ def test_the_search_drops_a_term_whose_interval_holds_zero_and_keeps_the_rest(tm
             "below_f_p": 7.0, "standard_error": 0.3, "validation_trajectories": 100}  # fmt: skip
     text = "\n".join(_search_section(report | {"search": [step], "route": "library search"}))
     assert "95 % intervals holding zero: `angle` on dvelocity/dt (coefficient -0.04, interval [" in text
+
+
+def test_the_cross_check_gives_a_share_of_the_gap_only_where_the_validation_part_sees_the_lead():
+    """A newcomer's 30 validation trajectories of a driven pendulum: f_p alone's held-out energy 0.024, near zero, so a
+    candidate scoring -0.075 'closed 4.12 of the gap'; a share is now given only where the lead over f_p alone
+    exceeds two standard errors."""
+    row = {"feature": "angle^3", "component": "velocity", "coefficient": 0.1954, "gap_closed": 4.12}
+    noise = _cross_check_row(row | {"below_f_p": 0.099, "standard_error": 0.18})
+    assert noise == "| `angle^3` | dvelocity/dt | 0.1954 | 0.099 ± 0.18 | within noise |"
+    assert _cross_check_row(row | {"gap_closed": 0.93, "below_f_p": 6.8, "standard_error": 0.29}).endswith(
+        "| 6.8 ± 0.29 | 0.93 |"
+    )
+    diverged = row | {"gap_closed": -math.inf, "below_f_p": -math.inf, "standard_error": math.nan}
+    assert _cross_check_row(diverged).endswith("| diverges | diverges |")
 
 
 def test_best_subsets_tries_every_subset_where_forward_selection_fails():

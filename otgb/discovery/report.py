@@ -576,6 +576,16 @@ def markdown(report: dict[str, Any], facts: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _cross_check_row(row: dict[str, Any]) -> str:
+    """One strong candidate alone added to f_p: its coefficient, its lead over f_p alone, and the share of the gap it
+    closes where that lead exceeds two standard errors."""
+    below, error = row["below_f_p"], row["standard_error"]
+    lead, closed = f"{below:.3g} ± {error:.2g}", f"{row['gap_closed']:.2f}" if below > 2 * error else "within noise"
+    if not math.isfinite(row["gap_closed"]):
+        lead = closed = "diverges"
+    return f"| {code(row['feature'])} | d{row['component']}/dt | {row['coefficient']:.4g} | {lead} | {closed} |"
+
+
 def _closer_line(report: dict[str, Any]) -> list[str]:
     """Under the gap table: whether the augmented physics is nearer to the test part than f_p (``report.json``'s
     ``closer``), or that no such test could run."""
@@ -670,12 +680,14 @@ def _naming_section(report: dict[str, Any]) -> list[str]:
         "",
         "### Cross-check: each strong candidate alone added to f_p",
         "",
-        "| feature | on | fitted coefficient | share of the gap closed |",
-        "|---|---|---|---|",
+        "Held-out energy on the validation part, lower is better; the share of f_p alone's that a candidate removes is "
+        "given where it lies below f_p alone's by more than two standard errors (else it is noise: a share of a gap the "
+        "validation part cannot see).",
+        "",
+        "| feature | on | fitted coefficient | below f_p alone's held-out energy (± standard error) | share of the gap closed |",
+        "|---|---|---|---|---|",
     ]
-    for row in report["cross_check"]:
-        closed = f"{row['gap_closed']:.2f}" if math.isfinite(row["gap_closed"]) else "diverges"
-        lines.append(f"| {code(row['feature'])} | d{row['component']}/dt | {row['coefficient']:.4g} | {closed} |")
+    lines += [_cross_check_row(row) for row in report["cross_check"]]
     lines += _search_section(report)
     if report["dropped_by_heldout_check"]:
         lines.append("")

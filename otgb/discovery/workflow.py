@@ -313,12 +313,14 @@ def strong_candidates(selections: list[Selection], designs: dict, k: int) -> lis
 
 
 def cross_check_step(strong: list[tuple], fitting: Fitting) -> list[dict]:
-    """Each strong candidate alone added to f_p, its coefficient fitted: the share of f_p's held-out gap it closes."""
+    """Each strong candidate alone added to f_p, its coefficient fitted: the share of f_p's held-out gap it closes,
+    and how far below f_p alone's its held-out energy lies, with that difference's standard error."""
     baseline = discrepancies(fitting.physics, [], [], fitting.val, fitting.seed)
     gap = baseline.mean
     rows = []
     for candidate, init in strong:
         fitted = fitting([candidate], [init])
+        below, error = difference(fitted.heldout, baseline)
         rows.append(
             {
                 "feature": candidate.feature,
@@ -326,6 +328,8 @@ def cross_check_step(strong: list[tuple], fitting: Fitting) -> list[dict]:
                 "coefficient": fitted.priors[0].value,
                 "heldout_energy": fitted.heldout_energy,
                 "gap_closed": 1 - fitted.heldout_energy / gap if gap > 0 else 0.0,
+                "below_f_p": below,
+                "standard_error": error,
             }
         )
     return sorted(rows, key=lambda r: -r["gap_closed"])
