@@ -63,7 +63,7 @@ from otgb.discovery.report import (
     verdict,
     write_report,
 )
-from otgb.discovery.search import SearchStep, best_subsets, sparsest_kept, subset_values, supported
+from otgb.discovery.search import SearchStep, best_subsets, search, sparsest_kept, subset_values, supported
 from otgb.discovery.variation import choose_family
 from otgb.discovery.workflow import (
     Discovery,
@@ -1063,6 +1063,8 @@ def test_the_search_drops_a_term_whose_interval_holds_zero_and_keeps_the_rest(tm
     assert kept.candidates == [velocity] and abs(kept.priors[0].value + 1.2) < 0.12
     assert [u.candidate for u in dropped] == [angle] and dropped[0].interval[0] <= 0 <= dropped[0].interval[1]
     assert supported(kept, alone, fitting, report=lambda line: None) == (kept, []), "an interval apart from zero stays"
+    found, path, unsupported = search([Candidate("1", "velocity"), angle, velocity], [-0.3, 0.0, 0.0], fitting, print)
+    assert found.candidates == [velocity] and [s.candidates for s in path][0] == [velocity] and unsupported == []
     report = {"search": [], "search_unsupported": [{"feature": "angle", "component": "velocity", "coefficient": -0.04,
               "interval": list(dropped[0].interval)}]}  # fmt: skip
     assert _search_section(report) == [], "no section without a search path"
