@@ -26,7 +26,7 @@ from otgb.discovery import refine
 from otgb.discovery.closer import Closeness, closer
 from otgb.discovery.evidence import Comparison, choose_swap, weigh
 from otgb.discovery.fit_cache import FitCache
-from otgb.discovery.intervals import sandwich_intervals
+from otgb.discovery.intervals import Intervals, sandwich_intervals
 from otgb.discovery.library import Candidate, build_library, physical_name
 from otgb.discovery.locate import describe, locate, permutation_energy, z_scored
 from otgb.discovery.log import DivergenceLog, OncePerModel, diverged, rounded, short
@@ -55,6 +55,7 @@ from otgb.discovery.report import (
     confirmed,
     distribution,
     distribution_text,
+    flags,
     grey_box_elsewhere,
     low_power,
     named_divergences,
@@ -406,6 +407,25 @@ def test_the_named_models_own_divergences_are_said_apart_from_the_candidates():
     result = Discovery(before=None, sentence_before="", fitted=named, diverged=records)
     assert named_divergences(result) == records[1:3]
     assert named_divergences(Discovery(before=None, sentence_before="", diverged=records)) == [], "nothing named"
+
+
+def test_a_named_term_whose_interval_holds_zero_is_flagged_unless_its_spread_is_apart_from_zero():
+    """A spring of -0.004 [-0.17, 0.165] named beside friction is flagged: the measurements cannot tell it from no
+    spring. A coefficient centred near zero whose spread is clearly not zero (a random spring of either sign) is not."""
+    spring, friction = Candidate("angle", "velocity"), Candidate("velocity", "velocity")
+    named = FittedTerms("constant", [spring, friction], [Constant(-0.004), Constant(-1.2)], Scores([0.1]), [])
+    intervals = Intervals([(-0.17, 0.165), (-1.23, -1.16)], None)
+    result = Discovery(before=None, sentence_before="", fitted=named, intervals=intervals)
+    assert flags(result, Pendulum()) == [
+        "flagged: linear restoring force (spring) (-0.004 angle): its 95 % interval [-0.17, 0.165] holds zero, so the "
+        "measurements cannot tell it from no such term"
+    ]
+    assert flags(Discovery(before=None, sentence_before="", fitted=named), Pendulum()) == [], "no intervals, no flag"
+    varying = FittedTerms("uniform", [spring], [Uniform(-0.6, 0.6)], Scores([0.1]), [])
+    spread = Intervals([(-0.1, 0.1)], [(0.4, 0.8)])
+    assert flags(Discovery(before=None, sentence_before="", fitted=varying, intervals=spread), Pendulum()) == []
+    unsure = Intervals([(-0.1, 0.1)], [(0.0, 0.8)])
+    assert len(flags(Discovery(before=None, sentence_before="", fitted=varying, intervals=unsure), Pendulum())) == 1
 
 
 def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it_at_the_start_of_the_verdict():

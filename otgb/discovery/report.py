@@ -321,13 +321,29 @@ def named_divergences(result: Discovery) -> list[dict]:
 
 
 def flags(result: Discovery, physics: PhysicsModel) -> list[str]:
-    """The named terms whose sign contradicts their physical name."""
+    """The named terms whose sign contradicts their physical name, and those the measurements cannot tell from none:
+    the 95 % interval of the coefficient holds zero (and, where it varies, that of its spread too)."""
     found = [(c, centre(p)) for c, p in _terms(result)]
-    return [
+    implausible_signs = [
         f"flagged: {term_name(c, value, physics)} ({value:+.3g} {c.feature}) {why}"
         for c, value in found
         if (why := implausible(c.feature, c.component, value, physics))
     ]
+    return implausible_signs + [
+        f"flagged: {term_name(c, value, physics)} ({value:+.3g} {c.feature}): its 95 % interval [{low:.3g}, {high:.3g}] "
+        "holds zero, so the measurements cannot tell it from no such term"
+        for (c, value), (low, high) in zip(found, _holding_zero(result))
+        if low <= 0 <= high
+    ]
+
+
+def _holding_zero(result: Discovery) -> list[tuple[float, float]]:
+    """Per named term, its coefficient's interval where neither it nor its spread's excludes zero; else (nan, nan)."""
+    intervals, never = result.intervals, (math.nan, math.nan)
+    if intervals is None:
+        return [never] * len(_terms(result))
+    spreads = intervals.width or [(0.0, 0.0)] * len(intervals.centre)
+    return [centre if spread[0] <= 0 else never for centre, spread in zip(intervals.centre, spreads)]
 
 
 def _terms(result: Discovery) -> list[tuple]:
