@@ -13,6 +13,10 @@ the inputs):
   rate over splits, which should be near alpha);
 - C2ST: mean and std over the cross-validation folds (model, f_p); over splits (Reference).
 
+Where the draws were made on the test measurements' own recorded inputs (``run.across_halves``),
+the metrics without ``joint_`` score model and f_p over the Reference's splits too: mean and std
+over them, ``mmdagg_reject`` a rate.
+
 ``per_time`` holds the energy distance per time step and observed component for each source,
 (T, C) lists, with the ``times`` and ``components`` they belong to.
 """
@@ -92,8 +96,8 @@ def mean_spread(values: list[float], plus: str = "±", empty: str = "") -> str:
 
 
 def format_value(mean: float, std: float | None, name: str = "", source: str = "model") -> str:
-    if name.endswith("mmdagg_reject"):  # a test's decision: yes / no; the Reference's is a rate over its splits
-        return f"rejects in {mean:.0%} of splits" if source == "reference" else ("yes" if mean >= 0.5 else "no")
+    if name.endswith("mmdagg_reject"):  # a test's decision: yes / no; over splits (a spread given), a rate
+        return f"rejects in {mean:.0%} of splits" if std is not None else ("yes" if mean >= 0.5 else "no")
     if std is None or math.isnan(std):
         return f"{mean:.4g}"
     return f"{mean:.4g} ± {std:.2g}"
@@ -206,6 +210,12 @@ def write_report(
         header += f"**Note: {elsewhere(run['trained_on'])}.**\n\n"
     over = ("test inputs (ABS ERR, N-RMSE) or " if "abs_err" in by_source["model"] else "") + "C2ST folds"
     note = f"\nmean ± std: over {over} for model and f_p; over {run.get('reference_note')} for the Reference.\n"
+    if run.get("across_halves"):
+        note += (
+            "The rows without recorded inputs score the model and f_p across the Reference's splits: the draws on one "
+            "half's recorded inputs against the other half's measurements (mean ± std over the splits), since a draw "
+            "made on a measurement's own inputs sits next to it and whole-sample statistics would read that as alike.\n"
+        )
     section = per_time_section(vectors, labels["times"], labels["components"]) if vectors and labels else ""
     (run_dir / "metrics.md").write_text(header + summary(by_source) + markdown_table(by_source) + note + section)
     return content

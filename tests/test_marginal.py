@@ -100,6 +100,28 @@ def test_a_map_that_ignores_theta_is_caught_when_theta_is_recorded(friction_draw
     assert "abs_err" not in caught, "x0 not recorded: the pairs are not determined"
 
 
+def test_draws_on_the_measurements_own_inputs_are_scored_across_halves_as_the_reference(friction_draws):
+    """A file that recorded each trajectory's inputs: the map's draws are made on the test part's own inputs. A map
+    that reproduces each measurement (its twin plus noise of sd 0.002) scored against the whole sample looks better
+    than the noise floor (C2ST below 0.5, energy below the Reference's), the dependence of twins, not a model
+    better than the data. Across halves it scores as the Reference does, on the same splits: with the measurements
+    themselves as draws, exactly the Reference's numbers."""
+    data = {k: v[:30] for k, v in friction_draws.items()}  # a test part of 200 trajectories
+    twins = data["y"] + 0.002 * torch.randn(data["y"].shape, generator=torch.Generator().manual_seed(1))
+    whole = JointEvaluator((50, 1), inputs=(), paired=False, mmdagg_permutations=200)
+    halves = JointEvaluator((50, 1), inputs=(), paired=False, mmdagg_permutations=200, across_halves=4)
+    reference = split_half_scores(JointEvaluator((50, 1), inputs=(), paired=False, mmdagg_permutations=200), data, True, 4)
+    biased = whole.evaluate(twins, data, tests=True)
+    assert biased["c2st"] < 0.45 and biased["energy"] < reference["energy"] - 2 * reference["energy_std"]
+    fair = halves.evaluate(data["y"], data, tests=True)
+    for name in ("energy", "mmd", "mmd2_median", "c2st", "mmdagg_reject", "c2st_std", "energy_std"):
+        assert torch.allclose(fair[name], reference[name]), name
+    twin = halves.evaluate(twins, data, tests=True)
+    assert abs(float(twin["energy"] - reference["energy"])) < 0.05 and abs(float(twin["c2st"]) - 0.5) < 0.15
+    with pytest.raises(ValueError, match="must be unpaired"):
+        JointEvaluator((50, 1), inputs=("theta",), paired=True, across_halves=4)
+
+
 def test_split_half_scores_need_an_unpaired_evaluator(friction_draws):
     with pytest.raises(ValueError, match="must be unpaired"):
         split_half_scores(JointEvaluator((50, 1), inputs=("theta",), paired=True), friction_draws, tests=False)

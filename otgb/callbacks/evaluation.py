@@ -103,7 +103,7 @@ class Evaluation(Callback):
             mmdagg_permutations=mmdagg_permutations,
             seed=seed,
         )
-        self.plan: dict[str, tuple[tuple[str, ...], bool]] = {}
+        self.plan: dict[str, tuple[tuple[str, ...], bool, bool]] = {}
         self.evaluators: dict[str, JointEvaluator] = {}
         self.validations = 0
         self.baselines_logged = False
@@ -115,7 +115,7 @@ class Evaluation(Callback):
         names = list(EVERY_VALIDATION) + (list(TESTS) if self.tests_every == 1 else [])
         one_draw = datamodule.source.draws_per_input == 1
         metrics = []
-        for prefix, (inputs, paired) in datamodule.source.evaluation_plan().items():
+        for prefix, (inputs, paired, _) in datamodule.source.evaluation_plan().items():
             pointwise = one_draw and JointEvaluator.is_pointwise(inputs, paired)
             metrics += [f"val/{prefix}{name}" for name in (list(POINTWISE) if pointwise else []) + names]
         return metrics
@@ -127,20 +127,22 @@ class Evaluation(Callback):
         self.plan = datamodule.source.evaluation_plan()
         self.noise = datamodule.source.measurement_noise  # put on the map's and f_p's draws, as on the measurements
 
-        def make(prefix: str, paired: bool, sync: bool) -> JointEvaluator:
+        def make(prefix: str, paired: bool, sync: bool, across: bool) -> JointEvaluator:
             per_time = prefix == ""  # the per-time statistic reads the trajectories alone: once per set
             inputs = self.plan[prefix][0]
+            halves = self.reference_repeats if across else 0  # the Reference's splits
             return JointEvaluator(
-                shape, inputs=inputs, paired=paired, per_time=per_time, device=pl_module.device, sync=sync, **self.options
-            )
+                shape, inputs=inputs, paired=paired, per_time=per_time, device=pl_module.device, sync=sync,
+                across_halves=halves, **self.options,
+            )  # fmt: skip
 
-        self.evaluators = {prefix: make(prefix, paired, True) for prefix, (_, paired) in self.plan.items()}
+        self.evaluators = {prefix: make(prefix, paired, True, across) for prefix, (_, paired, across) in self.plan.items()}
         # f_p and the Reference are scored on the whole set on every rank: no cross-process sync
-        self.baselines = {prefix: make(prefix, paired, False) for prefix, (_, paired) in self.plan.items()}
+        self.baselines = {prefix: make(prefix, paired, False, across) for prefix, (_, paired, across) in self.plan.items()}
         self.reference_on_same_inputs = datamodule.source.reference_on_same_inputs
         self.cache_dir = getattr(datamodule, "cache_dir", None) if self.cache_baselines else None
         if not self.reference_on_same_inputs:  # halves of the measurements have different inputs: unpaired
-            self.references = {prefix: make(prefix, False, False) for prefix in self.plan}
+            self.references = {prefix: make(prefix, False, False, False) for prefix in self.plan}
 
     def _check_monitors(self, trainer: Trainer, datamodule: Any) -> None:
         """A checkpoint must monitor a metric that every validation of this mode logs."""

@@ -86,13 +86,17 @@ class MeasurementSource(ABC):
         """Whether each measured draw belongs to its evaluation input (a figure per input) or not (distributions)."""
         return self.reference_on_same_inputs
 
-    def evaluation_plan(self) -> dict[str, tuple[tuple[str, ...], bool]]:
-        """Metric-name prefix -> (conditioning inputs, paired): the comparisons every evaluation makes."""
+    def evaluation_plan(self) -> dict[str, tuple[tuple[str, ...], bool, bool]]:
+        """Metric-name prefix -> (conditioning inputs, paired, across halves): the comparisons every evaluation makes.
+
+        Across halves (:func:`otgb.metrics.samples.across_halves`): the draws of an unpaired comparison were made
+        on the measured trajectories' own recorded inputs, so each is scored against the other half's
+        measurements, never its own."""
         if self.reference_on_same_inputs:
-            return {"": (("theta", "x0"), True)}
-        plan = {"": ((), False)}
+            return {"": (("theta", "x0"), True, False)}
+        plan = {"": ((), False, bool(self.recorded_inputs))}
         if self.recorded_inputs:
-            plan["joint_"] = (tuple(self.recorded_inputs), True)
+            plan["joint_"] = (tuple(self.recorded_inputs), True, False)
         return plan
 
     def facts(self) -> dict[str, Any]:
@@ -231,9 +235,15 @@ class FileMeasurements(MeasurementSource):
         inputs = ", ".join(parts + ([f"{' and '.join(drawn)} drawn from the priors"] if drawn else []))
         sd = self.measurement_noise
         noise = f", the map's and f_p's with the measurements' white noise (sd {sd:.4g}) added" if sd else ""
+        halves = (
+            " (the rows without recorded inputs across halves, as the Reference: the draws on one half's inputs against "
+            "the other half's measurements, so that no draw meets its own measurement)"
+            if recorded
+            else ""
+        )
         return (
             f"{len(self.file)} measured trajectories from {self.path} ({sizes}); no DGP is known: the map's draws "
-            f"({inputs}) are compared with held-out measurements by two-sample metrics{noise}"
+            f"({inputs}) are compared with held-out measurements by two-sample metrics{halves}{noise}"
         )
 
     def _what(self) -> str:
@@ -294,6 +304,7 @@ class FileMeasurements(MeasurementSource):
     def facts(self) -> dict[str, Any]:
         split = {part: len(index) for part, index in self.parts.items()}
         facts = {"measured_path": self.path, "split": split, "recorded_inputs": list(self.recorded_inputs)}
+        facts["across_halves"] = self.evaluation_plan()[""][2]
         return {**super().facts(), **facts, "measurement_noise": self.measurement_noise}
 
     def as_file(self, folder: Path, trajectories: Tensor) -> str:

@@ -26,7 +26,7 @@ from otgb.metrics.energy import EnergyDistance
 from otgb.metrics.errors import NRMSE, AbsErr
 from otgb.metrics.mmd import MMD
 from otgb.metrics.mmdagg import MMDAgg
-from otgb.metrics.samples import sample_rows
+from otgb.metrics.samples import mean_and_std, sample_rows
 
 
 class JointEvaluator:
@@ -51,6 +51,10 @@ class JointEvaluator:
         device: where the accumulated states and the computations live.
         sync: gather the states of all processes when computing (False for data every
             process already holds whole, such as the f_p and Reference baselines).
+        across_halves: for unpaired draws made on the very inputs of the measured rows (one measured row
+            per input), score one random half of the inputs' measured rows against the draws of the
+            other half, mean and ``_std`` over this many splits (those of :func:`split_half_scores` with
+            ``seed``), so that no draw is compared with its own measurement; 0: the whole samples.
 
     The two-sample metrics share one copy of the accumulated samples (a torchmetrics
     compute group), and everything syncs across processes when computed.
@@ -69,9 +73,12 @@ class JointEvaluator:
         seed: int = 0,
         device: torch.device | str = "cpu",
         sync: bool = True,
+        across_halves: int = 0,
     ) -> None:
         kw = {"sync_on_compute": sync}
         self.inputs, self.paired = tuple(inputs), paired
+        if across_halves and paired:
+            raise ValueError("across_halves compares different inputs: the evaluator must be unpaired")
         self.pointwise = self.is_pointwise(self.inputs, paired)
         self.errors = MetricCollection({"abs_err": AbsErr(**kw), "nrmse": NRMSE(**kw)}, compute_groups=False).to(device)
         self.two_sample = MetricCollection(
@@ -90,6 +97,8 @@ class JointEvaluator:
             },
             compute_groups=True,
         ).to(device)
+        for metric in self.two_sample.values():
+            metric.across_halves = (across_halves, seed)
         self.device = torch.device(device)
         self.one_to_one: bool | None = None
 
@@ -210,15 +219,3 @@ def split_half_scores(
 def _check_repeats(repeats: int) -> None:
     if repeats < 1:
         raise ValueError(f"reference_repeats={repeats}: expected >= 1")
-
-
-def mean_and_std(runs: list[dict[str, Tensor]]) -> dict[str, Tensor]:
-    """Mean (``<name>``) and std (``<name>_std``) over repeated evaluations, elementwise for vectors."""
-    results = {}
-    for name in runs[0]:
-        if name.endswith("_std"):
-            continue
-        values = torch.stack([r[name] for r in runs])
-        results[name] = values.mean(0)
-        results[f"{name}_std"] = values.std(0) if len(runs) > 1 else torch.zeros_like(values[0])
-    return results

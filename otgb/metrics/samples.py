@@ -8,6 +8,8 @@ the trajectory.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from torch import Tensor
 from torchmetrics import Metric
@@ -46,6 +48,7 @@ class TwoSampleMetric(Metric):
         super().__init__(**kwargs)
         self.add_state("p", default=[], dist_reduce_fx="cat")
         self.add_state("q", default=[], dist_reduce_fx="cat")
+        self.across_halves = (0, 0)  # (repeats, seed): score across halves (:func:`across_halves`); 0 repeats: whole
 
     def update(self, p: Tensor, q: Tensor) -> None:
         if p.dim() != 2 or q.dim() != 2 or p.shape[1] != q.shape[1]:
@@ -57,7 +60,49 @@ class TwoSampleMetric(Metric):
         self.q.append(q.detach())
 
     def compute(self) -> dict[str, Tensor]:
-        return self.score(dim_zero_cat(self.p), dim_zero_cat(self.q))
+        p, q = dim_zero_cat(self.p), dim_zero_cat(self.q)
+        repeats, seed = self.across_halves
+        return across_halves(self.score, p, q, repeats, seed) if repeats else self.score(p, q)
 
     def score(self, p: Tensor, q: Tensor) -> dict[str, Tensor]:
         raise NotImplementedError
+
+
+def across_halves(
+    score: Callable[[Tensor, Tensor], dict[str, Tensor]], p: Tensor, q: Tensor, repeats: int, seed: int
+) -> dict[str, Tensor]:
+    """``score`` of one random half of the inputs' measured rows ``p`` against the candidate's rows ``q`` of the other
+    half; mean and ``_std`` over ``repeats`` splits.
+
+    For a candidate drawn on the very inputs of the measured rows (a file that recorded each trajectory's
+    inputs): row i of ``p`` (one per input) and rows i*m ... i*m + m - 1 of ``q`` (m draws per input) share
+    input i, so the two samples are not independent, and a two-sample statistic of the whole samples is
+    biased towards "alike" (a C2ST far below 0.5, an unbiased MMD or energy distance below its noise
+    floor: each draw sits next to its own measurement). Across halves no draw meets its own measurement.
+    The splits are those of the marginal Reference (:func:`otgb.metrics.joint.split_half_scores`, the same
+    seed and order), which scores the two halves of the measurements against each other: the candidate is
+    scored as the Reference is, with its draws in place of one half.
+    """
+    n = len(p)
+    if n < 2 or len(q) % n:
+        raise ValueError(f"across halves needs one measured row per input and m draws each: got {n} and {len(q)} rows")
+    draws = q.reshape(n, len(q) // n, q.shape[1])
+    g = torch.Generator().manual_seed(seed)
+    runs = []
+    for _ in range(repeats):
+        order = torch.randperm(n, generator=g).to(p.device)
+        measured, drawn = order[: n // 2], order[n // 2 : 2 * (n // 2)]
+        runs.append(score(p[measured], draws[drawn].reshape(-1, q.shape[1])))
+    return mean_and_std(runs)
+
+
+def mean_and_std(runs: list[dict[str, Tensor]]) -> dict[str, Tensor]:
+    """Mean (``<name>``) and std (``<name>_std``) over repeated evaluations, elementwise for vectors."""
+    results = {}
+    for name in runs[0]:
+        if name.endswith("_std"):
+            continue
+        values = torch.stack([r[name] for r in runs])
+        results[name] = values.mean(0)
+        results[f"{name}_std"] = values.std(0) if len(runs) > 1 else torch.zeros_like(values[0])
+    return results
