@@ -115,9 +115,10 @@ def test_recorded_inputs_give_joint_metrics_on_real_data(tmp_path):
     assert fp["joint_abs_err"]["mean"] > 0.1, "f_p alone on the recorded inputs misses the friction"
     assert "joint_abs_err" not in report["reference"], "no repeated measurement of one input: no pointwise floor"
     assert "joint with recorded inputs: ABS ERR" in (tmp_path / "run" / "version_1" / "metrics.md").read_text()
-    assert report["run"]["across_halves"] and "score the model and f_p across the Reference's splits" in (
-        tmp_path / "run" / "version_1" / "metrics.md"
-    ).read_text(), "draws on the test part's own inputs never meet their own measurement"
+    assert (
+        report["run"]["across_halves"]
+        and "score the model and f_p across the Reference's splits" in (tmp_path / "run" / "version_1" / "metrics.md").read_text()
+    ), "draws on the test part's own inputs never meet their own measurement"
     assert model["energy"]["std"] is not None and model["mmdagg_reject"]["std"] is not None, "over the splits"
 
 
