@@ -221,18 +221,23 @@ def supported(
         if not holding:
             return kept, dropped
         k = min(holding)[1]
-        dropped.append(Unsupported(kept.candidates[k], centre(kept.priors[k]), intervals.centre[k]))
-        low, high = intervals.centre[k]
-        report(f"search: dropped {kept.candidates[k].feature} on d{kept.candidates[k].component}/dt: its coefficient's "
-               f"95 % interval [{low:.3g}, {high:.3g}] holds zero")  # fmt: skip
-        rest = [i for i in range(len(kept.candidates)) if i != k]
-        if not rest:
-            return None, dropped
-        kept = fitting([kept.candidates[i] for i in rest], [centre(kept.priors[i]) for i in rest], natural_scales=False)
-        if not beats(kept.heldout, alone):
+        term = Unsupported(kept.candidates[k], centre(kept.priors[k]), intervals.centre[k])
+        dropped.append(term)
+        (low, high), on = term.interval, f"{term.candidate.feature} on d{term.candidate.component}/dt"
+        report(f"search: dropped {on}: its coefficient's 95 % interval [{low:.3g}, {high:.3g}] holds zero")
+        kept = _without(kept, k, fitting)
+        if kept is not None and not beats(kept.heldout, alone):
             report("search: without it, the model no longer beats f_p alone by two standard errors")
-            return None, dropped
+            kept = None
     return None, dropped
+
+
+def _without(fitted: FittedTerms, k: int, fitting: Fitting) -> FittedTerms | None:
+    """``fitted`` refitted without its term ``k``, the rest started at their values; None when no term is left."""
+    rest = [i for i in range(len(fitted.candidates)) if i != k]
+    if not rest:
+        return None
+    return fitting([fitted.candidates[i] for i in rest], [centre(fitted.priors[i]) for i in rest], natural_scales=False)
 
 
 def certainty(low: float, high: float) -> float:
