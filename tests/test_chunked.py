@@ -61,6 +61,30 @@ def test_measurement_noise_leaves_the_chunked_gradient_exact():
     torch.testing.assert_close(chunked_gradient, gradient, rtol=1e-5, atol=1e-7)
 
 
+def test_a_loss_summed_over_groups_gives_the_same_gradient_a_group_at_a_time():
+    """An interval's loss is a sum over its perturbed models, each a function of its own trajectories: taken a group at
+    a time (the distances of one group's trajectories in memory at once), the loss and the gradient are the one
+    graph's."""
+    target = Target.of(generate_measured(ReactionDiffusion(n_grid=6, n_obs=4), 9, 1)["y"].float())
+
+    def grouped(groups: int, budget: int | None) -> tuple[torch.Tensor, torch.Tensor]:
+        coefficients = torch.tensor([[0.3, 0.002]] * 4 + [[0.2, 0.004]] * 4).requires_grad_()
+        _, simulate = _field_simulator(8, coefficients)
+
+        def loss_of(simulated: torch.Tensor) -> torch.Tensor:
+            return sum(discrepancy_and_rows(group, target)[0] for group in simulated.unflatten(0, (-1, 4)))
+
+        loss, _ = backward_in_chunks(simulate, 8, loss_of, chunk_size(simulate, 8, budget), groups=groups)
+        return loss, coefficients.grad
+
+    loss, gradient = grouped(1, None)
+    assert gradient[:4].abs().sum() > 0 and gradient[4:].abs().sum() > 0
+    for groups, budget in [(2, None), (2, 1)]:
+        group_loss, group_gradient = grouped(groups, budget)
+        torch.testing.assert_close(group_loss, loss, rtol=1e-6, atol=1e-8)
+        torch.testing.assert_close(group_gradient, gradient, rtol=1e-5, atol=1e-7)
+
+
 def test_the_chunk_holds_as_many_trajectories_as_the_budget_allows():
     _, simulate = _field_simulator(20, torch.zeros(20, 2, requires_grad=True))
     one = saved_bytes(lambda: simulate(slice(0, 1)))

@@ -30,24 +30,46 @@ GRAPH_BYTES = 1024**3  # the storages autograd keeps for one chunk of simulated 
 Simulate = Callable[[slice], Tensor]  # the trajectories of the given rows, with a graph where grad is enabled
 
 
-def backward_in_chunks(simulate: Simulate, n: int, loss_of: Callable[[Tensor], Tensor], size: int) -> tuple[Tensor, Tensor]:
+def backward_in_chunks(
+    simulate: Simulate, n: int, loss_of: Callable[[Tensor], Tensor], size: int, groups: int = 1
+) -> tuple[Tensor, Tensor]:
     """``loss_of(simulate(slice(0, n)))`` and the trajectories, both detached; where the loss is finite, its
     gradient is accumulated into the ``.grad`` of the leaves that ``simulate`` depends on: in one pass where ``size``
-    (:func:`chunk_size`) covers all n trajectories, else in two, ``size`` trajectories at a time (module docstring)."""
-    with torch.set_grad_enabled(size >= n):
+    (:func:`chunk_size`) covers all n trajectories, else in two, ``size`` trajectories at a time (module docstring).
+
+    ``groups``: the loss is a sum over that many equal blocks of the n rows, each a function of its own rows
+    alone (an interval's perturbed models, :mod:`otgb.discovery.intervals`); its value and gradient are then
+    taken a block at a time (two passes), so that the loss's own graph, the distances between every pair of
+    a block's trajectories, is held for one block only."""
+    one_pass = size >= n and groups == 1
+    with torch.set_grad_enabled(one_pass):
         simulated = simulate(slice(0, n))
-    leaf = simulated if size >= n else simulated.detach().requires_grad_()
-    loss = loss_of(leaf)
+    if one_pass:
+        loss = loss_of(simulated)
+        if bool(torch.isfinite(loss)):
+            loss.backward()
+        return loss.detach(), simulated.detach()
+    loss, gradient = _loss_and_gradient(loss_of, simulated, groups)
     if not bool(torch.isfinite(loss)):
-        return loss.detach(), simulated.detach()
-    if size >= n:
-        loss.backward()
-        return loss.detach(), simulated.detach()
-    (gradient,) = torch.autograd.grad(loss, leaf)
+        return loss, simulated
     for start in range(0, n, size):
         rows = slice(start, min(start + size, n))
         simulate(rows).backward(gradient[rows])
-    return loss.detach(), simulated
+    return loss, simulated
+
+
+def _loss_and_gradient(loss_of: Callable[[Tensor], Tensor], rows: Tensor, groups: int) -> tuple[Tensor, Tensor]:
+    """The loss of ``rows`` (the sum of ``loss_of`` over ``groups`` equal blocks of them) and its gradient, a block at
+    a time; the loss alone where it is not finite."""
+    total, gradients = torch.zeros((), dtype=rows.dtype), []
+    for block in rows.chunk(groups):
+        leaf = block.detach().requires_grad_()
+        loss = loss_of(leaf)
+        total = total + loss.detach()
+        if not bool(torch.isfinite(total)):
+            return total, rows
+        gradients.append(torch.autograd.grad(loss, leaf)[0])
+    return total, torch.cat(gradients)
 
 
 def chunk_size(simulate: Simulate, n: int, budget: int | None = None) -> int:

@@ -91,11 +91,12 @@ def sandwich_covariance(
     targets = sample.targets.double()
     V, n = len(variants), len(sample.x0)
 
-    def losses(simulated: Tensor) -> Tensor:  # the sum over variants of each one's discrepancy
-        return batched_discrepancy(simulated.unflatten(0, (V, n)), targets.expand(V, *targets.shape)).sum()
+    def losses(simulated: Tensor) -> Tensor:  # the sum over the variants of these rows of each one's discrepancy
+        grouped = simulated.unflatten(0, (-1, n))
+        return batched_discrepancy(grouped, targets.expand(len(grouped), *targets.shape)).sum()
 
     simulate = _simulator(base, fitted, variants, sample)
-    total, simulated = backward_in_chunks(simulate, V * n, losses, chunk_size(simulate, V * n))
+    total, simulated = backward_in_chunks(simulate, V * n, losses, chunk_size(simulate, V * n), groups=V)
     finite = torch.isfinite(simulated.flatten(1)).all(1)
     if not bool(finite.all()):
         diverged("interval", term_names(fitted.candidates), int((~finite).sum()), V * n, None)
