@@ -50,7 +50,7 @@ def backward_in_chunks(
             loss.backward()
         return loss.detach(), simulated.detach()
     loss, gradient = _loss_and_gradient(loss_of, simulated, groups)
-    if not bool(torch.isfinite(loss)):
+    if gradient is None:
         return loss, simulated
     for start in range(0, n, size):
         rows = slice(start, min(start + size, n))
@@ -58,16 +58,16 @@ def backward_in_chunks(
     return loss, simulated
 
 
-def _loss_and_gradient(loss_of: Callable[[Tensor], Tensor], rows: Tensor, groups: int) -> tuple[Tensor, Tensor]:
+def _loss_and_gradient(loss_of: Callable[[Tensor], Tensor], rows: Tensor, groups: int) -> tuple[Tensor, Tensor | None]:
     """The loss of ``rows`` (the sum of ``loss_of`` over ``groups`` equal blocks of them) and its gradient, a block at
-    a time; the loss alone where it is not finite."""
+    a time; no gradient where the loss is not finite."""
     total, gradients = torch.zeros((), dtype=rows.dtype), []
     for block in rows.chunk(groups):
         leaf = block.detach().requires_grad_()
         loss = loss_of(leaf)
         total = total + loss.detach()
         if not bool(torch.isfinite(total)):
-            return total, rows
+            return total, None
         gradients.append(torch.autograd.grad(loss, leaf)[0])
     return total, torch.cat(gradients)
 

@@ -26,7 +26,7 @@ from otgb.metrics.energy import EnergyDistance
 from otgb.metrics.errors import NRMSE, AbsErr
 from otgb.metrics.mmd import MMD
 from otgb.metrics.mmdagg import MMDAgg
-from otgb.metrics.samples import mean_and_std, sample_rows
+from otgb.metrics.samples import mean_and_std, random_halves, sample_rows
 
 
 class JointEvaluator:
@@ -53,7 +53,7 @@ class JointEvaluator:
             process already holds whole, such as the f_p and Reference baselines).
         across_halves: for unpaired draws made on the very inputs of the measured rows (one measured row
             per input), score one random half of the inputs' measured rows against the draws of the
-            other half, mean and ``_std`` over this many splits (those of :func:`split_half_scores` with
+            other half, mean and ``_std`` over this many splits (:func:`otgb.metrics.samples.random_halves` with
             ``seed``), so that no draw is compared with its own measurement; 0: the whole samples.
 
     The two-sample metrics share one copy of the accumulated samples (a torchmetrics
@@ -206,12 +206,9 @@ def split_half_scores(
     if evaluator.paired:
         raise ValueError("split-half scores compare different inputs: the evaluator must be unpaired")
     _check_repeats(repeats)
-    n = len(data["y"])
-    g = torch.Generator().manual_seed(seed)
     runs = []
-    for _ in range(repeats):
-        order = torch.randperm(n, generator=g)
-        half_a, half_b = ({k: v[idx] for k, v in data.items()} for idx in (order[: n // 2], order[n // 2 : 2 * (n // 2)]))
+    for first, second in random_halves(len(data["y"]), repeats, seed):
+        half_a, half_b = ({k: v[idx] for k, v in data.items()} for idx in (first, second))
         runs.append(evaluator.evaluate(half_b["y"], half_a, tests, candidate=half_b))
     return mean_and_std(runs)
 

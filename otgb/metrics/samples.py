@@ -79,21 +79,27 @@ def across_halves(
     input i, so the two samples are not independent, and a two-sample statistic of the whole samples is
     biased towards "alike" (a C2ST far below 0.5, an unbiased MMD or energy distance below its noise
     floor: each draw sits next to its own measurement). Across halves no draw meets its own measurement.
-    The splits are those of the marginal Reference (:func:`otgb.metrics.joint.split_half_scores`, the same
-    seed and order), which scores the two halves of the measurements against each other: the candidate is
-    scored as the Reference is, with its draws in place of one half.
+    The splits are the marginal Reference's (:func:`random_halves`, which
+    :func:`otgb.metrics.joint.split_half_scores` draws too), which scores the two halves of the measurements
+    against each other: the candidate is scored as the Reference is, with its draws in place of one half.
     """
     n = len(p)
     if n < 2 or len(q) % n:
         raise ValueError(f"across halves needs one measured row per input and m draws each: got {n} and {len(q)} rows")
     draws = q.reshape(n, len(q) // n, q.shape[1])
-    g = torch.Generator().manual_seed(seed)
     runs = []
-    for _ in range(repeats):
-        order = torch.randperm(n, generator=g).to(p.device)
-        measured, drawn = order[: n // 2], order[n // 2 : 2 * (n // 2)]
+    for measured, drawn in random_halves(n, repeats, seed):
+        measured, drawn = measured.to(p.device), drawn.to(p.device)
         runs.append(score(p[measured], draws[drawn].reshape(-1, q.shape[1])))
     return mean_and_std(runs)
+
+
+def random_halves(n: int, repeats: int, seed: int) -> list[tuple[Tensor, Tensor]]:
+    """``repeats`` random splits of the indices 0 .. n-1 into two halves of n // 2 (one left out when n is odd),
+    drawn from ``seed``: the marginal Reference's splits, and the same ones for whatever is scored beside it."""
+    g = torch.Generator().manual_seed(seed)
+    orders = [torch.randperm(n, generator=g) for _ in range(repeats)]
+    return [(order[: n // 2], order[n // 2 : 2 * (n // 2)]) for order in orders]
 
 
 def mean_and_std(runs: list[dict[str, Tensor]]) -> dict[str, Tensor]:
