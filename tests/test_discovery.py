@@ -26,7 +26,7 @@ from otgb.discovery import refine
 from otgb.discovery.closer import Closeness, closer
 from otgb.discovery.evidence import Comparison, choose_swap, weigh
 from otgb.discovery.fit_cache import FitCache
-from otgb.discovery.intervals import Intervals, sandwich_intervals
+from otgb.discovery.intervals import Intervals, fitted_intervals, sandwich_intervals
 from otgb.discovery.library import Candidate, build_library, physical_name
 from otgb.discovery.locate import describe, locate, permutation_energy, z_scored
 from otgb.discovery.log import DivergenceLog, OncePerModel, diverged, rounded, short
@@ -726,6 +726,27 @@ def test_intervals_contain_the_estimate_and_cover_the_truth_on_fresh_files():
         assert low < fitted.priors[0].value < high and high - low < 0.5
         covered += low <= -1.2 <= high
     assert covered >= 5
+
+
+def test_a_runs_intervals_are_computed_once_and_read_back_from_its_fit_cache(tmp_path, monkeypatch):
+    """The intervals of one fitted model asked for twice in a run, and again by a resumed run with the same fit cache,
+    are the sandwich computed once; a model with other priors is computed anew."""
+    import otgb.discovery.intervals as intervals_module
+
+    pendulum = Pendulum()
+    measured = _draws(pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))]), 200, 3)
+    candidate = next(c for c in build_library(pendulum, ["velocity"]) if c.feature == "velocity")
+    fitted = fit(pendulum, [candidate], [-0.6], "constant", measured, measured, 20, 128, 0, False, [1.2])
+    direct = sandwich_intervals(pendulum, fitted, measured, 128, 0)
+    computed, sandwich = [], intervals_module.sandwich_intervals
+    monkeypatch.setattr(intervals_module, "sandwich_intervals", lambda *a: computed.append(1) or sandwich(*a))
+    run = Fitting(pendulum, measured, measured, 20, 128, 0, cache=FitCache(tmp_path / "fits"))
+    resumed = Fitting(pendulum, measured, measured, 20, 128, 0, cache=FitCache(tmp_path / "fits"))
+    answers = [fitted_intervals(fitting, fitted) for fitting in (run, run, resumed)]
+    assert computed == [1] and all(a == direct for a in answers), (computed, answers, direct)
+    other = fit(pendulum, [candidate], [-0.9], "uniform", measured, measured, 20, 128, 0, False, [1.2])
+    fitted_intervals(run, other)
+    assert computed == [1, 1]
 
 
 def test_two_terms_the_measurements_cannot_tell_apart_are_ambiguous_with_their_numbers():

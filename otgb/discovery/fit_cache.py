@@ -7,7 +7,8 @@ With ``--discover.fit_cache DIR`` each finished fit is written to DIR under a ke
 and of otgb's own source code (a fit of other code is never reused); a run that asks for the same
 fit again reads it instead of fitting. A run stopped part way (a session's end, a batch job's time
 limit) and started again with the same DIR and config repeats its cheap steps and reads its fits
-back, so it reaches the same result as a run that was never stopped, and carries on from there.
+back, so it reaches the same result as a run that was never stopped, and carries on from there. The
+95 % intervals of a fitted model (:func:`otgb.discovery.intervals.fitted_intervals`) are kept the same way.
 
 A reaction-diffusion fit of 1024 simulated 2 x 32 x 32 fields takes minutes on a CPU and a
 discovery run makes dozens, so such a run can take longer than one session or job.

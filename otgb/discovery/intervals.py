@@ -25,17 +25,18 @@ of the truth is measured on fresh files by ``scripts/interval_coverage.py`` (doc
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import torch
 from torch import Tensor
 
 from otgb.discovery.chunked import Simulate, backward_in_chunks, chunk_size
 from otgb.discovery.log import diverged
-from otgb.discovery.refine import FitSample, FittedTerms, batched_discrepancy, centre, row_terms, term_names
+from otgb.discovery.refine import FitSample, FittedTerms, Fitting, batched_discrepancy, centre, row_terms, term_names
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 from otgb.physics.priors import Choice, Constant, Prior, Uniform
+from otgb.physics.solvers import current_solver
 from otgb.physics.terms import LibraryTerm
 
 Z95 = 1.959964
@@ -79,6 +80,23 @@ def sandwich_intervals(base: PhysicsModel, fitted: FittedTerms, measured: Tensor
     centre = list(zip(low[:k], high[:k]))
     width = None if fitted.family == "constant" else [(max(a, 0.0), b) for a, b in zip(low[k:], high[k:])]
     return Intervals(centre, width)
+
+
+def fitted_intervals(fitting: Fitting, fitted: FittedTerms) -> Intervals | None:
+    """:func:`sandwich_intervals` of one of a discovery run's fits (on its training part, with its batch and seed), kept
+    in the run's fit cache where it has one: a model asked about twice (the search's kept model is often the final one)
+    or again by a resumed run is computed once (a reaction-diffusion model's take minutes)."""
+
+    def compute() -> Intervals | None:
+        return sandwich_intervals(fitting.physics, fitted, fitting.train, fitting.batch, fitting.seed)
+
+    if fitting.cache is None:
+        return compute()
+    model = {k: v for k, v in fitted.as_record().items() if k in ("family", "candidates", "priors", "scales")}
+    inputs = {"intervals_of": model, "batch": fitting.batch, "solver": current_solver()}
+    key = fitting.cache.key(fitting.physics, fitting.train, fitting.val, seed=fitting.seed, **inputs)
+    stored = fitting.cache.record(key, lambda: {"intervals": None if (found := compute()) is None else asdict(found)})
+    return None if stored["intervals"] is None else Intervals(**stored["intervals"])
 
 
 def sandwich_covariance(

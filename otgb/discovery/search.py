@@ -48,7 +48,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from otgb.discovery.intervals import sandwich_intervals
+from otgb.discovery.intervals import fitted_intervals
 from otgb.discovery.library import Candidate
 from otgb.discovery.refine import FittedTerms, Fitting, Scores, beats, centre, difference, discrepancies
 from otgb.discovery.regression import design_matrix
@@ -213,7 +213,7 @@ def supported(
     A model whose intervals cannot be computed (not at a minimum) is kept as it is."""
     dropped: list[Unsupported] = []
     while kept is not None:
-        intervals = sandwich_intervals(fitting.physics, kept, fitting.train, fitting.batch, fitting.seed)
+        intervals = fitted_intervals(fitting, kept)
         if intervals is None:
             report("search: the kept model's intervals cannot be computed (not at a minimum): its terms are kept as they are")
             return kept, dropped

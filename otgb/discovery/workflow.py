@@ -37,7 +37,7 @@ from otgb.data.seeding import generator_for
 from otgb.discovery.closer import Closeness, closer
 from otgb.discovery.evidence import Comparison, weigh
 from otgb.discovery.fit_cache import FitCache
-from otgb.discovery.intervals import Intervals, sandwich_intervals
+from otgb.discovery.intervals import Intervals, fitted_intervals
 from otgb.discovery.library import Candidate, build_library, physical_name
 from otgb.discovery.locate import DisagreementMap, describe, locate
 from otgb.discovery.log import DivergenceLog, diverged, progress, rounded, short
@@ -415,7 +415,7 @@ def evidence_step(
         return _initial([candidate], designs)[0]
 
     def interval(fitted: FittedTerms) -> tuple[float, float] | None:
-        intervals = sandwich_intervals(fitting.physics, fitted, fitting.train, fitting.batch, fitting.seed)
+        intervals = fitted_intervals(fitting, fitted)
         return None if intervals is None else intervals.centre[-1]
 
     kept, comparisons, added = weigh(fitting.physics, kept, cross_check, per_term, fitting, start, interval)
@@ -570,7 +570,7 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
     }
     if result.found:
         result.final_terms = final_regression(result.selections, designs, result.fitted.candidates, settings)
-        result.intervals = sandwich_intervals(physics, result.fitted, fitting.train, settings.fit_batch, settings.seed)
+        result.intervals = fitted_intervals(fitting, result.fitted)
         progress(f"intervals: {rounded(result.intervals.centre) if result.intervals else 'none (the fit is not at a minimum)'}")
         sources["augmented"] = simulate_candidate(result.fitted.model(physics), len(data.test), settings.seed, "gap-augmented")
         result.before_on_test = locate_step(physics, data.test, settings, "f_p-test")
