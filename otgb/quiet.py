@@ -26,7 +26,9 @@ def quiet_known_harmless() -> None:
     # Lightning advertises its cloud logger at the start of every fit, says that no TPU is there, and that it loads
     # the training loader to count its steps (the learning-rate schedules ask for that count): none is about the
     # run (otgb runs on CPUs and CUDA GPUs; the GPU line stays).
-    harmless = ("litlogger", "TPU available: False", "to estimate number of stepping batches")
+    # A fit's one epoch is its simulation budget (otgb/configs/defaults.yaml), so "`max_epochs=1` reached" says only that
+    # the budget was spent, and reads as if the run had stopped short; a fit ended by max_steps or max_time still says so.
+    harmless = ("litlogger", "TPU available: False", "to estimate number of stepping batches", "`max_epochs=1` reached")
     for name in ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero"):
         logger = logging.getLogger(name)
         if not any(isinstance(f, _Drop) for f in logger.filters):

@@ -560,14 +560,17 @@ def test_categorical_latent_draws_equally_likely_one_hot_codes(tmp_path):
 
 
 def test_a_fit_prints_no_known_harmless_third_party_lines(tmp_path):
-    """otgb.quiet drops Lightning's cloud-logger tip, its TPU line and its note on counting steps; its GPU line stays."""
-    command = [sys.executable, "-m", "otgb.cli", "fit", "--config", CONFIG, "--trainer.max_steps=2"]
+    """otgb.quiet drops Lightning's cloud-logger tip, its TPU line, its note on counting steps and its "max_epochs=1
+    reached" when the budget is spent; its GPU line stays."""
+    command = [sys.executable, "-m", "otgb.cli", "fit", "--config", CONFIG, "--data.simulation_budget=64"]
+    command += ["--trainer.val_check_interval=2"]
     command.append(f"--data.cache_dir={tmp_path}")
     done = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=600)
     printed = done.stdout + done.stderr
     assert done.returncode == 0 and "GPU available" in printed, printed[-2000:]
-    for harmless in ("litlogger", "TPU available", "to estimate number of stepping batches"):
+    for harmless in ("litlogger", "TPU available", "to estimate number of stepping batches", "max_epochs=1"):
         assert harmless not in printed, harmless
+    assert done.stdout.splitlines()[-1].startswith("otgb fit: results in "), "the budget spent, the run says where it wrote"
 
 
 def test_load_run_builds_the_model_and_data_of_a_run_quietly(tmp_path, capfd):

@@ -1288,6 +1288,7 @@ def test_discover_from_python_as_the_tutorial_does_finds_friction_and_writes_a_c
     finder, report = names["finder"], names["report"]
     printed = capfd.readouterr()
     assert "litlogger" not in printed.err + printed.out and "TPU available" not in printed.err + printed.out
+    assert "Trainable params" not in printed.err + printed.out, "no layer table: the grey-box's training is a step"
     assert report == json.loads((finder.run_dir_ / "report.json").read_text()) and finder.verdict_ == report["verdict"]
     assert finder.found_ and finder.outcome_ == report["outcome"] in OUTCOMES[:4], report["outcome"]
     assert report["closer"]["significant"] and report["closer"]["pvalue"] < 0.05, report["closer"]

@@ -71,6 +71,8 @@ class DiscoverCLI(OTGBCLI):
 
     def add_arguments_to_parser(self, parser) -> None:
         super().add_arguments_to_parser(parser)
+        # The grey-box it trains is a step of the workflow, described by the report: no layer table in the terminal.
+        parser.set_defaults({"trainer.enable_model_summary": False})
         parser.add_argument(
             "--ckpt_path",
             type=str | None,
