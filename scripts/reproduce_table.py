@@ -209,6 +209,8 @@ class Grid:
         command = [portable(arg, self.out.parent) for arg in common if not arg.startswith("--data.cache_dir")]
         record = {"task": self.task, "row": row, "seed": seed, **figures, "fit_s": fit_s, "command": command, **more}
         record |= {"paper_judge_tol": PaperConvClassifier().tol} if "paper" in tested_now else {}
+        if row in METHODS:  # the critic it was trained against: a task's config may change its critic later
+            record["critic"] = yaml.safe_load(newest(folder, "test/version_*/config.yaml").read_text())["model"]["critic"]
         path = self.result_path(row, seed)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps({**record, "machine": machine(asks_for_gpu(self.extra))}, indent=1) + "\n")
@@ -243,6 +245,7 @@ def task_table(results: Path, task: str) -> list[str]:
     lines += [f"| row | seeds | {head} | paper | wall time per fit or discover run |", "|" + "---|" * (len(names) + 4)]
     paper = PAPER.get(task, {})
     floor = records["f_p only"] or next((runs[:1] for runs in records.values() if runs), [])  # every test measures it
+    other_critic = {row for row, runs in records.items() if trained_against_another_critic(task, runs)}
     for row, runs in [*records.items(), ("Reference", floor)]:
         source = "reference" if row == "Reference" else "model"
         cells = " | ".join(seeds_cell([r[source][name] for r in runs if name in r[source]]) + untolerant(runs, source, name)
@@ -251,9 +254,11 @@ def task_table(results: Path, task: str) -> list[str]:
         walls = [r["fit_s"] for r in runs if r["fit_s"] is not None]
         wall = f"{statistics.mean(walls) / 60:.1f} min" if walls and source == "model" else "-"
         seeds = len(runs) if row in (*METHODS, AUGMENTED) else "-"
-        lines.append(f"| {row} | {seeds} | {cells} | {published} | {wall} |")
+        name = f"{row} {OTHER_CRITIC}" if row in other_critic else row
+        lines.append(f"| {name} | {seeds} | {cells} | {published} | {wall} |")
     if any(untolerant(runs, "model", "c2st_paper") for runs in records.values()) or untolerant(floor, "reference", "c2st_paper"):
         lines += ["", f"{UNTOLERANT} {UNTOLERANT_NOTE}"]
+    lines += critic_note(task, records)
     if records[AUGMENTED]:
         named = [f"seed {r['seed']}: {', '.join(map(describe, r['terms'])) or 'nothing'}" for r in records[AUGMENTED]]
         lines += ["", f"The terms otgb discover named: {'; '.join(named)}."]
@@ -272,6 +277,45 @@ def untolerant(runs: list[dict], source: str, name: str) -> str:
     """The mark of a paper-judge figure that a run measured before the judge had the paper's tolerance."""
     marked = name == "c2st_paper" and any(name in r[source] and "paper_judge_tol" not in r for r in runs)
     return f" {UNTOLERANT}" if marked else ""
+
+
+OTHER_CRITIC = "‡"
+
+
+def configured_critic(task: str) -> dict | None:
+    """The critic that the task's config sets now (None: the config sets none)."""
+    return yaml.safe_load((ROOT / "configs" / f"{TASKS[task][0]}.yaml").read_text()).get("model", {}).get("critic")
+
+
+def differs(recorded: dict, configured: dict) -> bool:
+    """Whether a run's recorded critic is not the configured one: another class, or another value of a setting both
+    name (the record holds every setting, the config those it changes)."""
+    if recorded["class_path"].rsplit(".", 1)[-1] != configured["class_path"].rsplit(".", 1)[-1]:
+        return True
+    mine, theirs = recorded.get("init_args", {}), configured.get("init_args", {})
+    return any(mine[k] != theirs[k] for k in mine.keys() & theirs.keys())
+
+
+def trained_against_another_critic(task: str, runs: list[dict]) -> list[dict]:
+    """The recorded critics of ``runs`` that are not the task's configured critic."""
+    configured = configured_critic(task)
+    return [r["critic"] for r in runs if configured is not None and "critic" in r and differs(r["critic"], configured)]
+
+
+def critic_note(task: str, records: dict[str, list[dict]]) -> list[str]:
+    """The note under a task's table where some rows were trained against another critic than its config's now."""
+    others = [c for runs in records.values() for c in trained_against_another_critic(task, runs)]
+    if not others:
+        return []
+    configured = configured_critic(task)
+    before = " and ".join(sorted({critic_text(c, configured) for c in others}))
+    return ["", f"{OTHER_CRITIC} trained against the critic {before}; the config's is now {critic_text(configured, configured)}."]
+
+
+def critic_text(critic: dict, configured: dict) -> str:
+    """A critic's class and the settings that the configured critic names."""
+    settings = {k: v for k, v in critic.get("init_args", {}).items() if k in configured.get("init_args", {})}
+    return f"`{critic['class_path'].rsplit('.', 1)[-1]}` {json.dumps(settings)}"
 
 
 def describe(term: dict) -> str:

@@ -69,9 +69,9 @@ class ConvCritic(nn.Module):
     """A convolutional residual critic on trajectories (N, T, C, *space).
 
     With ``time_as_channels`` the T frames of each of the C fields are stacked as channels
-    and the convolutions run over space only (a 1-D residual network for advection-diffusion);
-    otherwise they run over (time, *space) with C channels (a 3-D network for
-    reaction-diffusion). Each block halves the resolution; the features are averaged over
+    and the convolutions run over space only (a 1-D residual network for advection-diffusion, a
+    2-D one for reaction-diffusion); otherwise they run over (time, *space) with C channels.
+    Each block halves the resolution; the features are averaged over
     the remaining positions and mapped to one score. No normalisation layers, so the
     per-sample gradient penalty stays well defined.
 
