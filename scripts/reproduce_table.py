@@ -245,7 +245,8 @@ def task_table(results: Path, task: str) -> list[str]:
     lines += [f"| row | seeds | {head} | paper | wall time per fit or discover run |", "|" + "---|" * (len(names) + 4)]
     paper = PAPER.get(task, {})
     floor = records["f_p only"] or next((runs[:1] for runs in records.values() if runs), [])  # every test measures it
-    other_critic = {row for row, runs in records.items() if trained_against_another_critic(task, runs)}
+    configured = configured_critic(task)
+    other_critic = {row: another_critic(runs, configured) for row, runs in records.items()}
     for row, runs in [*records.items(), ("Reference", floor)]:
         source = "reference" if row == "Reference" else "model"
         cells = " | ".join(seeds_cell([r[source][name] for r in runs if name in r[source]]) + untolerant(runs, source, name)
@@ -254,11 +255,11 @@ def task_table(results: Path, task: str) -> list[str]:
         walls = [r["fit_s"] for r in runs if r["fit_s"] is not None]
         wall = f"{statistics.mean(walls) / 60:.1f} min" if walls and source == "model" else "-"
         seeds = len(runs) if row in (*METHODS, AUGMENTED) else "-"
-        name = f"{row} {OTHER_CRITIC}" if row in other_critic else row
+        name = f"{row} {OTHER_CRITIC}" if other_critic.get(row) else row
         lines.append(f"| {name} | {seeds} | {cells} | {published} | {wall} |")
     if any(untolerant(runs, "model", "c2st_paper") for runs in records.values()) or untolerant(floor, "reference", "c2st_paper"):
         lines += ["", f"{UNTOLERANT} {UNTOLERANT_NOTE}"]
-    lines += critic_note(task, records)
+    lines += critic_note([c for critics in other_critic.values() for c in critics], configured)
     if records[AUGMENTED]:
         named = [f"seed {r['seed']}: {', '.join(map(describe, r['terms'])) or 'nothing'}" for r in records[AUGMENTED]]
         lines += ["", f"The terms otgb discover named: {'; '.join(named)}."]
@@ -296,18 +297,15 @@ def differs(recorded: dict, configured: dict) -> bool:
     return any(mine[k] != theirs[k] for k in mine.keys() & theirs.keys())
 
 
-def trained_against_another_critic(task: str, runs: list[dict]) -> list[dict]:
-    """The recorded critics of ``runs`` that are not the task's configured critic."""
-    configured = configured_critic(task)
+def another_critic(runs: list[dict], configured: dict | None) -> list[dict]:
+    """The recorded critics of ``runs`` that are not the task's ``configured`` critic."""
     return [r["critic"] for r in runs if configured is not None and "critic" in r and differs(r["critic"], configured)]
 
 
-def critic_note(task: str, records: dict[str, list[dict]]) -> list[str]:
-    """The note under a task's table where some rows were trained against another critic than its config's now."""
-    others = [c for runs in records.values() for c in trained_against_another_critic(task, runs)]
+def critic_note(others: list[dict], configured: dict | None) -> list[str]:
+    """The note under a task's table where some rows were trained against ``others``, not the config's critic now."""
     if not others:
         return []
-    configured = configured_critic(task)
     before = " and ".join(sorted({critic_text(c, configured) for c in others}))
     return ["", f"{OTHER_CRITIC} trained against the critic {before}; the config's is now {critic_text(configured, configured)}."]
 
