@@ -70,6 +70,8 @@ class MapTraining(LightningModule):
         critic_steps: critic updates per training step (each on a fresh measured batch; all but
             the first on a fresh source batch).
         gp_weight: lambda, weight of the gradient penalty.
+        gp_one_sided: penalise only critic gradient norms above 1 (:func:`otgb.ot.gradient_penalty`);
+            False: the two-sided penalty of the paper's Algorithm 1.
         grad_clip: max gradient norm for both networks (None: no clipping).
         ema_decay: if set, validation, test and figures use an exponential moving average
             of the map's weights with this decay per map update (None: the map itself).
@@ -98,6 +100,7 @@ class MapTraining(LightningModule):
         t_max: int = 5,
         critic_steps: int = 1,
         gp_weight: float = 1.0,
+        gp_one_sided: bool = False,
         grad_clip: float | None = None,
         ema_decay: float | None = None,
         map_optimizer: OptimizerCallable = _adam,
@@ -135,6 +138,7 @@ class MapTraining(LightningModule):
         )
         self.z_dim, self.latent, self.n_z = z_dim, latent, n_z
         self.t_max, self.critic_steps, self.gp_weight, self.grad_clip = t_max, critic_steps, gp_weight, grad_clip
+        self.gp_one_sided = gp_one_sided
         if max_consecutive_skips < 1:
             raise InputError(f"model.max_consecutive_skips={max_consecutive_skips}: expected >= 1")
         self.guard = UpdateGuard(max_consecutive_skips)
@@ -251,7 +255,7 @@ class MapTraining(LightningModule):
             critic_parts, blame = {}, ("map", "every map update of the step gave NaN/Inf")
         else:
             y_hat = self._as_measured(y_hat.detach()).flatten(0, 1)
-            loss, critic_parts = critic_loss(self.critic, y, y_hat, self.gp_weight, self.generator)
+            loss, critic_parts = critic_loss(self.critic, y, y_hat, self.gp_weight, self.generator, self.gp_one_sided)
             critic_parts["critic_loss"], blame = loss, ("critic", "loss or gradients NaN/Inf")
         if self._guarded_backward(opt, self.critic, blame[0], critic_parts.get("critic_loss"), blame[1]):
             self._clip(opt)

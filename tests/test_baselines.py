@@ -37,6 +37,9 @@ def test_wgan_map_loss_is_minus_the_mean_critic_and_ot_adds_the_cost():
     loss, parts = WeakTransport(gamma=0.5).map_loss(x, y_hat, Mean())
     assert torch.allclose(loss, kernel_weak_cost(x, y_hat, 0.5).mean() - y_hat.mean())
     assert torch.allclose(parts["transport_cost"], kernel_weak_cost(x, y_hat, 0.5).mean())
+    loss, parts = WeakTransport(gamma=0.5, cost_weight=0.25).map_loss(x, y_hat, Mean())
+    assert torch.allclose(loss, 0.25 * kernel_weak_cost(x, y_hat, 0.5).mean() - y_hat.mean())
+    assert torch.allclose(parts["transport_cost"], kernel_weak_cost(x, y_hat, 0.5).mean()), "the cost is logged unweighted"
 
 
 @pytest.mark.parametrize(
@@ -44,6 +47,7 @@ def test_wgan_map_loss_is_minus_the_mean_critic_and_ot_adds_the_cost():
     [
         (lambda: WeakTransport(gamma=1.5), r"gamma=1.5: expected a value in \[0, 1\]"),
         (lambda: WeakTransport(kernel="rbf"), "kernel='rbf': expected one of"),
+        (lambda: WeakTransport(cost_weight=0.0), "cost_weight=0.0: expected a value > 0"),
         (lambda: WeakTransport(gamma=1.0).check_draws(1), "needs n_z >= 2"),
     ],
 )

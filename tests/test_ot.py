@@ -54,6 +54,17 @@ def test_gradient_penalty_uses_one_norm_per_sample_over_all_dims():
     assert torch.allclose(gradient_penalty(critic, real, fake), expected)
 
 
+def test_the_one_sided_gradient_penalty_spares_a_critic_flatter_than_1_lipschitz():
+    real, fake = torch.randn(5, 2, 2), torch.randn(5, 2, 2)
+    flat = Linear(torch.tensor([0.3, 0.0, 0.4, 0.0]))  # gradient norm 0.5 everywhere
+    steep = Linear(torch.tensor([1.2, 0.0, 1.6, 0.0]))  # gradient norm 2
+    assert torch.allclose(gradient_penalty(flat, real, fake), torch.tensor(0.25))
+    assert gradient_penalty(flat, real, fake, one_sided=True) == 0
+    assert torch.allclose(gradient_penalty(steep, real, fake, one_sided=True), torch.tensor(1.0))
+    _, parts = critic_loss(flat, real, fake, gp_weight=1.0, one_sided=True)
+    assert parts["gradient_penalty"] == 0
+
+
 def test_critic_loss_by_hand():
     critic = Linear(torch.tensor([0.6, 0.8]))  # unit gradient: no penalty
     real, fake = torch.tensor([[1.0, 0.0], [0.0, 1.0]]), torch.tensor([[0.0, 0.0], [1.0, 1.0], [2.0, 0.0]])

@@ -37,14 +37,19 @@ class WeakTransport(Objective):
         gamma: weight of the variance term of the weak cost (0 one-to-one, 1 one-to-many).
         kernel: kernel of the weak cost, "distance" (-||a - b|| / 2, the paper's) or "linear"
             (<a, b> / D: the weak quadratic cost, half the mean squared error one-to-one).
+        cost_weight: the transport cost's weight against the critic (1: the paper's maximin).
+            Below 1 the cost pulls the map's outputs less towards f_p's, where the critic
+            cannot tell a small shift from the measurements.
     """
 
-    def __init__(self, gamma: float = 0.0, kernel: str = "distance") -> None:
+    def __init__(self, gamma: float = 0.0, kernel: str = "distance", cost_weight: float = 1.0) -> None:
         if not 0.0 <= gamma <= 1.0:
             raise InputError(f"model.objective.gamma={gamma}: expected a value in [0, 1]")
         if kernel not in KERNELS:
             raise InputError(f"model.objective.kernel={kernel!r}: expected one of {sorted(KERNELS)}")
-        self.gamma, self.kernel_name, self.kernel = gamma, kernel, KERNELS[kernel]
+        if not cost_weight > 0:
+            raise InputError(f"model.objective.cost_weight={cost_weight}: expected a value > 0")
+        self.gamma, self.kernel_name, self.kernel, self.cost_weight = gamma, kernel, KERNELS[kernel], cost_weight
 
     def check_draws(self, n_z: int) -> None:
         if self.gamma > 0 and n_z < 2:
@@ -52,11 +57,11 @@ class WeakTransport(Objective):
 
     def map_loss(self, x: Tensor, y_hat: Tensor, critic: nn.Module) -> tuple[Tensor, dict[str, Tensor]]:
         cost = kernel_weak_cost(x, y_hat, self.gamma, self.kernel).mean()
-        loss = cost - critic(y_hat.flatten(0, 1)).mean()
+        loss = self.cost_weight * cost - critic(y_hat.flatten(0, 1)).mean()
         return loss, {"map_loss": loss.detach(), "transport_cost": cost.detach()}
 
     def __repr__(self) -> str:
-        return f"WeakTransport(gamma={self.gamma}, kernel={self.kernel_name!r})"
+        return f"WeakTransport(gamma={self.gamma}, kernel={self.kernel_name!r}, cost_weight={self.cost_weight})"
 
 
 class WassersteinGAN(Objective):
