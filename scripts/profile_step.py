@@ -85,7 +85,8 @@ def main() -> None:
             with timed("optimizer steps"):
                 map_opt.step()
         with timed("critic forward + penalty"):
-            loss, _ = critic_loss(model.critic, batch["y"][0], y_hat.detach().flatten(0, 1), model.gp_weight)
+            generated = y_hat.detach().flatten(0, 1)
+            loss, _ = critic_loss(model.critic, batch["y"][0], generated, model.gp_weight, one_sided=model.gp_one_sided)
         critic_opt.zero_grad()
         with timed("critic backward"):
             loss.backward()

@@ -37,9 +37,8 @@ class WeakTransport(Objective):
         gamma: weight of the variance term of the weak cost (0 one-to-one, 1 one-to-many).
         kernel: kernel of the weak cost, "distance" (-||a - b|| / 2, the paper's) or "linear"
             (<a, b> / D: the weak quadratic cost, half the mean squared error one-to-one).
-        cost_weight: the transport cost's weight against the critic (1: the paper's maximin).
-            Below 1 the cost pulls the map's outputs less towards f_p's, where the critic
-            cannot tell a small shift from the measurements.
+        cost_weight: the transport cost's weight against the critic (1: the paper's maximin);
+            below 1 the cost pulls the map's outputs less towards f_p's, above 1 more.
     """
 
     def __init__(self, gamma: float = 0.0, kernel: str = "distance", cost_weight: float = 1.0) -> None:
