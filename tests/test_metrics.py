@@ -265,6 +265,7 @@ def test_the_paper_judge_stops_on_rows_it_separates_where_the_papers_tolerance_s
 
 
 def test_the_paper_judges_convolution_is_the_library_convolution_forward_and_backward(generator):
+    torch.manual_seed(0)  # the layer's initial weights
     for channels_in in (1, 3):
         conv = torch.nn.Conv1d(channels_in, 3, 3, padding=1)
         x = torch.randn(16, channels_in, 41, generator=generator, requires_grad=True)
@@ -272,8 +273,8 @@ def test_the_paper_judges_convolution_is_the_library_convolution_forward_and_bac
         torch.testing.assert_close(fast, library, rtol=1e-5, atol=1e-6)
         weights = torch.randn_like(library)
         grads = [torch.autograd.grad((out * weights).sum(), (x, conv.weight, conv.bias)) for out in (fast, library)]
-        for fast_grad, library_grad in zip(*grads):
-            torch.testing.assert_close(fast_grad, library_grad, rtol=1e-4, atol=1e-5)
+        for fast_grad, library_grad in zip(*grads):  # a weight's gradient sums 16 x 41 products of size ~1: a float32
+            torch.testing.assert_close(fast_grad, library_grad, rtol=1e-4, atol=1e-4)  # sum that cancels is off by ~1e-5
 
 
 @pytest.mark.skipif(bool(fused_judge.UNAVAILABLE), reason="numba does not import here")
@@ -312,10 +313,10 @@ def test_a_paper_judge_fit_on_the_fused_loops_is_its_fit_on_torchs_operations(ge
     p, q = torch.randn(80, 30, generator=generator), torch.randn(80, 30, generator=generator) * 1.2 + 0.3
     rows, labels = torch.cat([p, q]).numpy(), np.r_[np.zeros(80), np.ones(80)].astype(np.int64)
     calls = []
-    apply = fused_judge.FusedPaperConvNet.apply
-    monkeypatch.setattr(fused_judge.FusedPaperConvNet, "apply", lambda *a: calls.append(1) or apply(*a))
+    step = fused_judge.set_log_loss_gradients
+    monkeypatch.setattr(fused_judge, "set_log_loss_gradients", lambda *a: calls.append(1) or step(*a))
     fused = PaperConvClassifier(batch_size=32, max_epochs=30).fit(rows, labels)
-    assert calls, "the fused loops trained it"
+    assert len(calls) == 30 * 5, "one pass per batch (144 training rows in 5 batches of <= 32) for 30 epochs"
     monkeypatch.setattr(PaperConvNet, "forward", PaperConvNet.torch_forward)
     torch_ops = PaperConvClassifier(batch_size=32, max_epochs=30, precision="32-true").fit(rows, labels)
     assert fused.n_iter_ == torch_ops.n_iter_

@@ -101,11 +101,8 @@ class _TorchClassifier(ClassifierMixin, BaseEstimator):
         for _ in range(self.max_epochs):
             net.train()
             for batch in train[torch.randperm(len(train), generator=g).to(self.device)].split(batch_size):
-                with self._autocast(x.device):
-                    logits = net(x[batch])
-                loss = nn.functional.binary_cross_entropy_with_logits(logits.float(), y[batch])
                 optimizer.zero_grad(set_to_none=True)
-                loss.backward()
+                self._set_gradients(net, x, y, batch)
                 optimizer.step()
             score = self._held_out_score(self._logits(net.eval(), x[held]), y[held])
             self.validation_scores_.append(score)
@@ -119,6 +116,13 @@ class _TorchClassifier(ClassifierMixin, BaseEstimator):
         net.load_state_dict(best_state)
         self.n_iter_, self.best_validation_score_ = len(self.validation_scores_), best_score
         return net
+
+    def _set_gradients(self, net: nn.Module, x: Tensor, y: Tensor, batch: Tensor) -> None:
+        """The parameters' ``.grad``: the gradient of the mean log loss of the logits of the rows ``x[batch]`` against
+        their labels ``y[batch]``."""
+        with self._autocast(x.device):
+            logits = net(x[batch])
+        nn.functional.binary_cross_entropy_with_logits(logits.float(), y[batch]).backward()
 
     @torch.no_grad()
     def _logits(self, net: nn.Module, x: Tensor) -> Tensor:
@@ -324,9 +328,13 @@ class PaperConvNet(nn.Sequential):
 
     def forward(self, rows: Tensor) -> Tensor:
         parameters = tuple(self.parameters())
-        if self[0].out_channels == 3 and fused_judge.available(rows, parameters):  # its fused loops, on a CPU
+        if self.fused(rows, parameters):
             return fused_judge.FusedPaperConvNet.apply(rows, *parameters)
         return self.torch_forward(rows)
+
+    def fused(self, rows: Tensor, parameters: tuple[Tensor, ...]) -> bool:
+        """Whether its fused loops run it on these rows (3 filters, float32 on a CPU, :func:`fused_judge.available`)."""
+        return self[0].out_channels == 3 and fused_judge.available(rows, parameters)
 
     def torch_forward(self, rows: Tensor) -> Tensor:
         """The logits on torch's operations (any device, autocast): where the fused loops do not run."""
@@ -388,6 +396,15 @@ class PaperConvClassifier(_TorchClassifier):
 
     def _network(self, n_features: int) -> nn.Module:
         return PaperConvNet(n_features)
+
+    def _set_gradients(self, net: nn.Module, x: Tensor, y: Tensor, batch: Tensor) -> None:
+        """On the fused loops where they run: the loss and its gradients in one pass over the batch's rows, read in place."""
+        parameters = tuple(net.parameters())
+        with self._autocast(x.device):
+            fused = isinstance(net, PaperConvNet) and net.fused(x, parameters)
+        if not fused:
+            return super()._set_gradients(net, x, y, batch)
+        fused_judge.set_log_loss_gradients(x, y, batch, parameters)
 
     def _autocast(self, device: torch.device) -> torch.autocast:
         """ "auto" on a CPU is float32 where the fused loops run (measured faster than torch's operations on a 2-core
