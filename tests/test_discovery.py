@@ -1194,7 +1194,7 @@ def test_discover_stopped_by_sigterm_says_how_to_resume_and_the_same_command_end
     last = lines[-1].strip()
     assert last.startswith("otgb discover: stopped by SIGTERM; ") and "Traceback" not in "".join(lines), last
     folder, checkpoint = tmp_path / "runs" / "pendulum" / "fit_cache", last.split("--ckpt_path ")[1].split(" ")[0]
-    assert f"finished fits are in {folder.relative_to(tmp_path)}" in last and list(folder.glob("*.pt")), last
+    assert f"finished fits and intervals are in {folder.relative_to(tmp_path)}" in last and list(folder.glob("*.pt")), last
     assert int(last.split("this run's ")[1].split(" ")[0]) == len(list(folder.glob("*.pt"))), last
     resumed = subprocess.run([*args, f"--ckpt_path={checkpoint}"], cwd=tmp_path, capture_output=True, text=True)
     unstopped = [*args, f"--ckpt_path={checkpoint}", "--discover.fit_cache=null"]

@@ -102,7 +102,7 @@ class Stopped(KeyboardInterrupt):
             return
         n = cache.finished()
         skip = f" (add --ckpt_path {trained} to skip training the grey-box again)" if trained else ""
-        resume = f"this run's {n} finished fits are in {cache.folder}: the same command resumes{skip}"
+        resume = f"this run's {n} finished fits and intervals are in {cache.folder}: the same command resumes{skip}"
         super().__init__(f"otgb discover: stopped by {name}; {resume}")
 
 

@@ -82,7 +82,7 @@ class FitCache:
         return record
 
     def finished(self) -> int:
-        """The fits of this run that are on disk: those it made and those of earlier attempts it read back."""
+        """The fits and intervals of this run that are on disk: those it made and those of earlier attempts it read back."""
         return (len(self.written) if self.writable else 0) + self.read
 
     def summary(self) -> dict[str, Any]:
