@@ -300,6 +300,23 @@ def test_the_paper_judges_fused_loops_are_its_torch_network_forward_and_backward
     assert "Fused" not in type(net.double()(x.double()).grad_fn).__name__, "float64: torch's"
 
 
+@pytest.mark.skipif(bool(fused_judge.UNAVAILABLE), reason="numba does not import here")
+@pytest.mark.parametrize("features", [7, 41, 1041])
+def test_a_fused_training_step_gives_the_log_loss_gradients_of_the_batchs_rows(generator, features):
+    """One pass over the batch's rows, read in place: the gradients autograd gives for the mean binary cross-entropy of
+    the network's logits of rows[batch] (torch's operations), including rows whose pre-activations are 0."""
+    net = PaperConvNet(features)
+    x, y = torch.randn(50, features, generator=generator), (torch.rand(50, generator=generator) < 0.5).float()
+    x[3, : features // 2] = 0
+    batch = torch.randperm(50, generator=generator)[:20]
+    params = tuple(net.parameters())
+    fused_judge.set_log_loss_gradients(x, y, batch, params)
+    fused = [p.grad for p in params]
+    loss = torch.nn.functional.binary_cross_entropy_with_logits(net.torch_forward(x[batch]), y[batch])
+    for fused_grad, torch_grad in zip(fused, torch.autograd.grad(loss, params)):
+        torch.testing.assert_close(fused_grad, torch_grad, rtol=1e-4, atol=1e-6)
+
+
 def _zero_first_layer(net: PaperConvNet) -> PaperConvNet:
     with torch.no_grad():
         net[0].weight.zero_()
