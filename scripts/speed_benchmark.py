@@ -344,6 +344,9 @@ class LibraryConvNet(PaperConvNet):
     def forward(self, rows: torch.Tensor) -> torch.Tensor:
         return torch.nn.Sequential.forward(self, rows.unsqueeze(1)).squeeze(1)
 
+    def fused(self, rows: torch.Tensor, parameters: tuple[torch.Tensor, ...]) -> bool:
+        return False  # its training steps on autograd too, also where the fused loops could run (float32 on a CPU)
+
 
 class LibraryConvJudge(PaperConvClassifier):
     _autocast = _TorchClassifier._autocast  # "auto" as for otgb's other judges, not float32 for the fused loops
@@ -356,6 +359,7 @@ class TorchOpsNet(PaperConvNet):
     """The paper's judge network on otgb's torch operations (its path on a GPU or without numba), not the fused loops."""
 
     forward = PaperConvNet.torch_forward
+    fused = LibraryConvNet.fused
 
 
 class TorchOpsJudge(PaperConvClassifier):

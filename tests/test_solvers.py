@@ -269,6 +269,28 @@ def test_the_gpu_benchmark_ends_by_its_deadline_and_keeps_each_parts_log(tmp_pat
     assert logs <= {path.name for path in (tmp_path / "out").iterdir()}
 
 
+def test_the_judges_benchmarks_references_train_on_autograd_where_otgbs_judge_trains_on_the_fused_loops(monkeypatch):
+    """Otherwise, in float32 on a CPU, the library's convolution would be timed on otgb's own training step."""
+    import importlib.util
+
+    from otgb.metrics import fused_judge
+    from otgb.metrics.classifiers import PaperConvClassifier
+
+    if not fused_judge.usable():
+        pytest.skip("no numba: no fused loops to keep the references off")
+    spec = importlib.util.spec_from_file_location("speed_benchmark", ROOT / "scripts" / "speed_benchmark.py")
+    benchmark = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(benchmark)
+    fused_steps = []
+    original = fused_judge.set_log_loss_gradients
+    monkeypatch.setattr(fused_judge, "set_log_loss_gradients", lambda *a: fused_steps.append(1) or original(*a))
+    rows, labels = benchmark.judge_rows(64, 16)
+    for judge in (benchmark.LibraryConvJudge, benchmark.TorchOpsJudge, PaperConvClassifier):
+        fused_steps.clear()
+        judge(max_epochs=1, precision="32-true").fit(rows, labels)
+        assert bool(fused_steps) == (judge is PaperConvClassifier), judge.__name__
+
+
 def test_the_solve_designs_are_recorded_under_their_label_with_the_machine(tmp_path):
     script = ROOT / "scripts" / "speed_benchmark.py"
     command = [sys.executable, str(script), "designs", "--out", str(tmp_path), "--device", "cpu", "--label", "here"]
