@@ -41,6 +41,7 @@ from otgb.discovery.refine import (
     beats,
     centre,
     discrepancies,
+    discrepancy,
     fit,
     row_terms,
 )
@@ -362,6 +363,20 @@ def test_row_terms_are_each_measured_trajectorys_cross_distances(generator):
         for i in range(5)
     ]
     assert torch.allclose(row_terms(a, b), torch.tensor(expected), rtol=1e-5)
+
+
+def test_the_discrepancy_of_fields_is_the_energy_distance_of_whole_trajectories_plus_that_of_each_cell(generator):
+    """Fields (a cell: one time step and component over a grid) take the one-product path; checked by hand."""
+    a, b = torch.randn(6, 3, 2, 2, 2, generator=generator), torch.randn(5, 3, 2, 2, 2, generator=generator)
+
+    def energy_by_hand(p: list[torch.Tensor], q: list[torch.Tensor]) -> float:
+        mean = lambda pairs: sum(float((x - y).norm()) for x, y in pairs) / len(pairs)  # noqa: E731
+        within = lambda s: mean([(x, y) for i, x in enumerate(s) for j, y in enumerate(s) if i != j])  # noqa: E731
+        return 2 * mean([(x, y) for x in p for y in q]) - within(p) - within(q)
+
+    cells = sum(energy_by_hand(list(a[:, t, c]), list(b[:, t, c])) for t in range(3) for c in range(2))
+    expected = energy_by_hand(list(a), list(b)) + cells
+    assert abs(float(discrepancy(a, b)) - expected) < 1e-4 * abs(expected)
 
 
 def test_a_lead_within_the_measured_samples_noise_is_no_win():

@@ -448,6 +448,34 @@ def test_large_energy_distances_are_compiled_with_the_library_s_values_and_gradi
         assert torch.allclose(x, y, rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.parametrize("compiled", [False, True])
+def test_cell_and_whole_distances_from_one_product_are_the_cells_and_the_whole_rows_apart(monkeypatch, compiled):
+    """Values and gradients as the separate reductions of the cells and of the rows flattened, over blocks of rows,
+    with a repeated row (a zero distance: a finite gradient) in the within-sample means."""
+    torch.manual_seed(0)
+    a = torch.randn(3, 9, 4)
+    a = torch.cat([a, a[:, :1]], 1).requires_grad_()  # row 9 repeats row 0
+    b = torch.randn(3, 6, 4)
+    flat = lambda x: x.transpose(0, 1).flatten(1)[None]  # noqa: E731 -- (G, n, F) -> (1, n, G * F): the whole rows
+
+    def apart() -> list[torch.Tensor]:
+        cells, whole = energy.cross_row_means(a, b), energy.cross_row_means(flat(a), flat(b))[0]
+        within_cells, within_whole = energy.within_means(a), energy.within_means(flat(a))[0]
+        return [cells, whole, within_cells, within_whole]
+
+    def together() -> list[torch.Tensor]:
+        return [*energy.cell_and_whole_row_means(a, b), *energy.cell_and_whole_within_means(a)]
+
+    def with_gradient(means: list[torch.Tensor]) -> list[torch.Tensor]:
+        return [*means, *torch.autograd.grad(sum(m.square().sum() for m in means), a)]
+
+    expected = with_gradient(apart())
+    monkeypatch.setattr(energy, "MAX_BLOCK_ENTRIES", 3 * 6 * 4)  # blocks of 4 rows
+    monkeypatch.setattr(energy, "COMPILED_ENTRIES", 1 if compiled else 10**9)
+    for x, y in zip(expected, with_gradient(together())):
+        assert torch.isfinite(y).all() and torch.allclose(x, y, rtol=1e-5, atol=1e-5), (x, y)
+
+
 def test_energy_distances_that_cannot_be_compiled_run_eagerly_after_one_line(monkeypatch, caplog):
     def cannot_compile(function):
         def fail(*samples):

@@ -35,7 +35,13 @@ from otgb.discovery.chunked import backward_in_chunks, chunk_size
 from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.library import Candidate
 from otgb.discovery.log import diverged, held_divergences, logger, say_again
-from otgb.metrics.energy import batched_energy, cross_row_means, within_means
+from otgb.metrics.energy import (
+    batched_energy,
+    cell_and_whole_row_means,
+    cell_and_whole_within_means,
+    cross_row_means,
+    within_means,
+)
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 from otgb.physics.priors import Choice, Constant, Normal, Prior, Uniform
@@ -258,17 +264,40 @@ class Target:
 
     @classmethod
     def of(cls, y: Tensor) -> Target:
-        return cls(y, within_means(y.flatten(1)[None])[0], within_means(_cells(y)))
+        whole, cells = _within(y)
+        return cls(y, whole, cells)
 
 
 def discrepancy_and_rows(a: Tensor, target: Target) -> tuple[Tensor, Tensor]:
     """:func:`discrepancy` of a to the target and, per target trajectory, its share of the cross terms
     (:func:`row_terms`), from one set of distances."""
-    whole = cross_row_means(a.flatten(1)[None], target.y.flatten(1)[None])[0]  # (m,)
-    cells = cross_row_means(_cells(a), _cells(target.y))  # (T * C, m)
-    value = 2 * whole.mean() - within_means(a.flatten(1)[None])[0] - target.whole
-    value = value + (2 * cells.mean(-1) - within_means(_cells(a)) - target.cells).sum()
+    whole, cells = _cross(a, target.y)  # (m,), (T * C, m)
+    within_whole, within_cells = _within(a)
+    value = 2 * whole.mean() - within_whole - target.whole
+    value = value + (2 * cells.mean(-1) - within_cells - target.cells).sum()
     return value, 2 * (whole + cells.sum(0))
+
+
+def _cross(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
+    """Each trajectory of b's mean distance to a's, whole (m,) and per cell (T * C, m). On fields, both from one
+    product per cell (:func:`otgb.metrics.energy.cell_and_whole_row_means`); a cell of one number is sorted."""
+    if _on_fields(a):
+        cells, whole = cell_and_whole_row_means(_cells(a), _cells(b))
+        return whole, cells
+    return cross_row_means(a.flatten(1)[None], b.flatten(1)[None])[0], cross_row_means(_cells(a), _cells(b))
+
+
+def _within(y: Tensor) -> tuple[Tensor, Tensor]:
+    """Mean distance between y's distinct trajectories, whole (a number) and per cell (T * C,), as :func:`_cross`."""
+    if _on_fields(y):
+        cells, whole = cell_and_whole_within_means(_cells(y))
+        return whole, cells
+    return within_means(y.flatten(1)[None])[0], within_means(_cells(y))
+
+
+def _on_fields(y: Tensor) -> bool:
+    """Whether a cell of y (n, T, C, *space) (one time step and component) holds more than one number."""
+    return math.prod(y.shape[3:]) > 1
 
 
 def row_terms(a: Tensor, b: Tensor) -> Tensor:

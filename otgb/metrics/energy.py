@@ -78,6 +78,60 @@ def cross_row_means(a: Tensor, b: Tensor) -> Tensor:
     return torch.cat([_distances(_mean_distances, a[g : g + step], b[g : g + step]) for g in range(0, len(a), step)])
 
 
+def cell_and_whole_row_means(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
+    """Each row of b's mean distance to the rows of a, per cell and between whole rows, from one set of products.
+
+    a (G, n, F) and b (G, m, F) hold G cells of each row (a whole row is its G cells side by side:
+    a field's frames and components): -> per cell (G, m), as :func:`cross_row_means`, and whole
+    (m,), as :func:`cross_row_means` of the rows flattened. A whole row's squared distance is the
+    sum of its cells' squared distances, so both come from one product per cell, half the work of
+    computing them apart (:func:`_cell_and_whole_sums`).
+    """
+    cells, whole = _cell_and_whole_blocks(a, b, within=False)
+    return cells / a.shape[1], whole / a.shape[1]
+
+
+def cell_and_whole_within_means(x: Tensor) -> tuple[Tensor, Tensor]:
+    """Mean distance between the distinct rows of x (G, n, F), per cell (G,) and between whole rows (a number),
+    as :func:`within_means` of the cells and of the rows flattened; from one set of products."""
+    cells, whole = _cell_and_whole_blocks(x, x, within=True)
+    pairs = x.shape[1] * (x.shape[1] - 1)
+    return cells.sum(-1) / pairs, whole.sum() / pairs
+
+
+def _cell_and_whole_blocks(a: Tensor, b: Tensor, within: bool) -> tuple[Tensor, Tensor]:
+    """Sums over a's rows of :func:`_cell_and_whole_sums`, a's rows taken in blocks of bounded memory."""
+    cells, n, m = a.shape[0], a.shape[1], b.shape[1]
+    step = max(1, MAX_BLOCK_ENTRIES // (cells * m))
+    large = a.device.type == "cpu" and cells * n * m >= COMPILED_ENTRIES
+    sums = _compiled(_cell_and_whole_sums) if large else _cell_and_whole_sums
+    parts = []
+    for start in range(0, n, step):
+        rows = torch.arange(start, min(n, start + step), device=a.device)
+        parts.append(sums(a[:, start : start + step], b, rows if within else torch.full_like(rows, -1)))
+    return sum(part[0] for part in parts), sum(part[1] for part in parts)
+
+
+def _cell_and_whole_sums(a: Tensor, b: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
+    """Per column of b, the summed distances from a's rows, per cell (G, m) and whole (m,): a (G, r, F), b (G, m, F).
+
+    ``rows``: where a's rows sit among b's (a within-sample block, whose own pairs are set to 0),
+    or -1 (no pairs of a point with itself). The squared distances come from one matrix product per cell (|x|^2 + |y|^2 - 2 x.y),
+    a whole row's as the sum of its cells'; the square root is taken where they are positive,
+    with a zero gradient elsewhere (a point's distance to itself).
+    """
+    squared = a.square().sum(-1, keepdim=True) + b.square().sum(-1).unsqueeze(1) - 2 * a @ b.transpose(1, 2)
+    own = rows[:, None] == torch.arange(b.shape[1], device=b.device)
+    squared = torch.where(own, 0.0, squared).clamp_min(0)
+    return _root(squared).sum(1), _root(squared.sum(0)).sum(0)
+
+
+def _root(squared: Tensor) -> Tensor:
+    """sqrt, with the gradient 0 (not infinite) where the argument is 0."""
+    positive = squared > 0
+    return torch.where(positive, squared, 1.0).sqrt() * positive
+
+
 def _distance_sums(x: Tensor) -> Tensor:
     return torch.cdist(x, x).sum((1, 2))
 
