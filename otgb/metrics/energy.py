@@ -116,9 +116,9 @@ def _cell_and_whole_sums(a: Tensor, b: Tensor, rows: Tensor) -> tuple[Tensor, Te
     """Per column of b, the summed distances from a's rows, per cell (G, m) and whole (m,): a (G, r, F), b (G, m, F).
 
     ``rows``: where a's rows sit among b's (a within-sample block, whose own pairs are set to 0),
-    or -1 (no pairs of a point with itself). The squared distances come from one matrix product per cell (|x|^2 + |y|^2 - 2 x.y),
-    a whole row's as the sum of its cells'; the square root is taken where they are positive,
-    with a zero gradient elsewhere (a point's distance to itself).
+    or -1 (no pairs of a point with itself). The squared distances come from one matrix product
+    per cell (|x|^2 + |y|^2 - 2 x.y), a whole row's as the sum of its cells'; the square root is
+    taken where they are positive, with a zero gradient elsewhere (a point's distance to itself).
     """
     squared = a.square().sum(-1, keepdim=True) + b.square().sum(-1).unsqueeze(1) - 2 * a @ b.transpose(1, 2)
     own = rows[:, None] == torch.arange(b.shape[1], device=b.device)
