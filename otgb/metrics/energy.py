@@ -103,8 +103,7 @@ def _cell_and_whole_blocks(a: Tensor, b: Tensor, within: bool) -> tuple[Tensor, 
     """Sums over a's rows of :func:`_cell_and_whole_sums`, a's rows taken in blocks of bounded memory."""
     cells, n, m = a.shape[0], a.shape[1], b.shape[1]
     step = max(1, MAX_BLOCK_ENTRIES // (cells * m))
-    large = a.device.type == "cpu" and cells * n * m >= COMPILED_ENTRIES
-    sums = _compiled(_cell_and_whole_sums) if large else _cell_and_whole_sums
+    sums = _compiled(_cell_and_whole_sums) if _worth_compiling(a.device, cells * n * m) else _cell_and_whole_sums
     parts = []
     for start in range(0, n, step):
         rows = torch.arange(start, min(n, start + step), device=a.device)
@@ -162,8 +161,13 @@ def _distances(function: Callable, *samples: Tensor) -> Tensor:
     If it cannot be compiled, it runs eagerly after one line saying why.
     """
     first, last = samples[0], samples[-1]
-    large = first.device.type == "cpu" and first.shape[0] * first.shape[1] * last.shape[1] >= COMPILED_ENTRIES
+    large = _worth_compiling(first.device, first.shape[0] * first.shape[1] * last.shape[1])
     return _compiled(function)(*samples) if large else function(*samples)
+
+
+def _worth_compiling(device: torch.device, entries: int) -> bool:
+    """Whether distance matrices of ``entries`` entries in all run compiled: on the CPU, from :data:`COMPILED_ENTRIES`."""
+    return device.type == "cpu" and entries >= COMPILED_ENTRIES
 
 
 def _centred(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
