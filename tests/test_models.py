@@ -46,20 +46,6 @@ def test_correction_starts_small_and_uses_z(pendulum, generator):
     assert not torch.allclose(gb.correction(state, cond), gb.correction(state, torch.randn(64, 4)))
 
 
-def test_a_correction_that_does_not_see_theta_is_conditioned_on_z_alone(pendulum, generator):
-    gb = GreyBoxODE(pendulum, 3, partial(ConditionalMLP, output_scale=1.0), correction_sees_theta=False)
-    assert gb.correction.encoder[0].in_features == 3  # z only; theta would add pendulum.theta_dim
-    x0, z = pendulum.sample_initial_state(6, generator), torch.randn(6, 3)
-    slow, fast = torch.full((6, 1), 1.0), torch.full((6, 1), 2.5)
-    state = torch.randn(6, 2)
-    correction_of = lambda theta: gb.vector_field(state, theta, gb._condition(theta, z)) - pendulum.vector_field(state, theta)  # noqa: E731
-    assert torch.allclose(correction_of(slow), correction_of(fast), atol=1e-5)  # f_phi ignores theta
-    assert not torch.allclose(correction_of(slow), 0 * correction_of(slow), atol=1e-3)
-    seeing = GreyBoxODE(pendulum, 3, partial(ConditionalMLP, output_scale=1.0))
-    assert seeing.correction.encoder[0].in_features == 3 + pendulum.theta_dim
-    assert gb(None, x0, slow, z).shape == (6, 50, 1)
-
-
 def test_separable_correction_moves_the_state_only_along_its_basis():
     basis = partial(ConditionalConvNet, channels=(8,), padding_mode="zeros", output_scale=1.0)
     correction = SeparableCorrection((1, 20), (1, 20), 5, basis, rank=2)

@@ -25,24 +25,14 @@ class GreyBoxODE(nn.Module):
         physics: the incomplete model f_p (its terms, if any, are part of the known physics).
         z_dim: size of the latent z (0 for a deterministic one-to-one map).
         correction: builds f_phi from (state_shape, correction_shape, cond_dim); called with
-            cond_dim = theta_dim + z_dim (z_dim without theta). f_phi(state, cond) returns the
-            correction's shape.
-        correction_sees_theta: whether f_phi is conditioned on f_p's parameters theta (the
-            paper's maps are). False fits a missing effect that does not depend on them, e.g.
-            friction or advection with their own coefficients: f_phi then sees the state and z
-            only, which removes the directions in which a learned term could trade with f_p's
-            parameters (a friction that varies with the pendulum's frequency, or a frequency shift).
+            cond_dim = theta_dim + z_dim. f_phi(state, cond) returns the correction's shape.
     """
 
-    def __init__(
-        self, physics: PhysicsModel, z_dim: int, correction: CorrectionFactory, correction_sees_theta: bool = True
-    ) -> None:
+    def __init__(self, physics: PhysicsModel, z_dim: int, correction: CorrectionFactory) -> None:
         super().__init__()
         self.physics = physics
         self.z_dim = z_dim
-        self.correction_sees_theta = correction_sees_theta
-        cond_dim = (physics.theta_dim if correction_sees_theta else 0) + z_dim
-        self.correction = correction(tuple(physics.state_shape), tuple(physics.correction_shape), cond_dim)
+        self.correction = correction(tuple(physics.state_shape), tuple(physics.correction_shape), physics.theta_dim + z_dim)
 
     def forward(self, x: Tensor, initial_state: Tensor, theta: Tensor, z: Tensor) -> Tensor:
         """Generated observed trajectories (B, T, *obs) from x0 (B, *state), theta (B, P), z (B, z_dim).
@@ -69,14 +59,10 @@ class GreyBoxODE(nn.Module):
         ``conditioned(u, *parts)``, as otgb's conditional networks do) has it computed once per
         solve instead of at every stage: z and theta are constant along a trajectory.
         """
-        cond = self._condition(theta, z)
+        cond = torch.cat([theta, z], dim=1)
         if hasattr(self.correction, "condition"):
             return self.physics.solve(self.conditioned_field, initial_state, theta, *self.correction.condition(cond))
         return self.physics.solve(self.vector_field, initial_state, theta, cond)
-
-    def _condition(self, theta: Tensor, z: Tensor) -> Tensor:
-        """What f_phi is conditioned on: (theta, z), or z alone."""
-        return torch.cat([theta, z], dim=1) if self.correction_sees_theta else z
 
     @torch.no_grad()
     def components(self, initial_state: Tensor, theta: Tensor, z: Tensor) -> dict[str, Tensor]:
@@ -89,7 +75,7 @@ class GreyBoxODE(nn.Module):
         batch, steps = states.shape[:2]
         flat = states.flatten(0, 1)
         repeat = lambda v: v.repeat_interleave(steps, dim=0)  # noqa: E731
-        theta_r, cond_r = repeat(theta), repeat(self._condition(theta, z))
+        theta_r, cond_r = repeat(theta), repeat(torch.cat([theta, z], dim=1))
         physics = self.physics.vector_field(flat, theta_r).reshape(batch, steps, *self.physics.state_shape)
         correction = self.correction(flat, cond_r).reshape(batch, steps, *self.physics.correction_shape)
         return {"states": states, "physics": physics, "correction": correction}
