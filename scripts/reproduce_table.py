@@ -209,8 +209,9 @@ class Grid:
         command = [portable(arg, self.out.parent) for arg in common if not arg.startswith("--data.cache_dir")]
         record = {"task": self.task, "row": row, "seed": seed, **figures, "fit_s": fit_s, "command": command, **more}
         record |= {"paper_judge_tol": PaperConvClassifier().tol} if "paper" in tested_now else {}
-        if row in METHODS:  # the critic it was trained against: a task's config may change its critic later
-            record["critic"] = yaml.safe_load(newest(folder, "test/version_*/config.yaml").read_text())["model"]["critic"]
+        if row in METHODS:  # what it was trained with: a task's config may change them later
+            model = yaml.safe_load(newest(folder, "test/version_*/config.yaml").read_text())["model"]
+            record |= {name: setting(model, name) for name in trained_with(row)}
         path = self.result_path(row, seed)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps({**record, "machine": machine(asks_for_gpu(self.extra))}, indent=1) + "\n")
@@ -245,8 +246,7 @@ def task_table(results: Path, task: str) -> list[str]:
     lines += [f"| row | seeds | {head} | paper | wall time per fit or discover run |", "|" + "---|" * (len(names) + 4)]
     paper = PAPER.get(task, {})
     floor = records["f_p only"] or next((runs[:1] for runs in records.values() if runs), [])  # every test measures it
-    configured = configured_critic(task)
-    other_critic = {row: another_critic(runs, configured) for row, runs in records.items()}
+    earlier = {row: earlier_settings(task, row, runs) for row, runs in records.items() if row in METHODS}
     for row, runs in [*records.items(), ("Reference", floor)]:
         source = "reference" if row == "Reference" else "model"
         cells = " | ".join(seeds_cell([r[source][name] for r in runs if name in r[source]]) + untolerant(runs, source, name)
@@ -255,11 +255,11 @@ def task_table(results: Path, task: str) -> list[str]:
         walls = [r["fit_s"] for r in runs if r["fit_s"] is not None]
         wall = f"{statistics.mean(walls) / 60:.1f} min" if walls and source == "model" else "-"
         seeds = len(runs) if row in (*METHODS, AUGMENTED) else "-"
-        name = f"{row} {OTHER_CRITIC}" if other_critic.get(row) else row
+        name = f"{row} {OTHER_SETTINGS}" if earlier.get(row) else row
         lines.append(f"| {name} | {seeds} | {cells} | {published} | {wall} |")
     if any(untolerant(runs, "model", "c2st_paper") for runs in records.values()) or untolerant(floor, "reference", "c2st_paper"):
         lines += ["", f"{UNTOLERANT} {UNTOLERANT_NOTE}"]
-    lines += critic_note([c for critics in other_critic.values() for c in critics], configured)
+    lines += settings_note(task, [pair for pairs in earlier.values() for pair in pairs])
     if records[AUGMENTED]:
         named = [f"seed {r['seed']}: {', '.join(map(describe, r['terms'])) or 'nothing'}" for r in records[AUGMENTED]]
         lines += ["", f"The terms otgb discover named: {'; '.join(named)}."]
@@ -280,40 +280,75 @@ def untolerant(runs: list[dict], source: str, name: str) -> str:
     return f" {UNTOLERANT}" if marked else ""
 
 
-OTHER_CRITIC = "‡"
+OTHER_SETTINGS = "‡"
+SETTINGS = {"critic": ("critic",), "correction": ("transport_map", "init_args", "correction"), "objective": ("objective",)}
 
 
-def configured_critic(task: str) -> dict | None:
-    """The critic that the task's config sets now (None: the config sets none)."""
-    return yaml.safe_load((ROOT / "configs" / f"{TASKS[task][0]}.yaml").read_text()).get("model", {}).get("critic")
+def trained_with(row: str) -> tuple[str, ...]:
+    """The settings of a method's runs that come from the task's config (the method's overlays set the others)."""
+    return ("critic", *(("correction",) if row.endswith("GB") else ()), *(("objective",) if row.startswith("OT") else ()))
 
 
-def differs(recorded: dict, configured: dict) -> bool:
-    """Whether a run's recorded critic is not the configured one: another class, or another value of a setting both
-    name (the record holds every setting, the config those it changes)."""
-    if recorded["class_path"].rsplit(".", 1)[-1] != configured["class_path"].rsplit(".", 1)[-1]:
-        return True
-    mine, theirs = recorded.get("init_args", {}), configured.get("init_args", {})
-    return any(mine[k] != theirs[k] for k in mine.keys() & theirs.keys())
+def setting(model: dict, name: str) -> dict | None:
+    """One of :data:`SETTINGS` in a ``model`` section of a config (None: it sets none)."""
+    value = model
+    for key in SETTINGS[name]:
+        value = value.get(key) if isinstance(value, dict) else None
+    return value
 
 
-def another_critic(runs: list[dict], configured: dict | None) -> list[dict]:
-    """The recorded critics of ``runs`` that are not the task's ``configured`` critic."""
-    return [r["critic"] for r in runs if configured is not None and "critic" in r and differs(r["critic"], configured)]
+def configured(task: str, name: str) -> dict | None:
+    """What the task's config sets now for the setting ``name``."""
+    return setting(yaml.safe_load((ROOT / "configs" / f"{TASKS[task][0]}.yaml").read_text()).get("model", {}), name)
 
 
-def critic_note(others: list[dict], configured: dict | None) -> list[str]:
-    """The note under a task's table where some rows were trained against ``others``, not the config's critic now."""
-    if not others:
+def differs(recorded: object, configured: object) -> bool:
+    """Whether a run's recorded setting is not the configured one: another class, or another value of a setting both
+    name, at any depth (a record holds every setting, the config those it changes)."""
+    if isinstance(recorded, dict) and isinstance(configured, dict):
+        return any(
+            short(recorded[k]) != short(configured[k]) if k == "class_path" else differs(recorded[k], configured[k])
+            for k in recorded.keys() & configured.keys()
+        )
+    return recorded != configured
+
+
+def short(class_path: str) -> str:
+    return class_path.rsplit(".", 1)[-1]
+
+
+def earlier_settings(task: str, row: str, runs: list[dict]) -> list[tuple[str, dict]]:
+    """The recorded settings of ``runs`` that are not what the task's config sets now, as (name, recorded)."""
+    now = {name: configured(task, name) for name in trained_with(row)}
+    return [(name, r[name]) for r in runs for name in now if r.get(name) and now[name] and differs(r[name], now[name])]
+
+
+def settings_note(task: str, earlier: list[tuple[str, dict]]) -> list[str]:
+    """The note under a task's table where some rows were trained with other settings than its config's now."""
+    if not earlier:
         return []
-    before = " and ".join(sorted({critic_text(c, configured) for c in others}))
-    return ["", f"{OTHER_CRITIC} trained against the critic {before}; the config's is now {critic_text(configured, configured)}."]
+    texts: dict[str, set[str]] = {}
+    for name, value in earlier:
+        texts.setdefault(name, set()).add(setting_text(value, configured(task, name)))
+    before = "; ".join(f"the {name} {' and '.join(sorted(shown))}" for name, shown in texts.items())
+    now = "; ".join(f"the {name} {setting_text(configured(task, name), configured(task, name))}" for name in texts)
+    return ["", f"{OTHER_SETTINGS} trained with {before}; the config's is now {now}."]
 
 
-def critic_text(critic: dict, configured: dict) -> str:
-    """A critic's class and the settings that the configured critic names."""
-    settings = {k: v for k, v in critic.get("init_args", {}).items() if k in configured.get("init_args", {})}
-    return f"`{critic['class_path'].rsplit('.', 1)[-1]}` {json.dumps(settings)}"
+def setting_text(value: dict, configured: dict) -> str:
+    """A setting as ``Class(key=value, ...)``: of the same class as the configured one, the keys that the config names."""
+    same = short(value.get("class_path", "")) == short(configured.get("class_path", ""))
+    names = configured.get("init_args", {}).keys() if same else value.get("init_args", {}).keys()
+    return compact({**value, "init_args": {k: v for k, v in value.get("init_args", {}).items() if k in names}})
+
+
+def compact(value: object) -> str:
+    """A config value in one line, classes by their short names: ``SeparableCorrection(rank=1, basis=...)``."""
+    if isinstance(value, dict):
+        arguments = value.get("init_args", {}) if "class_path" in value or "init_args" in value else value
+        inner = ", ".join(f"{k}={compact(v)}" for k, v in arguments.items())
+        return f"`{short(value['class_path'])}`({inner})" if "class_path" in value else f"({inner})"
+    return json.dumps(value)
 
 
 def describe(term: dict) -> str:

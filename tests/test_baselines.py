@@ -104,6 +104,7 @@ def test_reproduce_table_quick_runs_the_grid_resumes_and_writes_the_table(tmp_pa
     record = json.loads((tmp_path / "results" / "Pendulum-1-m" / "OT-GB" / "seed0.json").read_text())
     assert record["model"]["abs_err"] > 0 and record["fit_s"] > 0 and "--seed_everything=0" in record["command"]
     assert record["critic"]["class_path"].endswith("Critic"), "the critic it was trained against, from its run's config"
+    assert record["correction"]["class_path"].endswith("ConditionalMLP") and "gamma" in record["objective"]["init_args"]
     checkpoint = next(arg for arg in record["command"] if arg.startswith("--ckpt_path="))
     assert checkpoint.startswith("--ckpt_path=OUT/Pendulum-1-m/OT-GB/seed0/"), "no path of this machine in a result file"
     assert not any(str(tmp_path) in arg or str(ROOT) in arg for arg in record["command"])
@@ -158,29 +159,36 @@ def test_the_committed_table_1_is_what_gather_writes_from_the_committed_result_f
     assert copy.read_text() == committed, "run: python scripts/reproduce_table.py --gather docs/results.md"
 
 
-def test_gather_marks_the_rows_trained_against_another_critic_than_the_configs_now(tmp_path):
-    """A row whose runs recorded another critic than the task's config sets now is marked, with a note naming both;
-    a row with the configured critic (its record holds more settings than the config names) or none recorded is not."""
+def test_gather_marks_the_rows_trained_with_other_settings_than_the_configs_now(tmp_path):
+    """A row whose runs recorded another critic or correction than the task's config sets now is marked, with a note
+    naming both; a row with the configured ones (its record holds more settings than the config names) or none
+    recorded is not."""
     table = _table()
-    configured = table.configured_critic("React-diff-1-m")
+    configured = table.configured("React-diff-1-m", "critic")
     settings = configured["init_args"]
     earlier = {
         "class_path": configured["class_path"],
         "init_args": {**settings, "time_as_channels": not settings["time_as_channels"]},
     }
     current = {"class_path": "otgb.models.critics.ConvCritic", "init_args": {**settings, "precision": "32-true"}}
-    for row, critic in (("OT-GB", current), ("WGAN-GB", earlier), ("OT-BB", None)):
+    free_net = {"class_path": "otgb.models.ConditionalMLP", "init_args": {"hidden": [8]}}
+    rows = {"OT-GB": {"critic": current}, "WGAN-GB": {"critic": earlier, "correction": free_net}, "OT-BB": {}}
+    for row, trained_with in rows.items():
         record = {"seed": 0, "fit_s": 60.0, "machine": "m", "command": [], "reference": {}}
-        record |= {"model": {"nrmse": 0.03, "abs_err": 0.03}} | ({"critic": critic} if critic else {})
+        record |= {"model": {"nrmse": 0.03, "abs_err": 0.03}} | trained_with
         path = tmp_path / "runs" / "React-diff-1-m" / row / "seed0.json"
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(record))
     target = tmp_path / "results.md"
     table.gather(tmp_path / "runs", target)
     text = target.read_text()
-    assert "| OT-GB | 1 |" in text and f"| WGAN-GB {table.OTHER_CRITIC} | 1 |" in text and "| OT-BB | 1 |" in text
-    shown = lambda c: f"`ConvCritic` {json.dumps(c['init_args'])}"  # noqa: E731
-    note = f"{table.OTHER_CRITIC} trained against the critic {shown(earlier)}; the config's is now {shown(configured)}."
+    assert "| OT-GB | 1 |" in text and f"| WGAN-GB {table.OTHER_SETTINGS} | 1 |" in text and "| OT-BB | 1 |" in text
+    correction = table.compact(table.configured("React-diff-1-m", "correction"))
+    note = (
+        f"{table.OTHER_SETTINGS} trained with the critic `ConvCritic`(channels=[16, 32, 64], time_as_channels=false); "
+        "the correction `ConditionalMLP`(hidden=[8]); the config's is now the critic "
+        f"`ConvCritic`(channels=[16, 32, 64], time_as_channels=true); the correction {correction}."
+    )
     assert f"\n{note}\n" in text, text
 
 
