@@ -209,8 +209,9 @@ class Grid:
         command = [portable(arg, self.out.parent) for arg in common if not arg.startswith("--data.cache_dir")]
         record = {"task": self.task, "row": row, "seed": seed, **figures, "fit_s": fit_s, "command": command, **more}
         record |= {"paper_judge_tol": PaperConvClassifier().tol} if "paper" in tested_now else {}
-        if row in METHODS:  # what it was trained with: a task's config may change them later
-            model = yaml.safe_load(newest(folder, "test/version_*/config.yaml").read_text())["model"]
+        if row in (*METHODS, AUGMENTED):  # what it was trained with: a task's config may change them later
+            trained = newest(folder, ("fit" if row == AUGMENTED else "test") + "/version_*/config.yaml")  # discover's grey-box
+            model = yaml.safe_load(trained.read_text())["model"]
             record |= {name: setting(model, name) for name in trained_with(row)}
         path = self.result_path(row, seed)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -246,7 +247,7 @@ def task_table(results: Path, task: str) -> list[str]:
     lines += [f"| row | seeds | {head} | paper | wall time per fit or discover run |", "|" + "---|" * (len(names) + 4)]
     paper = PAPER.get(task, {})
     floor = records["f_p only"] or next((runs[:1] for runs in records.values() if runs), [])  # every test measures it
-    earlier = {row: earlier_settings(task, row, runs) for row, runs in records.items() if row in METHODS}
+    earlier = {row: earlier_settings(task, row, runs) for row, runs in records.items() if row in (*METHODS, AUGMENTED)}
     for row, runs in [*records.items(), ("Reference", floor)]:
         source = "reference" if row == "Reference" else "model"
         cells = " | ".join(seeds_cell([r[source][name] for r in runs if name in r[source]]) + untolerant(runs, source, name)
@@ -285,7 +286,10 @@ SETTINGS = {"critic": ("critic",), "correction": ("transport_map", "init_args", 
 
 
 def trained_with(row: str) -> tuple[str, ...]:
-    """The settings of a method's runs that come from the task's config (the method's overlays set the others)."""
+    """The settings of a method's runs that come from the task's config (the method's overlays set the others); of the
+    augmented-physics row, those of the OT-GB fit that ``otgb discover`` read."""
+    if row == AUGMENTED:
+        return tuple(SETTINGS)
     return ("critic", *(("correction",) if row.endswith("GB") else ()), *(("objective",) if row.startswith("OT") else ()))
 
 

@@ -173,16 +173,18 @@ def test_gather_marks_the_rows_trained_with_other_settings_than_the_configs_now(
     current = {"class_path": "otgb.models.critics.ConvCritic", "init_args": {**settings, "precision": "32-true"}}
     free_net = {"class_path": "otgb.models.ConditionalMLP", "init_args": {"hidden": [8]}}
     rows = {"OT-GB": {"critic": current}, "WGAN-GB": {"critic": earlier, "correction": free_net}, "OT-BB": {}}
+    rows[table.AUGMENTED] = {"correction": free_net, "terms": []}  # the grey-box that discover read
     for row, trained_with in rows.items():
         record = {"seed": 0, "fit_s": 60.0, "machine": "m", "command": [], "reference": {}}
         record |= {"model": {"nrmse": 0.03, "abs_err": 0.03}} | trained_with
-        path = tmp_path / "runs" / "React-diff-1-m" / row / "seed0.json"
+        path = tmp_path / "runs" / "React-diff-1-m" / table.folder_of(row) / "seed0.json"
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(record))
     target = tmp_path / "results.md"
     table.gather(tmp_path / "runs", target)
     text = target.read_text()
     assert "| OT-GB | 1 |" in text and f"| WGAN-GB {table.OTHER_SETTINGS} | 1 |" in text and "| OT-BB | 1 |" in text
+    assert f"| {table.AUGMENTED} {table.OTHER_SETTINGS} | 1 |" in text
     correction = table.compact(table.configured("React-diff-1-m", "correction"))
     note = (
         f"{table.OTHER_SETTINGS} trained with the critic `ConvCritic`(channels=[16, 32, 64], time_as_channels=false); "
