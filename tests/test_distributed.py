@@ -64,9 +64,12 @@ def test_two_process_fit_and_test_of_the_pendulum(tmp_path):
     assert [float(r["step"]) for r in rows if r.get("val/abs_err")] == [4.0, 9.0], "one process writes the log, once"
     assert sorted(p.name for p in (run / "figures").iterdir())[-1] == "trajectories_step0000010.png"
 
-    _otgb_ddp(tmp_path, "test", *_args(tmp_path, "pendulum.yaml"), f"--ckpt_path={run / 'checkpoints' / 'last.ckpt'}")
-    metrics = json.loads((tmp_path / "run" / "version_1" / "metrics.json").read_text())
-    assert metrics["run"]["global_step"] == 10 and metrics["model"]["abs_err"]["mean"] > 0
+    odd = [*_args(tmp_path, "pendulum.yaml"), "--data.n_test=21", f"--ckpt_path={run / 'checkpoints' / 'last.ckpt'}"]
+    _otgb_ddp(tmp_path, "test", *odd, "--data.eval_batch_size=5")  # 21 inputs: 11 (3 batches) and 10 (2), none twice
+    subprocess.run([sys.executable, "-m", "otgb.cli", "test", *odd], cwd=tmp_path, check=True, capture_output=True)
+    both, one = (json.loads((tmp_path / "run" / f"version_{v}" / "metrics.json").read_text()) for v in (1, 2))
+    assert both["run"]["global_step"] == 10 and both["model"]["abs_err"]["mean"] > 0
+    assert both["model"]["abs_err"]["mean"] == pytest.approx(one["model"]["abs_err"]["mean"], rel=1e-5), "as one process"
 
 
 @pytest.mark.slow  # the pendulum's two-process run above covers DDP in the default suite

@@ -9,6 +9,7 @@ from typing import Any
 
 import torch
 from lightning import LightningDataModule
+from lightning.pytorch.overrides.distributed import UnrepeatedDistributedSampler
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
@@ -219,10 +220,19 @@ class SimulationDataModule(LightningDataModule):
         return StreamLoader(self.source_stream(), lambda: self.items_consumed, num_workers=self.num_workers)
 
     def val_dataloader(self) -> DataLoader:
-        return DataLoader(JointDataset(self.val_set), batch_size=self.eval_batch_size, shuffle=False)
+        return self._evaluation_loader(self.val_set)
 
     def test_dataloader(self) -> DataLoader:
-        return DataLoader(JointDataset(self.test_set), batch_size=self.eval_batch_size, shuffle=False)
+        return self._evaluation_loader(self.test_set)
+
+    def _evaluation_loader(self, tensors: dict[str, Tensor]) -> DataLoader:
+        """Each evaluation input once over all processes: Lightning's default distributed sampler would pad the
+        processes' shares to one length with repeated inputs, which the synced metrics would then count twice."""
+        dataset, world = JointDataset(tensors), self.trainer.world_size if self.trainer is not None else 1
+        if world <= 1:
+            return DataLoader(dataset, batch_size=self.eval_batch_size, shuffle=False)
+        sampler = UnrepeatedDistributedSampler(dataset, num_replicas=world, rank=self.trainer.global_rank, shuffle=False)
+        return DataLoader(dataset, batch_size=self.eval_batch_size, sampler=sampler)
 
     # --- on-device simulation and the budget ------------------------------------------
     def on_after_batch_transfer(self, batch: Any, dataloader_idx: int) -> Any:
