@@ -21,6 +21,7 @@ iterations. Map updates are logged as ``train/map_updates``.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -412,6 +413,16 @@ class MapTraining(LightningModule):
 
     def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
         self.sigterm.agree(self.trainer)
+        self._validate_last_step()
+
+    def _validate_last_step(self) -> None:
+        """Validate the run's last step also where ``trainer.val_check_interval`` does not divide the run's steps, so
+        that its weights can be the best checkpoint: Lightning validates a fit that is asked to stop
+        (``trainer.should_stop``), and the budget ends the fit after this step anyway."""
+        trainer, every = self.trainer, self.trainer.val_check_batch
+        last = trainer.global_step >= trainer.estimated_stepping_batches
+        if last and every not in (None, math.inf) and trainer.global_step % every != 0:
+            trainer.should_stop = True
 
     def on_validation_epoch_start(self) -> None:
         self._key_draws("val")

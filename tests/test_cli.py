@@ -96,6 +96,14 @@ def test_budget_ends_training_and_sets_the_schedule_length(tmp_path):
     assert scheduler["_last_lr"][0] == pytest.approx(0.1 * scheduler["base_lrs"][0])
 
 
+def test_the_last_step_is_validated_where_the_interval_does_not_divide_the_run(tmp_path):
+    main(["fit", *_args(tmp_path, "--data.simulation_budget=560", "--model.t_max=5")])  # 560 / (16 * 5) = 7 steps
+    run = tmp_path / "run" / "version_0"
+    assert [int(float(r["step"])) for r in _rows(run) if r.get("val/abs_err")] == [2, 5, 6], "steps 3, 6 and the last, 7"
+    assert torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)["global_step"] == 7
+    assert (run / "figures" / "trajectories_step0000007.png").is_file()
+
+
 def test_the_batch_rule_scales_both_learning_rates_before_the_schedules_start(tmp_path):
     rule = ["--model.lr_batch_rule=otgb.schedules.BatchScaledRate", "--model.lr_batch_rule.reference_batch=4"]
     rule.append("--model.lr_batch_rule.exponent=-0.5")
