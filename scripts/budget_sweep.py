@@ -7,6 +7,8 @@
     python scripts/budget_sweep.py study --out results/budget --name pendulum-budget-study \\
         --storage sqlite:///STUDY_DIR/study.db --study pendulum-budget --space configs/tune/pendulum-budget.yaml
     python scripts/budget_sweep.py merge --out results/budget --name pendulum-gpu --parts gpu-part-a gpu-part-b
+    python scripts/budget_sweep.py average --out results/budget --sweep pendulum-3125-steps \
+        --folders RUNS/pendulum-3125-steps/1000000/320/seed{0,1,2}
     python scripts/budget_sweep.py table --out results/budget --doc docs/results.md
 
 Each (budget, batch, seed) is one real ``otgb fit`` and an ``otgb test`` of its best checkpoint
@@ -17,7 +19,10 @@ rerun skips what is done and resumes an interrupted fit from its ``last.ckpt``. 
 GPU, several processes) each under its own name; ``merge`` joins them into one. ``table`` writes every
 sweep's table into ``--doc`` between ``<!-- results: scripts/budget_sweep.py -->`` and
 ``<!-- end results -->``, with a line per ``otgb tune`` study that ``study`` recorded (its result files copied
-beside the sweeps, a summary in ``<out>/<name>/study.json``).
+beside the sweeps, a summary in ``<out>/<name>/study.json``) and per ``average``: one grey-box whose f_phi is the
+mean of the f_phi of a sweep's seeds at one budget (each seed's best checkpoint), tested as each seed was, in
+``<out>/averaged/``. If the seeds' errors were their own, the mean's error would fall as one over the square root
+of their number; what it keeps is what the runs share.
 """
 
 from __future__ import annotations
@@ -25,14 +30,16 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import tempfile
 from pathlib import Path
 
 import optuna
 import torch
 import yaml
+from torch import Tensor, nn
 
 from otgb.reports import LABELS, mean_spread, write_between
-from otgb.runs import asks_for_gpu, fit_and_test, machine, newest
+from otgb.runs import asks_for_gpu, fit_and_test, load_run, machine, newest
 
 START, END = "<!-- results: scripts/budget_sweep.py -->", "<!-- end results -->"
 
@@ -85,6 +92,64 @@ def merge(out: Path, name: str, parts: list[str]) -> None:
     for part in parts:
         (out / f"{part}.json").unlink()
     print(f"{name}: {len(merged)} runs from {len(parts)} parts")
+
+
+class MeanCorrection(nn.Module):
+    """f_phi as the mean of several runs' f_phi."""
+
+    def __init__(self, corrections: list[nn.Module]) -> None:
+        super().__init__()
+        self.corrections = nn.ModuleList(corrections)
+
+    def forward(self, state: Tensor, cond: Tensor) -> Tensor:
+        return torch.stack([correction(state, cond) for correction in self.corrections]).mean(0)
+
+
+def average(out: Path, sweep_name: str, folders: list[Path]) -> None:
+    """Test each seed's best checkpoint as ``otgb test`` did, then one grey-box with the mean of their f_phi; the
+    seeds' figures must equal the sweep's, or the folders are not its runs."""
+    recorded = json.loads((out / f"{sweep_name}.json").read_text())
+    keys = ["/".join(folder.parts[-3:]) for folder in folders]
+    if len({key.rsplit("/", 1)[0] for key in keys}) != 1 or not set(keys) <= set(recorded):
+        raise SystemExit(f"budget_sweep.py average: {keys} are not seeds of one budget and batch of {sweep_name}")
+    with tempfile.TemporaryDirectory() as scratch:  # the tests' saved configs: nothing is written into the runs
+        runs = []
+        for index, folder in enumerate(folders):
+            fit = sorted((folder / "fit").glob("version_*/config.yaml"))[0]
+            best = newest(folder / "fit", "version_*/checkpoints/best-*.ckpt")
+            overrides = ["--trainer.logger=false", f"--trainer.default_root_dir={Path(scratch) / str(index)}"]
+            runs.append(load_run(fit, *overrides, ckpt_path=best))
+        per_seed = [test_abs_err(run) for run in runs]
+        for key, value in zip(keys, per_seed):
+            if abs(value - recorded[key]["model_abs_err"]) > 1e-6:
+                raise SystemExit(f"budget_sweep.py average: {key} tests to {value:.6g}, the sweep recorded another figure")
+        runs[0].model.evaluation_map().correction = MeanCorrection([run.model.evaluation_map().correction for run in runs])
+        averaged = test_abs_err(runs[0])
+    first = recorded[keys[0]]
+    result = {"sweep": sweep_name, "budget": first["budget"], "batch": first["batch"], "keys": keys}
+    result |= {"per_seed": per_seed, "averaged": averaged, "machine": machine()}
+    path = out / "averaged" / f"{sweep_name}-{first['budget']}-{first['batch']}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(result, indent=1))
+    print(f"{path}: averaged f_phi {result['averaged']:.4g}; seeds {mean_spread(per_seed)}")
+
+
+def test_abs_err(run) -> float:
+    return run.trainer.test(run.model, datamodule=run.datamodule, verbose=False)[0]["test/abs_err"]
+
+
+def averaged_lines(out: Path) -> list[str]:
+    """A line per ``average`` result in ``out``."""
+    lines = []
+    for path in sorted(out.glob("averaged/*.json")):
+        r = json.loads(path.read_text())
+        size = f"{r['budget']:,}".replace(",", " ")
+        lines.append(
+            f"- `{r['sweep']}` at {size} simulations, batch {r['batch']}: one grey-box with the mean of its "
+            f"{len(r['per_seed'])} seeds' f_phi has test ABS ERR {r['averaged']:.4g}; the seeds alone "
+            f"{mean_spread(r['per_seed'])} ({', '.join(f'{v:.4g}' for v in r['per_seed'])}). {r['machine']}."
+        )
+    return lines
 
 
 def learning_rates(folder: Path) -> dict[str, float]:
@@ -152,7 +217,7 @@ def table(out: Path) -> str:
         minutes = sum(r["fit_s"] for r in results.values()) / len(results) / 60
         settings = f", overrides `{' '.join(first['overrides'])}`" if first["overrides"] else ""
         lines.append(f"- `{name}`: {first['machine']}{settings}; {minutes:.1f} min per fit on average.")
-    lines += study_lines(out)
+    lines += study_lines(out) + averaged_lines(out)
     return "\n".join(lines) + "\n"
 
 
@@ -180,6 +245,10 @@ def main() -> None:
     join.add_argument("--out", default="results/budget")
     join.add_argument("--name", required=True, help="the merged sweep's name")
     join.add_argument("--parts", nargs="+", required=True, help="the names the parts ran under")
+    mean = commands.add_parser("average", help="one grey-box with the mean of a sweep's seeds' f_phi, tested")
+    mean.add_argument("--out", default="results/budget")
+    mean.add_argument("--sweep", required=True, help="the sweep's name in --out")
+    mean.add_argument("--folders", type=Path, nargs="+", required=True, help="its runs' folders, .../BUDGET/BATCH/seedN")
     show = commands.add_parser("table", help="the tables of every sweep in --out")
     show.add_argument("--out", default="results/budget")
     show.add_argument("--doc", help="a page to write the tables into, between the markers")
@@ -189,6 +258,9 @@ def main() -> None:
         return
     if args.command == "merge":
         merge(Path(args.out), args.name, args.parts)
+        return
+    if args.command == "average":
+        average(Path(args.out), args.sweep, args.folders)
         return
     if args.command == "study":
         record_study(Path(args.out) / args.name, args.storage, args.study, args.space)

@@ -54,6 +54,29 @@ def test_budget_sweep_spreads_each_budget_over_the_steps_and_writes_its_table_in
     assert all(f"{r['model_abs_err']:.4g}" in text for r in results.values())
 
 
+@pytest.mark.slow
+def test_average_tests_the_mean_of_the_seeds_corrections_beside_each_seed(tmp_path):
+    script = [sys.executable, str(ROOT / "scripts" / "budget_sweep.py")]
+    run = [*script, "run", "--out", str(tmp_path), "--name", "tiny", "--config", CONFIG, "--budgets", "64", "128"]
+    done = subprocess.run([*run, "--steps", "4", "--seeds", "0", "1", "--", *_tiny(tmp_path)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    seeds = [tmp_path / "runs" / "tiny" / "64" / "16" / f"seed{s}" for s in (0, 1)]
+    files_before = sorted(tmp_path.joinpath("runs").rglob("*"))
+    average = [*script, "average", "--out", str(tmp_path), "--sweep", "tiny", "--folders"]
+    done = subprocess.run([*average, *map(str, seeds)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert sorted(tmp_path.joinpath("runs").rglob("*")) == files_before, "nothing written into the runs"
+    result = json.loads((tmp_path / "averaged" / "tiny-64-16.json").read_text())
+    recorded = json.loads((tmp_path / "tiny.json").read_text())
+    assert result["per_seed"] == pytest.approx([recorded[f"64/16/seed{s}"]["model_abs_err"] for s in (0, 1)], abs=1e-6)
+    assert math.isfinite(result["averaged"]) and result["averaged"] not in result["per_seed"], "one map of both"
+    table = subprocess.run([*script, "table", "--out", str(tmp_path)], capture_output=True, text=True, check=True).stdout
+    assert f"mean of its 2 seeds' f_phi has test ABS ERR {result['averaged']:.4g}" in table
+    other = tmp_path / "runs" / "tiny" / "128" / "32" / "seed1"
+    done = subprocess.run([*average, str(seeds[0]), str(other)], capture_output=True, text=True)
+    assert done.returncode == 1 and "not seeds of one budget and batch of tiny" in done.stderr.splitlines()[-1]
+
+
 def test_merge_joins_sweeps_run_side_by_side_into_one_and_removes_the_parts(tmp_path):
     parts = {"a": {"1024/32/seed0": {"budget": 1024}}, "b": {"1024/32/seed1": {"budget": 1024}}}
     for name, results in parts.items():
