@@ -410,18 +410,18 @@ class MapTraining(LightningModule):
     def on_train_batch_start(self, batch: Any, batch_idx: int) -> None:
         without_gradient_sync(self.trainer.strategy)
         new_training_step(self.device)
+        self._validate_last_step()
 
     def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
         self.sigterm.agree(self.trainer)
-        self._validate_last_step()
 
     def _validate_last_step(self) -> None:
         """Validate the run's last step also where ``trainer.val_check_interval`` does not divide the run's steps, so
-        that its weights can be the best checkpoint: Lightning validates a fit that is asked to stop
-        (``trainer.should_stop``), and the budget ends the fit after this step anyway."""
-        trainer, every = self.trainer, self.trainer.val_check_batch
-        last = trainer.global_step >= trainer.estimated_stepping_batches
-        if last and every not in (None, math.inf) and trainer.global_step % every != 0:
+        that its weights can be the best checkpoint: Lightning validates, and its loggers write, the step of a fit
+        that is asked to stop (``trainer.should_stop``), and the budget ends the fit after this step anyway. Asked
+        before the step, so that the step logs its own figures (:meth:`_logs_this_step`)."""
+        trainer, every, step = self.trainer, self.trainer.val_check_batch, self.trainer.global_step + 1
+        if step >= trainer.estimated_stepping_batches and every not in (None, math.inf) and step % every != 0:
             trainer.should_stop = True
 
     def on_validation_epoch_start(self) -> None:
