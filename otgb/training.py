@@ -151,6 +151,7 @@ class MapTraining(LightningModule):
         self.elapsed_before = 0.0
         self.restored_step: int | None = None  # global step of the checkpoint this module was loaded from
         self._fit_clock: float | None = None
+        self._steps: float = math.inf  # the fit's training steps, known when training starts
         self._generator: torch.Generator | None = None
         self.draw_seed: int | None = None  # key of the module's draws in a Trainer; the run's seed, kept in checkpoints
 
@@ -402,7 +403,8 @@ class MapTraining(LightningModule):
 
     def on_train_start(self) -> None:
         self.sigterm.install(self.trainer)
-        plan_solves(self.trainer.estimated_stepping_batches - self.trainer.global_step)  # a long run compiles its solves at once
+        self._steps = self.trainer.estimated_stepping_batches
+        plan_solves(self._steps - self.trainer.global_step)  # a long run compiles its solves at once
 
     def on_train_end(self) -> None:
         plan_solves(0)
@@ -421,7 +423,7 @@ class MapTraining(LightningModule):
         that is asked to stop (``trainer.should_stop``), and the budget ends the fit after this step anyway. Asked
         before the step, so that the step logs its own figures (:meth:`_logs_this_step`)."""
         trainer, every, step = self.trainer, self.trainer.val_check_batch, self.trainer.global_step + 1
-        if step >= trainer.estimated_stepping_batches and every not in (None, math.inf) and step % every != 0:
+        if step >= self._steps and every not in (None, math.inf) and step % every != 0:
             trainer.should_stop = True
 
     def on_validation_epoch_start(self) -> None:

@@ -108,17 +108,20 @@ class MeanCorrection(nn.Module):
 def average(out: Path, sweep_name: str, folders: list[Path]) -> None:
     """Test each seed's best checkpoint as ``otgb test`` did, then one grey-box with the mean of their f_phi; the
     seeds' figures must equal the sweep's, or the folders are not its runs."""
+    if not (out / f"{sweep_name}.json").is_file():
+        raise SystemExit(f"budget_sweep.py average: no result file {out / f'{sweep_name}.json'} for --sweep {sweep_name}")
     recorded = json.loads((out / f"{sweep_name}.json").read_text())
     keys = ["/".join(folder.parts[-3:]) for folder in folders]
     if len({key.rsplit("/", 1)[0] for key in keys}) != 1 or not set(keys) <= set(recorded):
         raise SystemExit(f"budget_sweep.py average: {keys} are not seeds of one budget and batch of {sweep_name}")
+    fits = [(newest(f / "fit", "version_*/config.yaml"), newest(f / "fit", "version_*/checkpoints/best-*.ckpt")) for f in folders]
+    if missing := [str(f) for f, (config, best) in zip(folders, fits) if config is None or best is None]:
+        raise SystemExit(f"budget_sweep.py average: no finished fit (its config.yaml and best checkpoint) in {missing}")
     with tempfile.TemporaryDirectory() as scratch:  # the tests' saved configs: nothing is written into the runs
         runs = []
-        for index, folder in enumerate(folders):
-            fit = sorted((folder / "fit").glob("version_*/config.yaml"))[0]
-            best = newest(folder / "fit", "version_*/checkpoints/best-*.ckpt")
+        for index, (config, best) in enumerate(fits):
             overrides = ["--trainer.logger=false", f"--trainer.default_root_dir={Path(scratch) / str(index)}"]
-            runs.append(load_run(fit, *overrides, ckpt_path=best))
+            runs.append(load_run(config, *overrides, ckpt_path=best))
         per_seed = [test_abs_err(run) for run in runs]
         for key, value in zip(keys, per_seed):
             if abs(value - recorded[key]["model_abs_err"]) > 1e-6:

@@ -1,9 +1,12 @@
+from types import SimpleNamespace
+
 import pytest
 import torch
 from torch.utils.data import DataLoader
 
 from otgb.data import SimulationDataModule, SourceStream
 from otgb.data.datamodule import check_measurement_noise
+from otgb.errors import InputError
 from otgb.physics import Constant, Pendulum, Uniform, ViscousFriction
 
 
@@ -100,6 +103,20 @@ def test_bad_config_values(tmp_path):
     for sd in (float("nan"), float("inf"), -1.0):
         with pytest.raises(ValueError, match=rf"data.measurement_noise={sd}: expected a standard deviation >= 0"):
             check_measurement_noise(sd, "measured.npz")
+
+
+def test_evaluation_loaders_share_each_input_out_once_over_the_processes(tmp_path):
+    dm = _module(tmp_path)
+    dm.setup("test")  # 5 test inputs
+    shares = []
+    for rank in (0, 1):
+        dm.trainer = SimpleNamespace(world_size=2, global_rank=rank)
+        shares.append([i for batch in dm.test_dataloader() for i in batch["theta"][:, 0].tolist()])
+    assert [len(share) for share in shares] == [3, 2], "no input repeated to even the shares"
+    assert sorted(shares[0] + shares[1]) == sorted(dm.test_set["theta"][:, 0].tolist())
+    dm.trainer = SimpleNamespace(world_size=6, global_rank=0)
+    with pytest.raises(InputError, match="the test set has 5 inputs for 6 processes; expected at least one each"):
+        dm.test_dataloader()
 
 
 def test_state_dict_restores_the_stream_position(tmp_path):

@@ -75,6 +75,9 @@ def test_average_tests_the_mean_of_the_seeds_corrections_beside_each_seed(tmp_pa
     other = tmp_path / "runs" / "tiny" / "128" / "32" / "seed1"
     done = subprocess.run([*average, str(seeds[0]), str(other)], capture_output=True, text=True)
     assert done.returncode == 1 and "not seeds of one budget and batch of tiny" in done.stderr.splitlines()[-1]
+    elsewhere = tmp_path / "elsewhere" / "64" / "16" / "seed1"  # a key of the sweep, but no fit there
+    done = subprocess.run([*average, str(seeds[0]), str(elsewhere)], capture_output=True, text=True)
+    assert done.returncode == 1 and len(done.stderr.splitlines()) == 1 and "no finished fit" in done.stderr, done.stderr
 
 
 def test_merge_joins_sweeps_run_side_by_side_into_one_and_removes_the_parts(tmp_path):

@@ -220,18 +220,18 @@ class SimulationDataModule(LightningDataModule):
         return StreamLoader(self.source_stream(), lambda: self.items_consumed, num_workers=self.num_workers)
 
     def val_dataloader(self) -> DataLoader:
-        return self._evaluation_loader(self.val_set)
+        return self._evaluation_loader(self.val_set, "validation")
 
     def test_dataloader(self) -> DataLoader:
-        return self._evaluation_loader(self.test_set)
+        return self._evaluation_loader(self.test_set, "test")
 
-    def _evaluation_loader(self, tensors: dict[str, Tensor]) -> DataLoader:
+    def _evaluation_loader(self, tensors: dict[str, Tensor], split: str) -> DataLoader:
         """Each evaluation input once over all processes: Lightning's default distributed sampler would pad the
         processes' shares to one length with repeated inputs, which the synced metrics would then count twice."""
         dataset, world = JointDataset(tensors), self.trainer.world_size if self.trainer is not None else 1
-        if world <= 1:
-            return DataLoader(dataset, batch_size=self.eval_batch_size, shuffle=False)
-        sampler = UnrepeatedDistributedSampler(dataset, num_replicas=world, rank=self.trainer.global_rank, shuffle=False)
+        if len(dataset) < world:
+            raise InputError(f"the {split} set has {len(dataset)} inputs for {world} processes; expected at least one each")
+        sampler = None if world <= 1 else UnrepeatedDistributedSampler(dataset, world, self.trainer.global_rank, shuffle=False)
         return DataLoader(dataset, batch_size=self.eval_batch_size, sampler=sampler)
 
     # --- on-device simulation and the budget ------------------------------------------
