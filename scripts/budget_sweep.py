@@ -9,6 +9,8 @@
     python scripts/budget_sweep.py merge --out results/budget --name pendulum-gpu --parts gpu-part-a gpu-part-b
     python scripts/budget_sweep.py average --out results/budget --sweep pendulum-3125-steps \
         --folders RUNS/pendulum-3125-steps/1000000/320/seed{0,1,2}
+    python scripts/budget_sweep.py gap --out results/budget --sweep pendulum-3125-steps \
+        --folders RUNS/pendulum-3125-steps/1000000/320/seed{0,1,2} [--inputs 4000]
     python scripts/budget_sweep.py table --out results/budget --doc docs/results.md
 
 Each (budget, batch, seed) is one real ``otgb fit`` and an ``otgb test`` of its best checkpoint
@@ -22,7 +24,9 @@ sweep's table into ``--doc`` between ``<!-- results: scripts/budget_sweep.py -->
 beside the sweeps, a summary in ``<out>/<name>/study.json``) and per ``average``: one grey-box whose f_phi is the
 mean of the f_phi of a sweep's seeds at one budget (each seed's best checkpoint), tested as each seed was, in
 ``<out>/averaged/``. If the seeds' errors were their own, the mean's error would fall as one over the square root
-of their number; what it keeps is what the runs share.
+of their number; what it keeps is what the runs share. ``gap`` places each seed's map against the true map (the
+configured DGP) in the objective's two parts, on fresh inputs: its transport cost, and how far its outputs are from
+the DGP's (``<out>/gap/``): is a map short of the measured distribution, or preferred by the objective to the truth?
 """
 
 from __future__ import annotations
@@ -38,6 +42,9 @@ import torch
 import yaml
 from torch import Tensor, nn
 
+from otgb.data.measured import generate_joint
+from otgb.metrics.energy import energy_distance
+from otgb.ot.costs import kernel_weak_cost
 from otgb.reports import LABELS, mean_spread, write_between
 from otgb.runs import asks_for_gpu, fit_and_test, load_run, machine, newest
 
@@ -105,36 +112,77 @@ class MeanCorrection(nn.Module):
         return torch.stack([correction(state, cond) for correction in self.corrections]).mean(0)
 
 
-def average(out: Path, sweep_name: str, folders: list[Path]) -> None:
-    """Test each seed's best checkpoint as ``otgb test`` did, then one grey-box with the mean of their f_phi; the
-    seeds' figures must equal the sweep's, or the folders are not its runs."""
+def seed_runs(out: Path, sweep_name: str, folders: list[Path], scratch: str, command: str) -> tuple[dict, list[str], list]:
+    """The sweep's records, the folders' keys in it and a run per folder with its best checkpoint loaded (its logs
+    written under ``scratch``, nothing into the runs); a folder that is not a finished run of the sweep stops it."""
     if not (out / f"{sweep_name}.json").is_file():
-        raise SystemExit(f"budget_sweep.py average: no result file {out / f'{sweep_name}.json'} for --sweep {sweep_name}")
+        raise SystemExit(f"budget_sweep.py {command}: no result file {out / f'{sweep_name}.json'} for --sweep {sweep_name}")
     recorded = json.loads((out / f"{sweep_name}.json").read_text())
     keys = ["/".join(folder.parts[-3:]) for folder in folders]
     if len({key.rsplit("/", 1)[0] for key in keys}) != 1 or not set(keys) <= set(recorded):
-        raise SystemExit(f"budget_sweep.py average: {keys} are not seeds of one budget and batch of {sweep_name}")
+        raise SystemExit(f"budget_sweep.py {command}: {keys} are not seeds of one budget and batch of {sweep_name}")
     fits = [(newest(f / "fit", "version_*/config.yaml"), newest(f / "fit", "version_*/checkpoints/best-*.ckpt")) for f in folders]
     if missing := [str(f) for f, (config, best) in zip(folders, fits) if config is None or best is None]:
-        raise SystemExit(f"budget_sweep.py average: no finished fit (its config.yaml and best checkpoint) in {missing}")
-    with tempfile.TemporaryDirectory() as scratch:  # the tests' saved configs: nothing is written into the runs
-        runs = []
-        for index, (config, best) in enumerate(fits):
-            overrides = ["--trainer.logger=false", f"--trainer.default_root_dir={Path(scratch) / str(index)}"]
-            runs.append(load_run(config, *overrides, ckpt_path=best))
+        raise SystemExit(f"budget_sweep.py {command}: no finished fit (its config.yaml and best checkpoint) in {missing}")
+    overrides = lambda index: ["--trainer.logger=false", f"--trainer.default_root_dir={Path(scratch) / str(index)}"]  # noqa: E731
+    return recorded, keys, [load_run(config, *overrides(i), ckpt_path=best) for i, (config, best) in enumerate(fits)]
+
+
+def write_result(out: Path, kind: str, sweep_name: str, first: dict, result: dict) -> Path:
+    path = out / kind / f"{sweep_name}-{first['budget']}-{first['batch']}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"sweep": sweep_name, "budget": first["budget"], "batch": first["batch"]} | result, indent=1))
+    return path
+
+
+def average(out: Path, sweep_name: str, folders: list[Path]) -> None:
+    """Test each seed's best checkpoint as ``otgb test`` did, then one grey-box with the mean of their f_phi; the
+    seeds' figures must equal the sweep's, or the folders are not its runs."""
+    with tempfile.TemporaryDirectory() as scratch:
+        recorded, keys, runs = seed_runs(out, sweep_name, folders, scratch, "average")
         per_seed = [test_abs_err(run) for run in runs]
         for key, value in zip(keys, per_seed):
             if abs(value - recorded[key]["model_abs_err"]) > 1e-6:
                 raise SystemExit(f"budget_sweep.py average: {key} tests to {value:.6g}, the sweep recorded another figure")
         runs[0].model.evaluation_map().correction = MeanCorrection([run.model.evaluation_map().correction for run in runs])
         averaged = test_abs_err(runs[0])
-    first = recorded[keys[0]]
-    result = {"sweep": sweep_name, "budget": first["budget"], "batch": first["batch"], "keys": keys}
-    result |= {"per_seed": per_seed, "averaged": averaged, "machine": machine()}
-    path = out / "averaged" / f"{sweep_name}-{first['budget']}-{first['batch']}.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(result, indent=1))
-    print(f"{path}: averaged f_phi {result['averaged']:.4g}; seeds {mean_spread(per_seed)}")
+    result = {"keys": keys, "per_seed": per_seed, "averaged": averaged, "machine": machine()}
+    path = write_result(out, "averaged", sweep_name, recorded[keys[0]], result)
+    print(f"{path}: averaged f_phi {averaged:.4g}; seeds {mean_spread(per_seed)}")
+
+
+def gap(out: Path, sweep_name: str, folders: list[Path], n: int) -> None:
+    """Where each seed's map sits against the true map, in the two parts of the objective (paper, eq. kernel-maximin):
+    on ``n`` fresh inputs, its transport cost (the run's own C_hat) beside the true map's (the configured DGP), and
+    the energy distance of its outputs to the DGP's outputs for ``n`` other inputs beside the true map's own (its
+    noise floor; its spread over 20 random halves of the DGP's outputs). A map that the objective prefers to the truth
+    costs less at an equal distance."""
+    with tempfile.TemporaryDirectory() as scratch:
+        recorded, keys, runs = seed_runs(out, sweep_name, folders, scratch, "gap")
+        source = runs[0].datamodule.source
+        if source.pointwise_process is None:
+            raise SystemExit(f"budget_sweep.py gap: {sweep_name} has no deterministic configured DGP to be the true map")
+        fresh = generate_joint(source.physics, source.pointwise_process, 2 * n, 1, source.seed, "gap")
+        x, x0, theta = fresh["x"][:n], fresh["x0"][:n], fresh["theta"][:n]
+        truth, others = fresh["y"][:n, 0], fresh["y"][n:, 0].flatten(1)
+        objective = runs[0].model.objective
+        if not hasattr(objective, "kernel"):
+            raise SystemExit(f"budget_sweep.py gap: {sweep_name} trains with {objective!r}, which has no transport cost")
+        cost = lambda y: kernel_weak_cost(x, y[:, None], 0.0, objective.kernel)  # noqa: E731
+        distance = lambda y: energy_distance(y.flatten(1), others).item()  # noqa: E731
+        with torch.no_grad():
+            maps = [run.model.generate(x, x0, theta, 1)[:, 0] for run in runs]
+    differences = [cost(y) - cost(truth) for y in maps]  # per input: the standard error of the mean difference
+    result = {"keys": keys, "inputs": n, "objective": repr(objective), "true_cost": cost(truth).mean().item()}
+    result |= {"cost_minus_true": [d.mean().item() for d in differences]}
+    result |= {"its_se": [d.std().item() / n**0.5 for d in differences]}
+    result |= {"true_energy": distance(truth), "energy": [distance(y) for y in maps]}
+    pooled, g = torch.cat([truth.flatten(1), others]), torch.Generator().manual_seed(0)
+    halves = [pooled[torch.randperm(2 * n, generator=g)].chunk(2) for _ in range(20)]
+    result |= {"null_energy_sd": torch.stack([energy_distance(a, b) for a, b in halves]).std().item()}
+    result |= {"abs_err": [(y - truth).abs().mean().item() for y in maps], "machine": machine()}
+    path = write_result(out, "gap", sweep_name, recorded[keys[0]], result)
+    print(f"{path}: transport cost minus the true map's {result['cost_minus_true']}; energy {result['energy']}")
 
 
 def test_abs_err(run) -> float:
@@ -153,6 +201,28 @@ def averaged_lines(out: Path) -> list[str]:
             f"{mean_spread(r['per_seed'])} ({', '.join(f'{v:.4g}' for v in r['per_seed'])}). {r['machine']}."
         )
     return lines
+
+
+def gap_lines(out: Path) -> list[str]:
+    """A table of every ``gap`` result in ``out``: a row for the true map, then one per seed."""
+    lines = [
+        "", "Each seed's map against the true map (`gap`), on fresh inputs: its transport cost minus the true map's (± the "
+        "standard error over the inputs) and the energy distance of its outputs to the DGP's for as many other inputs (unbiased, "
+        "on pooled-standardised values: 0 on average for equal distributions; for the true map, the noise, with its sd over "
+        "random halves of the DGP's outputs).", "",
+        "| sweep | budget | batch | map | inputs | ABS ERR | transport cost minus the true map's | energy distance |",
+        "|---" * 8 + "|",
+    ]  # fmt: skip
+    for path in sorted(out.glob("gap/*.json")):
+        r = json.loads(path.read_text())
+        first = [r["sweep"], f"{r['budget']:,}".replace(",", " "), str(r["batch"])]
+        noise = f"{r['true_energy']:.2g} ± {r['null_energy_sd']:.2g}"
+        truth = [f"true map (cost {r['true_cost']:.4g})", str(r["inputs"]), "0", "0", noise]
+        lines.append("| " + " | ".join(first + truth) + " |")
+        for key, err, d, se, energy in zip(r["keys"], r["abs_err"], r["cost_minus_true"], r["its_se"], r["energy"]):
+            seed = [key.rsplit("/", 1)[1], str(r["inputs"]), f"{err:.4g}", f"{d:+.4f} ± {se:.4f}", f"{energy:.2g}"]
+            lines.append("| " + " | ".join(first + seed) + " |")
+    return lines if len(lines) > 5 else []
 
 
 def learning_rates(folder: Path) -> dict[str, float]:
@@ -220,7 +290,7 @@ def table(out: Path) -> str:
         minutes = sum(r["fit_s"] for r in results.values()) / len(results) / 60
         settings = f", overrides `{' '.join(first['overrides'])}`" if first["overrides"] else ""
         lines.append(f"- `{name}`: {first['machine']}{settings}; {minutes:.1f} min per fit on average.")
-    lines += study_lines(out) + averaged_lines(out)
+    lines += study_lines(out) + averaged_lines(out) + gap_lines(out)
     return "\n".join(lines) + "\n"
 
 
@@ -252,6 +322,11 @@ def main() -> None:
     mean.add_argument("--out", default="results/budget")
     mean.add_argument("--sweep", required=True, help="the sweep's name in --out")
     mean.add_argument("--folders", type=Path, nargs="+", required=True, help="its runs' folders, .../BUDGET/BATCH/seedN")
+    where = commands.add_parser("gap", help="a sweep's seeds' maps against the true map: transport cost and distance")
+    where.add_argument("--out", default="results/budget")
+    where.add_argument("--sweep", required=True, help="the sweep's name in --out")
+    where.add_argument("--folders", type=Path, nargs="+", required=True, help="its runs' folders, .../BUDGET/BATCH/seedN")
+    where.add_argument("--inputs", type=int, default=4000, help="fresh inputs (and as many others for the distance)")
     show = commands.add_parser("table", help="the tables of every sweep in --out")
     show.add_argument("--out", default="results/budget")
     show.add_argument("--doc", help="a page to write the tables into, between the markers")
@@ -264,6 +339,9 @@ def main() -> None:
         return
     if args.command == "average":
         average(Path(args.out), args.sweep, args.folders)
+        return
+    if args.command == "gap":
+        gap(Path(args.out), args.sweep, args.folders, args.inputs)
         return
     if args.command == "study":
         record_study(Path(args.out) / args.name, args.storage, args.study, args.space)

@@ -72,6 +72,17 @@ def test_average_tests_the_mean_of_the_seeds_corrections_beside_each_seed(tmp_pa
     assert math.isfinite(result["averaged"]) and result["averaged"] not in result["per_seed"], "one map of both"
     table = subprocess.run([*script, "table", "--out", str(tmp_path)], capture_output=True, text=True, check=True).stdout
     assert f"mean of its 2 seeds' f_phi has test ABS ERR {result['averaged']:.4g}" in table
+
+    gap = [*script, "gap", "--out", str(tmp_path), "--sweep", "tiny", "--inputs", "200", "--folders", *map(str, seeds)]
+    subprocess.run(gap, capture_output=True, text=True, check=True)
+    assert sorted(tmp_path.joinpath("runs").rglob("*")) == files_before, "nothing written into the runs"
+    where = json.loads((tmp_path / "gap" / "tiny-64-16.json").read_text())
+    # four steps leave each map at about f_p: it costs about nothing, so about the true map's cost less than the
+    # truth, and its outputs sit far from the DGP's, beyond the noise of two DGP samples
+    assert where["cost_minus_true"] == pytest.approx([-where["true_cost"]] * 2, rel=0.1)
+    assert min(where["energy"]) > 5 * where["null_energy_sd"] > 0 and abs(where["true_energy"]) < 4 * where["null_energy_sd"]
+    table = subprocess.run([*script, "table", "--out", str(tmp_path)], capture_output=True, text=True, check=True).stdout
+    assert f"| tiny | 64 | 16 | seed1 | 200 | {where['abs_err'][1]:.4g} |" in table
     other = tmp_path / "runs" / "tiny" / "128" / "32" / "seed1"
     done = subprocess.run([*average, str(seeds[0]), str(other)], capture_output=True, text=True)
     assert done.returncode == 1 and "not seeds of one budget and batch of tiny" in done.stderr.splitlines()[-1]
