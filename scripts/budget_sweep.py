@@ -157,6 +157,8 @@ def gap(out: Path, sweep_name: str, folders: list[Path], n: int) -> None:
     the energy distance of its outputs to the DGP's outputs for ``n`` other inputs beside the true map's own (its
     noise floor; its spread over 20 random halves of the DGP's outputs). A map that the objective prefers to the truth
     costs less at an equal distance."""
+    if n < 2:
+        raise SystemExit(f"budget_sweep.py gap: --inputs {n}: expected at least 2 (a distance between samples needs two each)")
     with tempfile.TemporaryDirectory() as scratch:
         recorded, keys, runs = seed_runs(out, sweep_name, folders, scratch, "gap")
         source = runs[0].datamodule.source
@@ -175,7 +177,7 @@ def gap(out: Path, sweep_name: str, folders: list[Path], n: int) -> None:
     differences = [cost(y) - cost(truth) for y in maps]  # per input: the standard error of the mean difference
     result = {"keys": keys, "inputs": n, "objective": repr(objective), "true_cost": cost(truth).mean().item()}
     result |= {"cost_minus_true": [d.mean().item() for d in differences]}
-    result |= {"its_se": [d.std().item() / n**0.5 for d in differences]}
+    result |= {"cost_minus_true_se": [d.std().item() / n**0.5 for d in differences]}
     result |= {"true_energy": distance(truth), "energy": [distance(y) for y in maps]}
     pooled, g = torch.cat([truth.flatten(1), others]), torch.Generator().manual_seed(0)
     halves = [pooled[torch.randperm(2 * n, generator=g)].chunk(2) for _ in range(20)]
@@ -219,7 +221,7 @@ def gap_lines(out: Path) -> list[str]:
         noise = f"{r['true_energy']:.2g} ± {r['null_energy_sd']:.2g}"
         truth = [f"true map (cost {r['true_cost']:.4g})", str(r["inputs"]), "0", "0", noise]
         lines.append("| " + " | ".join(first + truth) + " |")
-        for key, err, d, se, energy in zip(r["keys"], r["abs_err"], r["cost_minus_true"], r["its_se"], r["energy"]):
+        for key, err, d, se, energy in zip(r["keys"], r["abs_err"], r["cost_minus_true"], r["cost_minus_true_se"], r["energy"]):
             seed = [key.rsplit("/", 1)[1], str(r["inputs"]), f"{err:.4g}", f"{d:+.4f} ± {se:.4f}", f"{energy:.2g}"]
             lines.append("| " + " | ".join(first + seed) + " |")
     return lines if len(lines) > 5 else []

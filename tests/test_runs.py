@@ -83,6 +83,11 @@ def test_average_tests_the_mean_of_the_seeds_corrections_beside_each_seed(tmp_pa
     assert min(where["energy"]) > 5 * where["null_energy_sd"] > 0 and abs(where["true_energy"]) < 4 * where["null_energy_sd"]
     table = subprocess.run([*script, "table", "--out", str(tmp_path)], capture_output=True, text=True, check=True).stdout
     assert f"| tiny | 64 | 16 | seed1 | 200 | {where['abs_err'][1]:.4g} |" in table
+    one_input = [*script, "gap", "--sweep", "tiny", "--inputs", "1", "--folders", str(seeds[0])]
+    done = subprocess.run(one_input, capture_output=True, text=True)
+    assert done.returncode == 1 and done.stderr.strip().endswith(
+        "--inputs 1: expected at least 2 (a distance between samples needs two each)"
+    )
     other = tmp_path / "runs" / "tiny" / "128" / "32" / "seed1"
     done = subprocess.run([*average, str(seeds[0]), str(other)], capture_output=True, text=True)
     assert done.returncode == 1 and "not seeds of one budget and batch of tiny" in done.stderr.splitlines()[-1]
