@@ -44,6 +44,7 @@ from torch import Tensor, nn
 
 from otgb.data.measured import generate_joint
 from otgb.metrics.energy import energy_distance
+from otgb.metrics.errors import abs_err
 from otgb.ot.costs import kernel_weak_cost
 from otgb.reports import LABELS, mean_spread, write_between
 from otgb.runs import asks_for_gpu, fit_and_test, load_run, machine, newest
@@ -182,7 +183,7 @@ def gap(out: Path, sweep_name: str, folders: list[Path], n: int) -> None:
     pooled, g = torch.cat([truth.flatten(1), others]), torch.Generator().manual_seed(0)
     halves = [pooled[torch.randperm(2 * n, generator=g)].chunk(2) for _ in range(20)]
     result |= {"null_energy_sd": torch.stack([energy_distance(a, b) for a, b in halves]).std().item()}
-    result |= {"abs_err": [(y - truth).abs().mean().item() for y in maps], "machine": machine()}
+    result |= {"abs_err": [abs_err(y, truth).mean().item() for y in maps], "machine": machine()}
     path = write_result(out, "gap", sweep_name, recorded[keys[0]], result)
     print(f"{path}: transport cost minus the true map's {result['cost_minus_true']}; energy {result['energy']}")
 
