@@ -229,10 +229,11 @@ def gap_lines(out: Path) -> list[str]:
 
 
 def learning_rates(folder: Path) -> dict[str, float]:
-    """The map's and the critic's learning rates as trained (before their schedules), from the fit's last checkpoint."""
+    """The map's and the critic's learning rates as trained (before any schedule: a scheduler's ``initial_lr``), from
+    the fit's last checkpoint."""
     ckpt = torch.load(newest(folder / "fit", "version_*/checkpoints/last.ckpt"), map_location="cpu", weights_only=False)
-    (map_lr,), (critic_lr,) = (scheduler["base_lrs"] for scheduler in ckpt["lr_schedulers"])
-    return {"map_lr": map_lr, "critic_lr": critic_lr}
+    map_lr, critic_lr = (state["param_groups"][0] for state in ckpt["optimizer_states"])
+    return {"map_lr": map_lr.get("initial_lr", map_lr["lr"]), "critic_lr": critic_lr.get("initial_lr", critic_lr["lr"])}
 
 
 def record_study(out: Path, storage: str, study_name: str, space: str) -> None:

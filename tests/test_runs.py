@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from otgb.runs import asks_for_gpu, fit_and_test
@@ -94,6 +95,30 @@ def test_average_tests_the_mean_of_the_seeds_corrections_beside_each_seed(tmp_pa
     elsewhere = tmp_path / "elsewhere" / "64" / "16" / "seed1"  # a key of the sweep, but no fit there
     done = subprocess.run([*average, str(seeds[0]), str(elsewhere)], capture_output=True, text=True)
     assert done.returncode == 1 and len(done.stderr.splitlines()) == 1 and "no finished fit" in done.stderr, done.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "kind, overrides, metric, expected",
+    [
+        ("wgan", ["--config", str(ROOT / "configs" / "baselines" / "wgan.yaml")], "abs_err", "which has no transport cost"),
+        ("file", ["--data.hidden_effect=[]", "--data.measured_path={measured}"], "mmd", "no deterministic configured DGP"),
+    ],
+)
+def test_gap_refuses_a_sweep_without_a_transport_cost_or_a_true_map_in_one_line(tmp_path, kind, overrides, metric, expected):
+    measured = tmp_path / "measured.npz"
+    np.savez(measured, y=np.zeros((120, 50, 1), dtype=np.float32) + np.linspace(0, 1, 120)[:, None, None])
+    script = [sys.executable, str(ROOT / "scripts" / "budget_sweep.py")]
+    run = [*script, "run", "--out", str(tmp_path), "--name", kind, "--config", CONFIG, "--budgets", "160", "--batches", "16"]
+    extra = [override.format(measured=measured) for override in overrides]
+    done = subprocess.run([*run, "--metric", metric, "--", *_tiny(tmp_path), *extra], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    seed = tmp_path / "runs" / kind / "160" / "16" / "seed0"  # the WGAN: 2 steps of 5 batches
+    files_before = sorted(tmp_path.joinpath("runs").rglob("*"))
+    gap = [*script, "gap", "--out", str(tmp_path), "--sweep", kind, "--inputs", "50", "--folders", str(seed)]
+    done = subprocess.run(gap, capture_output=True, text=True)
+    assert done.returncode == 1 and len(done.stderr.splitlines()) == 1 and expected in done.stderr, done.stderr
+    assert sorted(tmp_path.joinpath("runs").rglob("*")) == files_before and not (tmp_path / "gap").exists()
 
 
 def test_merge_joins_sweeps_run_side_by_side_into_one_and_removes_the_parts(tmp_path):
