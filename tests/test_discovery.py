@@ -72,6 +72,7 @@ from otgb.discovery.workflow import (
     DiscoverySettings,
     Measurements,
     at_most,
+    beside_f_p,
     family_step,
     fitting_for,
     locate_step,
@@ -157,6 +158,18 @@ def test_locate_finds_when_and_how_samples_differ():
     found = locate(measured, _draws(pendulum, 200, 2), pendulum.observation_times(), ("angle",), 199)
     assert found.any_significant and not found.significant[0].any()  # t = 0: the same initial states
     assert "amplitude (mean |value|) is smaller" in describe(found) and "agree up to t =" in describe(found)
+
+
+def test_the_sentence_after_the_fix_says_how_f_p_alone_fared_on_the_same_test_part():
+    """ "No difference after the fix" means something only where f_p alone, tested the same way, differs."""
+    pendulum = Pendulum()
+    measured = _draws(pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))]), 200, 1)
+    f_p = locate(measured, _draws(pendulum, 200, 2), pendulum.observation_times(), ("angle",), 199)
+    cells = int(f_p.significant.sum())
+    assert beside_f_p(f_p) == f"; f_p alone, tested the same way, differs from them in {cells} of 50 cells" and cells > 0
+    blind = locate(measured[:12], _draws(pendulum, 12, 2), pendulum.observation_times(), ("angle",), 199)
+    assert not blind.any_significant, "12 trajectories cannot show a friction of 1.2"
+    assert beside_f_p(blind) == "; nor between f_p alone and them: this part is too small to show what the fix changed"
 
 
 def test_locate_tests_whole_trajectories_where_no_single_step_differs():

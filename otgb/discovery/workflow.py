@@ -576,6 +576,7 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
         result.before_on_test = locate_step(physics, data.test, settings, "f_p-test")
         result.after = locate_step(result.fitted.model(physics), data.test, settings, "augmented")
         result.sentence_after = describe(result.after, b_name="augmented-physics") + " (on the test part, which no fit saw)"
+        result.sentence_after += beside_f_p(result.before_on_test)
         result.paired_after = paired_after(result.fitted, physics, data, settings.alpha)
         if result.paired_after is not None:
             result.sentence_after += f"; {result.paired_after.sentence()}"
@@ -602,6 +603,19 @@ def closer_step(model: Augmented, physics: PhysicsModel, test: Tensor, settings:
         return closer(augmented, f_p, tested, settings.n_permutations, settings.alpha, settings.seed, n - len(augmented))
     except ValueError:  # too few finite trajectories: the verdict says no test could run
         return None
+
+
+def beside_f_p(before_on_test: DisagreementMap) -> str:
+    """The same tests of f_p alone on the same test part, for the sentence on the augmented physics: an agreement
+    after the fix means something only where f_p alone disagrees with these trajectories."""
+    if not before_on_test.any_significant:
+        return "; nor between f_p alone and them: this part is too small to show what the fix changed"
+    cells = int(before_on_test.significant.sum())
+    if cells:
+        where = f"in {cells} of {before_on_test.significant.numel()} cells"
+    else:
+        where = "as whole trajectories" if before_on_test.whole_significant else "on their recorded inputs"
+    return f"; f_p alone, tested the same way, differs from them {where}"
 
 
 def paired_after(fitted: FittedTerms, physics: PhysicsModel, data: Measurements, alpha: float) -> PairedCheck | None:
