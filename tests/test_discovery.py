@@ -62,6 +62,7 @@ from otgb.discovery.report import (
     named_divergences,
     outcome,
     share_removed,
+    unweighed_alike,
     verdict,
     write_report,
 )
@@ -517,6 +518,31 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
     assert head.startswith("missing effect named, not confirmed: viscous friction (velocity on dvelocity/dt) fit the")
     assert "not significantly nearer to the measurements than f_p alone (energy distance 0.1 against f_p's 1, from 120" in head
     assert not said.confirmed, "agreeing with a part that tells f_p apart, but not measurably nearer than f_p: not confirmed"
+
+
+def test_named_terms_not_weighed_against_terms_they_move_with_are_said_to_be():
+    """React-diff-1-m, seed 1 of Table 1's augmented row: u, v and u^2 named on du/dt where the process has u^3, which
+    moves with u^2 along the solves (0.967) but was never a strong candidate, so the evidence did not weigh it."""
+    u, v, u2 = (Candidate(f, "u") for f in ("u", "v", "u^2"))
+    one, v2 = Candidate("1", "u"), Candidate("v^2", "u")
+    pairs = [("1", "v", 0.981), ("u", "u*v", 0.982), ("v", "v^2", 0.980), ("u^2", "u*v", 0.958), ("u^2", "u^3", 0.967)]
+    pairs += [("u^2", "u^2*v", 0.979), ("u^3", "u^2*v", 0.962)]
+    selections = [Selection("u", [], 1.0, 710.0, pairs, {}, 1.0), Selection("v", [], 1.0, 710.0, [("u", "u^2", 0.99)], {}, 1.0)]
+    evidence = [Comparison(term, by, 0.0, 1.0, 0.1) for term in (u, v, u2) for by in (one, v2)]
+    result = Discovery(
+        before=SimpleNamespace(any_significant=True),
+        sentence_before="",
+        fitted=FittedTerms("constant", [u, v, u2], [Constant(1.29), Constant(-1.04), Constant(-1.08)], Scores([0.1]), []),
+        evidence=evidence,
+        selections=selections,
+    )
+    assert unweighed_alike(result) == [
+        "not weighed against the terms they move with along the grey-box's solves (|correlation|), which may fit the "
+        "measurements alike: u on du/dt with u*v (0.982); u^2 on du/dt with u*v (0.958), u^3 (0.967), u^2*v (0.979)"
+    ], "v's partners (1, v^2) were weighed; u ~ u^2 on dv/dt is another component's"
+    result.evidence += [Comparison(u, Candidate("u*v", "u"), 0.0, 1.0, 0.1)]
+    result.evidence += [Comparison(u2, Candidate(f, "u"), 0.0, 1.0, 0.1) for f in ("u*v", "u^2*v")]
+    assert unweighed_alike(result)[0].endswith("alike: u^2 on du/dt with u^3 (0.967)")
 
 
 def test_terms_that_leave_the_test_part_no_closer_than_f_p_are_not_called_found_and_point_outside_the_library():
