@@ -140,6 +140,9 @@ def test_a_disagreement_map_says_its_sizes_and_lists_significant_cells_only_wher
     before, after = ([t.get_text() for t in ax.get_legend().get_texts()] for ax in figure.axes)
     assert differ.significant.any() and any(text.endswith(": significant") for text in before), before
     assert not any(text.endswith(": significant") for text in after), after
+    titles = [ax.get_title().splitlines()[-1] for ax in figure.axes]
+    assert differ.whole_significant and titles[0] == f"whole trajectories: differ (permutation p = {differ.whole_pvalue:.2g})"
+    assert titles[1] == f"whole trajectories: no difference seen (permutation p = {same.whole_pvalue:.2g})", titles
 
 
 def test_discovery_draws_before_and_after_on_the_same_test_trajectories():

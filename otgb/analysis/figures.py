@@ -282,4 +282,5 @@ def _draw_disagreement(ax: plt.Axes, result: Any, title: str, top: float) -> Non
         ax.figure.colorbar(image, ax=ax, label="energy distance")
     ax.set_xlabel("t")
     ax.tick_params(labelleft=True)  # each panel its numbers: the shared scale is read on every one
-    ax.set_title(title, fontsize=9)
+    whole = "differ" if result.whole_significant else "no difference seen"  # a difference no single cell shows
+    ax.set_title(f"{title}\nwhole trajectories: {whole} (permutation p = {result.whole_pvalue:.2g})", fontsize=9)
