@@ -599,7 +599,7 @@ def markdown(report: dict[str, Any], facts: dict[str, Any]) -> str:
     lines += [
         "## Gap on held-out test measurements",
         "",
-        "| model | MMD (paper-code) | C2ST | energy distance |",
+        "| model | MMD (paper-code) | C2ST | energy distance (raw observations) |",
         "|---|---|---|---|",
     ]
     for key, label in GAP_ROWS.items():
@@ -644,7 +644,8 @@ def _closer_line(report: dict[str, Any]) -> list[str]:
         "",
         f"The augmented physics {said}: energy distance to {closer['measured']} test measurements "
         f"{closer['augmented']:.4g} against f_p's {closer['f_p']:.4g} (from {closer['augmented_draws']} and "
-        f"{closer['f_p_draws']} fresh draws, features standardised over the three samples together; half the "
+        f"{closer['f_p_draws']} fresh draws, features standardised over the three samples together, so not the table's "
+        f"energy column; half the "
         f"measurements against the other half: {closer['floor']:.4g}); one-sided p = {closer['pvalue']:.3g}, the larger "
         f"of a permutation test ({closer['permutation_pvalue']:.3g}, {closer['n_permutations']} relabellings of the two "
         f"models' trajectories) and a normal test that counts the measurements' own sampling noise "
