@@ -321,14 +321,13 @@ def unweighed_alike(result: Discovery) -> list[str]:
     clauses = []
     for term in named:
         partners = [
-            (b if a == term.feature else a, correlation)
+            (Candidate(b if a == term.feature else a, term.component), correlation)
             for selection in result.selections if selection.component == term.component
             for a, b, correlation in selection.confusable_pairs if term.feature in (a, b)
         ]  # fmt: skip
-        alike = [(Candidate(feature, term.component), correlation) for feature, correlation in partners]
         unweighed = [
             f"{other.feature} ({correlation:.3f})"
-            for other, correlation in alike
+            for other, correlation in partners
             if other not in named and frozenset({term, other}) not in weighed
         ]
         if unweighed:
@@ -645,8 +644,8 @@ def _closer_line(report: dict[str, Any]) -> list[str]:
         f"The augmented physics {said}: energy distance to {closer['measured']} test measurements "
         f"{closer['augmented']:.4g} against f_p's {closer['f_p']:.4g} (from {closer['augmented_draws']} and "
         f"{closer['f_p_draws']} fresh draws, features standardised over the three samples together, so not the table's "
-        f"energy column; half the "
-        f"measurements against the other half: {closer['floor']:.4g}); one-sided p = {closer['pvalue']:.3g}, the larger "
+        f"energy column; half the measurements against the other half: {closer['floor']:.4g}); one-sided p = "
+        f"{closer['pvalue']:.3g}, the larger "
         f"of a permutation test ({closer['permutation_pvalue']:.3g}, {closer['n_permutations']} relabellings of the two "
         f"models' trajectories) and a normal test that counts the measurements' own sampling noise "
         f"({closer['normal_pvalue']:.3g}); threshold {closer['alpha']:g}{diverged}. This test decides whether the named "
