@@ -217,7 +217,8 @@ def _prior_text(prior) -> str:
 
 
 HEADER = (
-    "| case | seed | named: coefficient [95 %] | truth | outcome | f_p C2ST | grey-box C2ST | augmented C2ST "
+    "| case | seed | named: coefficient [95 %]; or alike: an alternative the validation part cannot tell from it "
+    "(SE > 0: the named fits better) | truth | outcome | f_p C2ST | grey-box C2ST | augmented C2ST "
     "| Reference C2ST | round 2 on augmented.yaml | wall time |\n|---|---|---|---|---|---|---|---|---|---|---|"
 )
 
@@ -238,7 +239,7 @@ def table(out: Path) -> str:
         if report is None:
             continue
         case, seed = folder.name.rsplit("-seed", 1)
-        named = "; ".join(_named(t) for t in report["terms"]) or "nothing"
+        named = "; ".join(_named(t, report.get("ambiguous") or []) for t in report["terms"]) or "nothing"
         gap = report["gap"]
         reference = f"{gap['reference']['c2st']:.3f} ± {gap['reference']['c2st_std']:.3f}"
         second = latest_report(folder / "round2") if (folder / "round2").exists() else None
@@ -302,9 +303,17 @@ def write_doc(doc: Path, results: Path) -> None:
     write_between(doc, START, END, table(results))
 
 
-def _named(t: dict) -> str:
+def _named(t: dict, ambiguous: list[dict] = ()) -> str:
+    """A named term with its interval and spread, and the alternatives the measurements cannot tell it from."""
     interval = f" [{t['interval'][0]:.4g}, {t['interval'][1]:.4g}]" if t.get("interval") else ""
-    return f"{t['name']}: {t['feature']} on d{t['component']}/dt {t['coefficient']:.4g}{interval}{_spread(t['distribution'])}"
+    alike = [
+        f"{a['alternative']} {a['alternative_coefficient']:.4g} ({a['standard_errors']:+.1f} SE)"
+        for entry in ambiguous if (entry["feature"], entry["component"]) == (t["feature"], t["component"])
+        for a in entry["alternatives"]
+    ]  # fmt: skip
+    alike_text = f", or alike: {', '.join(alike)}" if alike else ""
+    named = f"{t['name']}: {t['feature']} on d{t['component']}/dt {t['coefficient']:.4g}{interval}{_spread(t['distribution'])}"
+    return named + alike_text
 
 
 def _spread(distribution: dict | None) -> str:

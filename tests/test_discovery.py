@@ -24,7 +24,7 @@ from otgb.data import generate_measured
 from otgb.data.measured import CHUNK, simulate_in_chunks
 from otgb.discovery import refine
 from otgb.discovery.closer import Closeness, closer
-from otgb.discovery.evidence import Comparison, choose_swap, weigh
+from otgb.discovery.evidence import Comparison, alternatives, choose_swap, moves_with, weigh
 from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.intervals import Intervals, fitted_intervals, sandwich_intervals
 from otgb.discovery.library import Candidate, build_library, physical_name
@@ -62,7 +62,6 @@ from otgb.discovery.report import (
     named_divergences,
     outcome,
     share_removed,
-    unweighed_alike,
     verdict,
     write_report,
 )
@@ -520,29 +519,43 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
     assert not said.confirmed, "agreeing with a part that tells f_p apart, but not measurably nearer than f_p: not confirmed"
 
 
-def test_named_terms_not_weighed_against_terms_they_move_with_are_said_to_be():
-    """React-diff-1-m, seed 1 of Table 1's augmented row: u, v and u^2 named on du/dt where the process has u^3, which
-    moves with u^2 along the solves (0.967) but was never a strong candidate, so the evidence did not weigh it."""
+def test_each_kept_term_is_weighed_against_the_terms_it_moves_with():
+    """React-diff-1-m, seed 1 of Table 1's augmented row: u, v and u^2 kept on du/dt where the process has u^3, which
+    moves with u^2 along the solves (0.967) but was never a strong candidate: the terms each kept term moves with are
+    among its alternatives (started where the cross-check has no coefficient), once each, never a kept term."""
     u, v, u2 = (Candidate(f, "u") for f in ("u", "v", "u^2"))
-    one, v2 = Candidate("1", "u"), Candidate("v^2", "u")
     pairs = [("1", "v", 0.981), ("u", "u*v", 0.982), ("v", "v^2", 0.980), ("u^2", "u*v", 0.958), ("u^2", "u^3", 0.967)]
-    pairs += [("u^2", "u^2*v", 0.979), ("u^3", "u^2*v", 0.962)]
+    pairs += [("u^2", "u^2*v", 0.979), ("u^3", "u^2*v", 0.962), ("u", "u^2", 0.951)]
     selections = [Selection("u", [], 1.0, 710.0, pairs, {}, 1.0), Selection("v", [], 1.0, 710.0, [("u", "u^2", 0.99)], {}, 1.0)]
-    evidence = [Comparison(term, by, 0.0, 1.0, 0.1) for term in (u, v, u2) for by in (one, v2)]
-    result = Discovery(
-        before=SimpleNamespace(any_significant=True),
-        sentence_before="",
-        fitted=FittedTerms("constant", [u, v, u2], [Constant(1.29), Constant(-1.04), Constant(-1.08)], Scores([0.1]), []),
-        evidence=evidence,
-        selections=selections,
-    )
-    assert unweighed_alike(result) == [
-        "not weighed against the terms they move with along the grey-box's solves (|correlation|), which may fit the "
-        "measurements alike: u on du/dt with u*v (0.982); u^2 on du/dt with u*v (0.958), u^3 (0.967), u^2*v (0.979)"
-    ], "v's partners (1, v^2) were weighed; u ~ u^2 on dv/dt is another component's"
-    result.evidence += [Comparison(u, Candidate("u*v", "u"), 0.0, 1.0, 0.1)]
-    result.evidence += [Comparison(u2, Candidate(f, "u"), 0.0, 1.0, 0.1) for f in ("u*v", "u^2*v")]
-    assert unweighed_alike(result)[0].endswith("alike: u^2 on du/dt with u^3 (0.967)")
+    rows = [{"feature": f, "component": "u", "coefficient": c, "gap_closed": 0.9} for f, c in (("1", -0.19), ("v^2", -0.83))]
+    rows += [{"feature": "u*v", "component": "u", "coefficient": 0.4, "gap_closed": -0.1}]  # closed nothing alone
+    offered = alternatives(ReactionDiffusion(), [u, v, u2], rows, 3, moves_with(selections))
+    assert [(i, c.feature, start) for i, c, start in offered] == [
+        (0, "1", -0.19), (0, "v^2", -0.83), (0, "u*v", 0.4),
+        (1, "1", -0.19), (1, "v^2", -0.83),
+        (2, "1", -0.19), (2, "v^2", -0.83), (2, "u^2*v", None), (2, "u^3", None), (2, "u*v", 0.4),
+    ], offered  # fmt: skip
+
+
+def test_a_kept_term_gives_way_to_the_term_it_moves_with_that_fits_better():
+    """Quadratic drag hidden, cubic drag kept (they move together along the solves, 0.955, and only a spring was a
+    strong candidate): weighed against the term it moves with, cubic drag gives way to quadratic drag, which the
+    validation measurements then prefer by more than two standard errors; the coefficient comes out within 10 %."""
+    pendulum = Pendulum()
+    dgp = pendulum.with_hidden_effect([LibraryTerm("velocity*|velocity|", "velocity", Constant(-0.5))])
+    train, val = _draws(dgp, 300, 1), _draws(dgp, 100, 2)
+    terms = {c.feature: c for c in build_library(pendulum, ["velocity"])}
+
+    def refit(candidates, init):
+        return fit(pendulum, candidates, init, "constant", train, val, 30, 256, 0, True)
+
+    rows = [{"feature": "angle", "component": "velocity", "coefficient": -0.5, "gap_closed": 0.3}]
+    partners = moves_with([Selection("velocity", [], 1.0, 10.0, [("velocity*|velocity|", "velocity^3", 0.955)], {}, 1.0)])
+    cubic = refit([terms["velocity^3"]], [-0.3])
+    kept, comparisons, _ = weigh(pendulum, cubic, rows, 1, refit, lambda c: -0.5, lambda fitted: None, partners)
+    assert [c.feature for c in kept.candidates] == ["velocity*|velocity|"] and abs(kept.priors[0].value + 0.5) < 0.05
+    by = {c.by.feature: c for c in comparisons}
+    assert set(by) == {"angle", "velocity^3", "sign(velocity)"} and by["velocity^3"].standard_errors > 2, comparisons
 
 
 def test_terms_that_leave_the_test_part_no_closer_than_f_p_are_not_called_found_and_point_outside_the_library():

@@ -2,8 +2,11 @@
 
 For each term of the kept model, each close alternative is swapped in for it alone: the strong
 candidates on the same component that closed part of the gap when added to f_p alone
-(:func:`otgb.discovery.workflow.cross_check_step`) and, where the term is a friction of a
-velocity (``v``, ``v*|v|``, ``v^3``), Coulomb friction ``sign(v)``. The swapped model's
+(:func:`otgb.discovery.workflow.cross_check_step`), the library terms it moves with along the
+grey-box's solves (the regression's confusable pairs, :data:`otgb.discovery.regression.CONFUSABLE`:
+a term that never became a strong candidate may still fit the measurements alike, u^3 for u^2)
+and, where the term is a friction of a velocity (``v``, ``v*|v|``, ``v^3``), Coulomb friction
+``sign(v)``. The swapped model's
 coefficients are fitted by distribution matching on the training measurements and scored on the
 validation measurements with the same simulation draws as the kept model (common random
 numbers), so the difference of their held-out discrepancies and its standard error
@@ -34,12 +37,13 @@ again around the larger model.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 from otgb.discovery.library import Candidate, implausible, signed_kind
 from otgb.discovery.log import progress
 from otgb.discovery.refine import FittedTerms, beats, difference
+from otgb.discovery.regression import Selection
 from otgb.physics.base import PhysicsModel
 
 AMBIGUOUS_WITHIN = 2.0  # standard errors
@@ -74,23 +78,39 @@ class Comparison:
 
 Refit = Callable[[list[Candidate], list[float]], FittedTerms]  # constant coefficients fitted from a start
 Interval = Callable[[FittedTerms], "tuple[float, float] | None"]  # the last coefficient's 95 % interval, None if none
+Partners = Mapping[Candidate, Sequence[Candidate]]  # per library term, the terms it moves with (:func:`moves_with`)
 
 
-def alternatives(physics: PhysicsModel, kept: list[Candidate], cross_check: list[dict], per_term: int) -> list[tuple]:
-    """(index of a kept term, its alternative, the alternative's start): per kept term, the ``per_term`` cross-checked
-    candidates on its component that closed most of the gap alone, and Coulomb friction for a velocity's friction."""
+def moves_with(selections: Sequence[Selection]) -> dict[Candidate, list[Candidate]]:
+    """Per library term, the terms on its component that it moves with along the grey-box's solves: the regression's
+    confusable pairs (|correlation| >= :data:`otgb.discovery.regression.CONFUSABLE`), most correlated first."""
+    pairs = sorted(
+        ((Candidate(a, s.component), Candidate(b, s.component), abs(r)) for s in selections for a, b, r in s.confusable_pairs),
+        key=lambda pair: -pair[2],
+    )
+    partners: dict[Candidate, list[Candidate]] = {}
+    for first, second, _ in pairs:
+        partners.setdefault(first, []).append(second)
+        partners.setdefault(second, []).append(first)
+    return partners
+
+
+def alternatives(
+    physics: PhysicsModel, kept: list[Candidate], cross_check: list[dict], per_term: int, partners: Partners
+) -> list[tuple]:  # fmt: skip
+    """(index of a kept term, its alternative, the alternative's start, None where the cross-check has none): per kept
+    term, the ``per_term`` cross-checked candidates on its component that closed most of the gap alone, the terms it
+    moves with (``partners``), and Coulomb friction for a velocity's friction; never a term the kept model holds."""
     swaps = []
     for index, term in enumerate(kept):
-        rows = [
-            r for r in cross_check
-            if r["component"] == term.component and r["feature"] not in {c.feature for c in kept if c.component == term.component}
-            and math.isfinite(r["gap_closed"]) and r["gap_closed"] > 0
-        ]  # fmt: skip
-        options = {Candidate(r["feature"], r["component"]): r["coefficient"] for r in rows[:per_term]}
-        coulomb = Candidate(f"sign({term.component})", term.component)
-        if _is_friction(term, physics) and coulomb not in kept:
-            options.setdefault(coulomb, None)
-        swaps += [(index, candidate, start) for candidate, start in options.items()]
+        rows = {Candidate(r["feature"], r["component"]): r for r in cross_check if r["component"] == term.component}
+        closing = [c for c, r in rows.items() if c not in kept and math.isfinite(r["gap_closed"]) and r["gap_closed"] > 0]
+        options = [*closing[:per_term], *partners.get(term, ())]
+        if _is_friction(term, physics):
+            options.append(Candidate(f"sign({term.component})", term.component))
+        for candidate in dict.fromkeys(c for c in options if c not in kept):
+            value = rows[candidate]["coefficient"] if candidate in rows else math.nan
+            swaps.append((index, candidate, value if math.isfinite(value) else None))
     return swaps
 
 
@@ -101,7 +121,7 @@ def _is_friction(term: Candidate, physics: PhysicsModel) -> bool:
 
 def weigh(
     physics: PhysicsModel, kept: FittedTerms, cross_check: list[dict], per_term: int, refit: Refit, start: Callable,
-    interval: Interval,
+    interval: Interval, partners: Partners | None = None,
 ):  # fmt: skip
     """The kept model (a better alternative swapped in, up to ``MAX_SWAPS`` times; a strong candidate added, up to
     ``MAX_ADDITIONS`` times), its :class:`Comparison` s, and the additions (feature, component, difference, its
@@ -109,9 +129,14 @@ def weigh(
 
     ``refit(candidates, init)`` fits constant coefficients and scores them on the validation part;
     ``start(candidate)`` gives a coefficient's starting value where the cross-check has none;
-    ``interval(fitted)`` gives the 95 % interval of the last coefficient of a fit.
+    ``interval(fitted)`` gives the 95 % interval of the last coefficient of a fit;
+    ``partners`` gives the terms each library term moves with (:func:`moves_with`; none if not given).
     """
-    kept, compared = _swap(physics, kept, cross_check, per_term, refit, start)
+
+    def offered(candidates: list[Candidate]) -> list[tuple]:
+        return alternatives(physics, candidates, cross_check, per_term, partners or {})
+
+    kept, compared = _swap(physics, kept, offered, refit, start)
     added = []
     for _ in range(MAX_ADDITIONS):
         addition = _addition(kept, cross_check, per_term, refit, interval)
@@ -124,13 +149,14 @@ def weigh(
             "feature": term.feature, "component": term.component, "difference": gap, "standard_error": error,
             "coefficient": larger.priors[-1].value, "interval": [low, high],
         })  # fmt: skip
-        kept, compared = _swap(physics, larger, cross_check, per_term, refit, start)
+        kept, compared = _swap(physics, larger, offered, refit, start)
     return kept, compared, added
 
 
-def _swap(physics, kept: FittedTerms, cross_check: list[dict], per_term: int, refit: Refit, start: Callable):
-    """The kept model after up to ``MAX_SWAPS`` swaps (:func:`choose_swap`), and its :class:`Comparison` s."""
-    compared = _compare(physics, kept, cross_check, per_term, refit, start)
+def _swap(physics, kept: FittedTerms, offered: Callable, refit: Refit, start: Callable):
+    """The kept model after up to ``MAX_SWAPS`` swaps (:func:`choose_swap`) among the alternatives ``offered`` for its
+    terms (:func:`alternatives`), and its :class:`Comparison` s."""
+    compared = _compare(kept, offered, refit, start)
     for _ in range(MAX_SWAPS):
         chosen = choose_swap(physics, kept, compared)
         if chosen is None:
@@ -143,7 +169,7 @@ def _swap(physics, kept: FittedTerms, cross_check: list[dict], per_term: int, re
         else:
             progress(f"evidence: {replaced} has the wrong sign for its physics; the measurements cannot tell it from {by}")
         progress(f"evidence: {by} swapped in for {replaced} ({errors:+.1f} standard errors)")
-        compared = _compare(physics, kept, cross_check, per_term, refit, start)
+        compared = _compare(kept, offered, refit, start)
     return kept, [c for c, _ in compared]
 
 
@@ -166,10 +192,10 @@ def choose_swap(physics: PhysicsModel, kept: FittedTerms, compared: list[tuple])
     return min(plausible, key=lambda pair: pair[0].difference, default=None)
 
 
-def _compare(physics, kept: FittedTerms, cross_check: list[dict], per_term: int, refit: Refit, start: Callable) -> list[tuple]:
-    """(:class:`Comparison`, the swapped model's fit) for each alternative of ``kept``."""
+def _compare(kept: FittedTerms, offered: Callable, refit: Refit, start: Callable) -> list[tuple]:
+    """(:class:`Comparison`, the swapped model's fit) for each alternative ``offered`` for the terms of ``kept``."""
     compared = []
-    for index, by, value in alternatives(physics, kept.candidates, cross_check, per_term):
+    for index, by, value in offered(kept.candidates):
         candidates = [by if i == index else c for i, c in enumerate(kept.candidates)]
         init = [p.value for p in kept.priors]
         init[index] = start(by) if value is None else value

@@ -38,7 +38,7 @@ from otgb.physics.features import evaluate_feature, parse_feature
 
 MAX_ROWS = 60_000  # rows of the regression (cells of states along trajectories), subsampled beyond
 FOLDS = 5
-CONFUSABLE = 0.95  # |correlation| of two columns listed as a confusable pair (report only)
+CONFUSABLE = 0.95  # |correlation| of two columns listed as a confusable pair (reported; each weighed against the other)
 
 
 @dataclass

@@ -11,7 +11,7 @@ import yaml
 
 from otgb.analysis.components import to_json
 from otgb.analysis.figures import close, components_figure, disagreement_figure, distribution_figure, save
-from otgb.discovery.library import Candidate, implausible
+from otgb.discovery.library import implausible
 from otgb.discovery.locate import DisagreementMap
 from otgb.discovery.refine import centre, term_names
 from otgb.discovery.variation import FIRST_SPREAD, SPREAD_DOUBLINGS
@@ -144,7 +144,7 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
             "no library term fits exactly, these are the best approximation",
             OUTSIDE_THE_LIBRARY,
         ]
-    parts = [*answer, *preferences(result, physics), *unweighed_alike(result), *flags(result, physics)]
+    parts = [*answer, *preferences(result, physics), *flags(result, physics)]
     parts += [] if blind else low_power(result)
     if named := named_divergences(result):
         worst = max(named, key=lambda d: d["diverged"] / d["of"])
@@ -309,34 +309,6 @@ def preferences(result: Discovery, physics: PhysicsModel) -> list[str]:
         f"{c.standard_errors:.1f} standard errors"
         for c in closest_alternatives(result)
         if not c.ambiguous
-    ]
-
-
-def unweighed_alike(result: Discovery) -> list[str]:
-    """The library terms each named term moves with along the grey-box's solves (the regression's confusable pairs,
-    :data:`otgb.discovery.regression.CONFUSABLE`) that the evidence did not weigh it against: the validation
-    measurements were not asked to choose between them, so the named form is one of several that may fit alike."""
-    weighed = {frozenset({c.replaced, c.by}) for c in result.evidence}
-    named = [c for c, _ in _terms(result)]
-    clauses = []
-    for term in named:
-        partners = [
-            (Candidate(b if a == term.feature else a, term.component), correlation)
-            for selection in result.selections if selection.component == term.component
-            for a, b, correlation in selection.confusable_pairs if term.feature in (a, b)
-        ]  # fmt: skip
-        unweighed = [
-            f"{other.feature} ({correlation:.3f})"
-            for other, correlation in partners
-            if other not in named and frozenset({term, other}) not in weighed
-        ]
-        if unweighed:
-            clauses.append(f"{term.feature} on d{term.component}/dt with {', '.join(unweighed)}")
-    if not clauses:
-        return []
-    return [
-        "not weighed against the terms they move with along the grey-box's solves (|correlation|), which may fit the "
-        f"measurements alike: {'; '.join(clauses)}"
     ]
 
 

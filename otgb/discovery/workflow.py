@@ -35,7 +35,7 @@ from torch import Tensor
 from otgb.data.measured import CHUNK, simulate_in_chunks
 from otgb.data.seeding import generator_for
 from otgb.discovery.closer import Closeness, closer
-from otgb.discovery.evidence import Comparison, weigh
+from otgb.discovery.evidence import Comparison, moves_with, weigh
 from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.intervals import Intervals, fitted_intervals
 from otgb.discovery.library import Candidate, build_library, physical_name
@@ -404,12 +404,12 @@ def add_step(selections: list[Selection], designs: dict, fitting: Fitting):
 
 
 def evidence_step(
-    kept: FittedTerms, cross_check: list[dict], designs: dict, fitting: Fitting, per_term: int
+    kept: FittedTerms, result: Discovery, designs: dict, fitting: Fitting, per_term: int
 ) -> tuple[FittedTerms, list[Comparison], list[dict]]:  # fmt: skip
-    """The kept terms against every single-term swap among the strong candidates (and Coulomb friction), on the
-    validation measurements (:mod:`otgb.discovery.evidence`); a swap that fits better by two standard errors is
-    taken, and an added strong candidate that does so with a coefficient whose 95 % interval excludes zero. Returns the
-    kept fit, its comparisons and the additions."""
+    """The kept terms against every single-term swap among ``result``'s strong candidates, the terms each moves with in
+    its regression and Coulomb friction, on the validation measurements (:mod:`otgb.discovery.evidence`); a swap that
+    fits better by two standard errors is taken, and an added strong candidate that does so with a coefficient whose
+    95 % interval excludes zero. Returns the kept fit, its comparisons and the additions."""
 
     def start(candidate: Candidate) -> float:
         return _initial([candidate], designs)[0]
@@ -418,7 +418,8 @@ def evidence_step(
         intervals = fitted_intervals(fitting, fitted)
         return None if intervals is None else intervals.centre[-1]
 
-    kept, comparisons, added = weigh(fitting.physics, kept, cross_check, per_term, fitting, start, interval)
+    partners = moves_with(result.selections)
+    kept, comparisons, added = weigh(fitting.physics, kept, result.cross_check, per_term, fitting, start, interval, partners)
     for c in comparisons:
         margin = f"{c.standard_errors:+.1f} standard errors" if math.isfinite(c.difference) else "the swapped model diverges"
         progress(f"evidence: {c.replaced.feature} against {c.by.feature}: {margin}")
@@ -557,9 +558,7 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
     if result.search_reason is not None:
         kept = search_step(kept, result, designs, fitting)
     if kept is not None:
-        kept, result.evidence, result.added = evidence_step(
-            kept, result.cross_check, designs, fitting, settings.strong_candidates
-        )
+        kept, result.evidence, result.added = evidence_step(kept, result, designs, fitting, settings.strong_candidates)
         result.family, dropped = family_step(kept, fitting, settings.families)
         result.dropped += dropped
         result.fitted = result.family.fitted
