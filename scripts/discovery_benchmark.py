@@ -218,7 +218,8 @@ def _prior_text(prior) -> str:
 
 HEADER = (
     "| case | seed | named: coefficient [95 %]; or alike: an alternative the validation part cannot tell from it "
-    "(SE > 0: the named fits better) | truth | outcome | f_p C2ST | grey-box C2ST | augmented C2ST "
+    "(SE > 0: the named fits better); not weighed against: a term it moves with that its run did not compare it with "
+    "| truth | outcome | f_p C2ST | grey-box C2ST | augmented C2ST "
     "| Reference C2ST | round 2 on augmented.yaml | wall time |\n|---|---|---|---|---|---|---|---|---|---|---|"
 )
 
@@ -239,14 +240,14 @@ def table(out: Path) -> str:
         if report is None:
             continue
         case, seed = folder.name.rsplit("-seed", 1)
-        named = "; ".join(_named(t, report.get("ambiguous") or []) for t in report["terms"]) or "nothing"
+        named = "; ".join(_named(t, report) for t in report["terms"]) or "nothing"
         gap = report["gap"]
         reference = f"{gap['reference']['c2st']:.3f} ± {gap['reference']['c2st_std']:.3f}"
         second = latest_report(folder / "round2") if (folder / "round2").exists() else None
         round2 = (
             "-"
             if second is None
-            else ("found " + "; ".join(_named(t) for t in second["terms"]))
+            else ("found " + "; ".join(_named(t, second) for t in second["terms"]))
             if second["found"]
             else "nothing found"
         )
@@ -303,17 +304,31 @@ def write_doc(doc: Path, results: Path) -> None:
     write_between(doc, START, END, table(results))
 
 
-def _named(t: dict, ambiguous: list[dict] = ()) -> str:
-    """A named term with its interval and spread, and the alternatives the measurements cannot tell it from."""
+def _named(t: dict, report: dict) -> str:
+    """A named term with its interval and spread, the alternatives the measurements cannot tell it from, and the terms
+    it moves with that its run's evidence did not weigh it against."""
     interval = f" [{t['interval'][0]:.4g}, {t['interval'][1]:.4g}]" if t.get("interval") else ""
     alike = [
         f"{a['alternative']} {a['alternative_coefficient']:.4g} ({a['standard_errors']:+.1f} SE)"
-        for entry in ambiguous if (entry["feature"], entry["component"]) == (t["feature"], t["component"])
+        for entry in report.get("ambiguous") or [] if (entry["feature"], entry["component"]) == (t["feature"], t["component"])
         for a in entry["alternatives"]
     ]  # fmt: skip
-    alike_text = f", or alike: {', '.join(alike)}" if alike else ""
     named = f"{t['name']}: {t['feature']} on d{t['component']}/dt {t['coefficient']:.4g}{interval}{_spread(t['distribution'])}"
-    return named + alike_text
+    unweighed = _unweighed(t, report)
+    named += f", or alike: {', '.join(alike)}" if alike else ""
+    return named + (f", not weighed against: {unweighed}" if unweighed else "")
+
+
+def _unweighed(t: dict, report: dict) -> str:
+    """The terms a named term moves with (its regression's confusable pairs) that the run's evidence has no comparison
+    with: a run made before the evidence weighed them."""
+    named = {(n["feature"], n["component"]) for n in report["terms"]}
+    weighed = {frozenset({e["feature"], e["alternative"]}) for e in report["evidence"] if e["component"] == t["component"]}
+    pairs = [p for s in report["regression"] if s["component"] == t["component"] for p in s["confusable_pairs"]]
+    partners = [p["b"] if p["a"] == t["feature"] else p["a"] for p in pairs if t["feature"] in (p["a"], p["b"])]
+    return ", ".join(
+        other for other in partners if (other, t["component"]) not in named and frozenset({t["feature"], other}) not in weighed
+    )
 
 
 def _spread(distribution: dict | None) -> str:

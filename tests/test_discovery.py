@@ -169,7 +169,7 @@ def test_the_sentence_after_the_fix_says_how_f_p_alone_fared_on_the_same_test_pa
     assert beside_f_p(f_p) == f"; f_p alone, tested the same way, differs from them in {cells} of 50 cells" and cells > 0
     blind = locate(measured[:12], _draws(pendulum, 12, 2), pendulum.observation_times(), ("angle",), 199)
     assert not blind.any_significant, "12 trajectories cannot show a friction of 1.2"
-    assert beside_f_p(blind) == "; nor between f_p alone and them: this part is too small to show what the fix changed"
+    assert beside_f_p(blind) == "; nor between f_p alone and them, so this agreement alone does not show what the fix changed"
 
 
 def test_locate_tests_whole_trajectories_where_no_single_step_differs():
@@ -519,7 +519,7 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
     assert not said.confirmed, "agreeing with a part that tells f_p apart, but not measurably nearer than f_p: not confirmed"
 
 
-def test_each_kept_term_is_weighed_against_the_terms_it_moves_with():
+def test_the_alternatives_offered_for_each_kept_term_include_the_terms_it_moves_with():
     """React-diff-1-m, seed 1 of Table 1's augmented row: u, v and u^2 kept on du/dt where the process has u^3, which
     moves with u^2 along the solves (0.967) but was never a strong candidate: the terms each kept term moves with are
     among its alternatives (started where the cross-check has no coefficient), once each, never a kept term."""
@@ -535,15 +535,25 @@ def test_each_kept_term_is_weighed_against_the_terms_it_moves_with():
         (1, "1", -0.19), (1, "v^2", -0.83),
         (2, "1", -0.19), (2, "v^2", -0.83), (2, "u^2*v", None), (2, "u^3", None), (2, "u*v", 0.4),
     ], offered  # fmt: skip
+    drag = Candidate("velocity*|velocity|", "velocity")
+    rows = [{"feature": f, "component": "velocity", "coefficient": c, "gap_closed": g} for f, c, g in (
+        ("velocity", -0.5, 0.9), ("angle", 0.3, 0.1), ("sign(velocity)", 37.0, math.nan), ("velocity^3", 0.2, -0.3),
+    )]  # fmt: skip
+    offered = alternatives(Pendulum(), [drag], rows, 1, {})
+    assert [(c.feature, start) for _, c, start in offered] == [("velocity", -0.5), ("sign(velocity)", None)], (
+        "without partners: the best cross-checked candidate and Coulomb friction, started afresh (its fit diverged)"
+    )
+    offered = alternatives(Pendulum(), [drag], rows, 1, {drag: [Candidate("velocity^3", "velocity")]})
+    assert [(c.feature, start) for _, c, start in offered][1] == ("velocity^3", 0.2), "a partner starts where it was fitted alone"
 
 
 def test_a_kept_term_gives_way_to_the_term_it_moves_with_that_fits_better():
     """Quadratic drag hidden, cubic drag kept (they move together along the solves, 0.955, and only a spring was a
-    strong candidate): weighed against the term it moves with, cubic drag gives way to quadratic drag, which the
-    validation measurements then prefer by more than two standard errors; the coefficient comes out within 10 %."""
+    strong candidate): weighed against the term it moves with, cubic drag gives way to quadratic drag, which the 200
+    validation trajectories then prefer by more than two standard errors (3.5 measured); the coefficient within 10 %."""
     pendulum = Pendulum()
     dgp = pendulum.with_hidden_effect([LibraryTerm("velocity*|velocity|", "velocity", Constant(-0.5))])
-    train, val = _draws(dgp, 300, 1), _draws(dgp, 100, 2)
+    train, val = _draws(dgp, 300, 1), _draws(dgp, 200, 2)
     terms = {c.feature: c for c in build_library(pendulum, ["velocity"])}
 
     def refit(candidates, init):
@@ -1504,6 +1514,17 @@ def test_the_docs_coverage_table_is_what_the_result_files_give(tmp_path):
     doc.write_text((root / "docs" / "discovery.md").read_text())
     script = root / "scripts" / "interval_coverage.py"
     subprocess.run([sys.executable, str(script), "--table", "--doc", str(doc)], check=True)
+    assert doc.read_text() == (root / "docs" / "discovery.md").read_text()
+
+
+def test_the_docs_benchmark_table_is_what_the_result_files_give(tmp_path):
+    """docs/discovery.md's benchmark table, with each term's ambiguous alternatives and the terms it moves with that
+    its run did not weigh, is what scripts/discovery_benchmark.py writes from results/discovery."""
+    root = Path(__file__).parents[1]
+    doc = tmp_path / "discovery.md"
+    doc.write_text((root / "docs" / "discovery.md").read_text().replace("| pendulum_drag | 0 |", "| stale | 0 |"))
+    script = root / "scripts" / "discovery_benchmark.py"
+    subprocess.run([sys.executable, str(script), "--out", str(root / "results" / "discovery"), "--doc", str(doc)], check=True)
     assert doc.read_text() == (root / "docs" / "discovery.md").read_text()
 
 

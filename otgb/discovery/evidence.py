@@ -6,11 +6,10 @@ candidates on the same component that closed part of the gap when added to f_p a
 grey-box's solves (the regression's confusable pairs, :data:`otgb.discovery.regression.CONFUSABLE`:
 a term that never became a strong candidate may still fit the measurements alike, u^3 for u^2)
 and, where the term is a friction of a velocity (``v``, ``v*|v|``, ``v^3``), Coulomb friction
-``sign(v)``. The swapped model's
-coefficients are fitted by distribution matching on the training measurements and scored on the
-validation measurements with the same simulation draws as the kept model (common random
-numbers), so the difference of their held-out discrepancies and its standard error
-(:func:`otgb.discovery.refine.difference`) come from data that no fit saw.
+``sign(v)``. The swapped model's coefficients are fitted by distribution matching on the training
+measurements and scored on the validation measurements with the same simulation draws as the kept
+model (common random numbers), so the difference of their held-out discrepancies and its standard
+error (:func:`otgb.discovery.refine.difference`) come from data that no fit saw.
 
 An alternative within two standard errors is *ambiguous*: the measurements cannot tell it from
 the named term. Of those that fit better by more than two standard errors, the one that lowers the
@@ -98,19 +97,21 @@ def moves_with(selections: Sequence[Selection]) -> dict[Candidate, list[Candidat
 def alternatives(
     physics: PhysicsModel, kept: list[Candidate], cross_check: list[dict], per_term: int, partners: Partners
 ) -> list[tuple]:  # fmt: skip
-    """(index of a kept term, its alternative, the alternative's start, None where the cross-check has none): per kept
-    term, the ``per_term`` cross-checked candidates on its component that closed most of the gap alone, the terms it
-    moves with (``partners``), and Coulomb friction for a velocity's friction; never a term the kept model holds."""
+    """(index of a kept term, its alternative, its start): per kept term, the ``per_term`` cross-checked candidates on
+    its component that closed most of the gap alone, the terms it moves with (``partners``), and Coulomb friction for a
+    velocity's friction; never a term the kept model holds. The start is the coefficient the cross-check fitted to the
+    alternative alone (for one of those ``per_term`` candidates, or a partner whose fit stayed finite), else None."""
     swaps = []
     for index, term in enumerate(kept):
         rows = {Candidate(r["feature"], r["component"]): r for r in cross_check if r["component"] == term.component}
         closing = [c for c, r in rows.items() if c not in kept and math.isfinite(r["gap_closed"]) and r["gap_closed"] > 0]
-        options = [*closing[:per_term], *partners.get(term, ())]
-        if _is_friction(term, physics):
-            options.append(Candidate(f"sign({term.component})", term.component))
+        closing, partnered = closing[:per_term], list(partners.get(term, ()))
+        fitted_alone = closing + [c for c in partnered if c in rows and math.isfinite(rows[c]["gap_closed"])]
+        coulomb = [Candidate(f"sign({term.component})", term.component)] if _is_friction(term, physics) else []
+        options = closing + partnered + coulomb
         for candidate in dict.fromkeys(c for c in options if c not in kept):
-            value = rows[candidate]["coefficient"] if candidate in rows else math.nan
-            swaps.append((index, candidate, value if math.isfinite(value) else None))
+            start = rows[candidate]["coefficient"] if candidate in fitted_alone else math.nan
+            swaps.append((index, candidate, start if math.isfinite(start) else None))
     return swaps
 
 

@@ -17,7 +17,8 @@ f_phi is evaluated along generated trajectories and regressed on named candidate
   worse by more than one standard error (``sin(angle)`` for ``angle`` at small angles), or with
   another selected term when either can be dropped (both selected, sharing one effect).
 - The library's condition number and its confusable pairs (uncentred |correlation| >= 0.95)
-  are reported.
+  are reported; the evidence weighs each kept term against the terms it is paired with
+  (:func:`otgb.discovery.evidence.moves_with`).
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ from otgb.physics.features import evaluate_feature, parse_feature
 
 MAX_ROWS = 60_000  # rows of the regression (cells of states along trajectories), subsampled beyond
 FOLDS = 5
-CONFUSABLE = 0.95  # |correlation| of two columns listed as a confusable pair (reported; each weighed against the other)
+CONFUSABLE = 0.95  # |correlation| of a confusable pair: reported, and a kept term is weighed against each partner
 
 
 @dataclass

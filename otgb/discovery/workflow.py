@@ -608,7 +608,7 @@ def beside_f_p(before_on_test: DisagreementMap) -> str:
     """The same tests of f_p alone on the same test part, for the sentence on the augmented physics: an agreement
     after the fix means something only where f_p alone disagrees with these trajectories."""
     if not before_on_test.any_significant:
-        return "; nor between f_p alone and them: this part is too small to show what the fix changed"
+        return "; nor between f_p alone and them, so this agreement alone does not show what the fix changed"
     cells = int(before_on_test.significant.sum())
     if cells:
         where = f"in {cells} of {before_on_test.significant.numel()} cells"
