@@ -47,6 +47,7 @@ import torch  # noqa: E402
 from otgb.analysis.figures import save  # noqa: E402
 from otgb.metrics.c2st import c2st  # noqa: E402
 from otgb.metrics.samples import joint_samples  # noqa: E402
+from otgb.physics import PhysicsModel  # noqa: E402
 from otgb.runs import load_run  # noqa: E402
 from otgb.training import MapTraining  # noqa: E402
 
@@ -126,7 +127,7 @@ def per_frame(measured: torch.Tensor, drawn: torch.Tensor, data: dict[str, torch
     return rows
 
 
-def figure(rows: list[dict], times: torch.Tensor, ratio: torch.Tensor, title: str, out: Path) -> None:
+def figure(rows: list[dict], times: torch.Tensor, ratio: torch.Tensor, title: str, out: Path, time_label: str) -> None:
     cells = ratio.reshape(len(ratio), -1)  # (T, observed values of a frame)
     field = cells.shape[1] > 3  # fields get a third panel over (t, grid cell)
     fig, axes = plt.subplots(1, 3 if field else 2, figsize=(15 if field else 10, 3.5))
@@ -134,14 +135,14 @@ def figure(rows: list[dict], times: torch.Tensor, ratio: torch.Tensor, title: st
     axes[0].plot(t, [r["spread_measured"] for r in rows], label="measured (DGP draws)")
     axes[0].plot(t, [r["spread_map"] for r in rows], label="map (z draws)")
     axes[0].plot(t, [r["bias"] for r in rows], "--", label="|mean map - mean measured|")
-    axes[0].set(xlabel="t", ylabel="per-input std over draws", title="spread over time")
+    axes[0].set(xlabel=time_label, ylabel="per-input std over draws", title="spread over time")
     axes[0].legend()
     axes[1].plot(t, [r["c2st"] for r in rows], "o-")
     axes[1].axhline(0.5, color="grey", lw=0.8)
-    axes[1].set(xlabel="t", ylabel="C2ST accuracy", ylim=(0.4, 1.0), title="C2ST on one frame (theta, x0, y_t)")
+    axes[1].set(xlabel=time_label, ylabel="C2ST accuracy", ylim=(0.4, 1.0), title="C2ST on one frame (theta, x0, y_t)")
     if field:
         image = axes[2].imshow(cells.T, aspect="auto", origin="lower", extent=(t[0], t[-1], 0, cells.shape[1]))
-        axes[2].set(xlabel="t", ylabel="grid cell", title="|mean map - mean measured| / measured spread")
+        axes[2].set(xlabel=time_label, ylabel="grid cell", title="|mean map - mean measured| / measured spread")
         fig.colorbar(image, ax=axes[2])
     fig.suptitle(title)
     fig.tight_layout()
@@ -185,7 +186,7 @@ def main() -> None:
     print(f"variance share along each input's leading direction (whole trajectories): {shares}")
     print(f"|cos| between the map's and the measured leading directions: {leading_direction_alignment(measured, drawn):.3f}")
     if args.per_frame:
-        table_and_figure(measured, drawn, data, ratio, datamodule.physics.observation_times(), args, name)
+        table_and_figure(measured, drawn, data, ratio, datamodule.physics, args, name)
     for judge in args.judges:
         print(f"C2ST on whole trajectories, {judge} judge: {whole(measured, drawn, data, args.seed, judge):.3f}", flush=True)
 
@@ -195,13 +196,13 @@ def table_and_figure(
     drawn: torch.Tensor,
     data: dict[str, torch.Tensor],
     ratio: torch.Tensor,
-    times: torch.Tensor,
+    physics: PhysicsModel,
     args: argparse.Namespace,
     name: str,
 ) -> None:
     """Per frame: spread, bias and C2ST printed as Markdown; the curves (and the bias map of a field) into ``--out``."""
     rows = per_frame(measured, drawn, data, args.seed)
-    times = times[-measured.shape[2] :]
+    times = physics.observation_times()[-measured.shape[2] :]
     print("| t | spread measured | spread map | bias | bias / spread | C2ST (this frame) |\n|---|---|---|---|---|---|")
     for r, t in zip(rows, times.tolist()):
         spread = f"{r['spread_measured']:.4f} | {r['spread_map']:.4f}"
@@ -209,7 +210,8 @@ def table_and_figure(
     if ratio[0].numel() > 3:
         per_cell = ratio.reshape(len(ratio), -1).nanmean(0)
         print("bias / spread per grid cell (mean over frames):", " ".join(f"{v:.2f}" for v in per_cell.tolist()))
-    figure(rows, times, ratio, f"{'-'.join(Path(path).stem for path in args.config)}: {name}", args.out)
+    title = f"{'-'.join(Path(path).stem for path in args.config)}: {name}"
+    figure(rows, times, ratio, title, args.out, physics.axis_label("t"))
     print(f"figure: {args.out}", flush=True)
 
 

@@ -43,8 +43,8 @@ def _components():
     t = torch.linspace(0, 1, 10)
     values = torch.linspace(0.1, 0.2, 10)
     return {
-        "times": t, "traj_err": values, "traj_err_fp": 3 * values, "traj_err_kind": "abs_err", "func_err": values,
-        "func_err_fp": 2 * values,
+        "times": t, "time_label": "t (s)", "traj_err": values, "traj_err_fp": 3 * values, "traj_err_kind": "abs_err",
+        "func_err": values, "func_err_fp": 2 * values,
         "func_err_unavailable": None, "f_p_abs": values, "f_phi_abs": values / 3, "summary": {"correction_share": 0.25},
     }  # fmt: skip
 
@@ -61,7 +61,8 @@ def _figures():
     return {
         "trajectories": trajectory_figure(rows, y_hat, pendulum, 0, STEP),
         "distributions": distribution_figure(
-            {"measured": measured, "f_p": simulated}, pendulum.observation_times(), pendulum.observed, STEP
+            {"measured": measured, "f_p": simulated}, pendulum.observation_times(),
+            [pendulum.axis_label(name) for name in pendulum.observed], STEP, pendulum.axis_label("t"),
         ),
         "fields 1-D": space_time_figure(fields_1d, theta_1d, advdiff, "T", STEP),
         "fields 2-D": frames_figure(fields_2d, theta_2d, reactdiff, [0, 5, 14], "u", STEP),
@@ -69,7 +70,7 @@ def _figures():
         "components, no true field": components_figure(
             {**_components(), "func_err": None, "func_err_unavailable": "the measurements come from a file"}, STEP
         ),
-        "disagreement, ODE": disagreement_figure([(ode_map, "before"), (ode_map, "after")]),
+        "disagreement, ODE": disagreement_figure([(ode_map, "before"), (ode_map, "after")], pendulum.axis_label("t")),
         "disagreement, field": disagreement_figure([(field_map, "before"), (field_map, "after")]),
     }  # fmt: skip
 
@@ -99,6 +100,21 @@ def test_every_figure_has_axis_labels_a_title_and_a_legend_or_colour_bar(figures
         for ax in figure.axes:
             if _is_colorbar(ax):
                 assert ax.get_ylabel() or ax.get_xlabel(), f"{kind}: a colour bar without a label"
+
+
+def test_axes_give_the_units_the_model_declares(figures):
+    """The pendulum declares seconds, radians and rad/s; the fields declare none, so their axes carry names alone."""
+    for kind in ("trajectories", "distributions", "components", "disagreement, ODE", "fields 1-D"):
+        labels = {ax.get_xlabel() for ax in figures[kind].axes if ax.axison and not _is_colorbar(ax)}
+        assert labels == ({"t"} if kind == "fields 1-D" else {"t (s)"}), (kind, labels)
+    first = figures["trajectories"].axes[0]
+    assert first.get_ylabel() == "angle (rad)" and first.get_title() == "omega=2 rad/s", first.get_title()
+    assert figures["distributions"].axes[0].get_ylabel() == "angle (rad)"
+
+
+def test_a_model_s_units_name_its_own_quantities():
+    with pytest.raises(TypeError, match=r"units names \['speed'\], which are neither 't' nor in state_names"):
+        type("Bad", (Pendulum,), {"units": {"t": "s", "speed": "m/s"}})
 
 
 def test_titles_fit_inside_their_figures(figures):

@@ -134,6 +134,7 @@ def component_analysis(model: MapTraining, datamodule: SimulationDataModule, n: 
         "n_inputs": len(data["y"]),
         "draws_per_input": draws,
         "times": datamodule.physics.observation_times(),
+        "time_label": datamodule.physics.axis_label("t"),
         "traj_err": traj_err,
         "traj_err_fp": traj_err_fp,
         "traj_err_kind": kind,

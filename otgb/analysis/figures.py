@@ -55,7 +55,9 @@ def title(figure: plt.Figure, what: str, step: int | None = None) -> None:
 
 
 def theta_label(physics: PhysicsModel, theta: Tensor) -> str:
-    return ", ".join(f"{name}={v:.3g}" for name, v in zip(physics.theta_names, theta.tolist()))
+    """ "omega=1.23 rad/s, ...": each theta with its unit where the model declares one."""
+    units = [f" {physics.units[name]}" if name in physics.units else "" for name in physics.theta_names]
+    return ", ".join(f"{name}={v:.3g}{unit}" for name, v, unit in zip(physics.theta_names, theta.tolist(), units))
 
 
 def probe_series(trajectories: Tensor, names: Sequence[str]) -> tuple[Tensor, list[str]]:
@@ -78,11 +80,13 @@ LEGEND_BELOW = 0.6  # inches under the distribution figure's panels for its lege
 
 
 def distribution_figure(
-    samples: dict[str, Tensor], times: Tensor, names: Sequence[str], step: int | None = None
+    samples: dict[str, Tensor], times: Tensor, names: Sequence[str], step: int | None = None, time_label: str = "t"
 ) -> plt.Figure:  # fmt: skip
     """Median, 25-75 % and 5-95 % bands over time of each source, and two sample paths each, on one y scale per
-    series. ``samples``: source name -> trajectories (N, T, *obs) (the sources may differ in N). The first source's
-    bands are filled, the others' outlined (25-75 % solid, 5-95 % dotted), so that overlapping bands stay apart."""
+    series. ``samples``: source name -> trajectories (N, T, *obs) (the sources may differ in N); ``names``: the
+    observed components' axis labels (with their units, :meth:`otgb.physics.PhysicsModel.axis_label`). The first
+    source's bands are filled, the others' outlined (25-75 % solid, 5-95 % dotted), so that overlapping bands stay
+    apart."""
     series = {name: probe_series(values.float(), names) for name, values in samples.items()}
     labels = next(iter(series.values()))[1]
     cols = min(len(labels), 3)
@@ -107,7 +111,7 @@ def distribution_figure(
             for path in values[:2, :, k]:
                 ax.plot(t, path.numpy(), color=colour, ls=style, lw=0.5, alpha=0.45)
         ax.set_title(labels[k], fontsize=8)
-        ax.set_xlabel("t", fontsize=8)
+        ax.set_xlabel(time_label, fontsize=8)
         ax.set_ylabel(labels[k], fontsize=8)
     first = next(iter(series))
     styles = [  # what each line and band is, in grey, after the sources' colours
@@ -145,8 +149,8 @@ def trajectory_figure(
             ax.plot(t, y[j, :, component].flatten(), color="black", lw=1, alpha=0.6, label=measured)
             ax.plot(t, y_hat[i, j, :, component].flatten(), color="tab:green", lw=1, alpha=0.8, label=generated)
         ax.set_title(theta_label(physics, data["theta"][i]), fontsize=8)
-        ax.set_xlabel("t", fontsize=7)
-        ax.set_ylabel(name, fontsize=7)
+        ax.set_xlabel(physics.axis_label("t"), fontsize=7)
+        ax.set_ylabel(physics.axis_label(name), fontsize=7)
     axes.flat[0].legend(fontsize=7)
     title(figure, f"{name}: measured, generated and f_p for {n} validation inputs", step)
     figure.tight_layout()
@@ -171,9 +175,9 @@ def space_time_figure(
         for ax, (name, field, cmap, vmin, vmax) in zip(axes[i], panels):
             image = ax.imshow(field.T, aspect="auto", origin="lower", cmap=cmap, vmin=vmin, vmax=vmax, extent=extent)
             ax.set_title(f"{name} ({theta_label(physics, theta[i])})", fontsize=7)
-            ax.set_xlabel("t", fontsize=7)
+            ax.set_xlabel(physics.axis_label("t"), fontsize=7)
             ax.set_ylabel("position (fraction of the domain)", fontsize=6)
-            figure.colorbar(image, ax=ax, label=channel)
+            figure.colorbar(image, ax=ax, label=physics.axis_label(channel))
     title(figure, f"{channel}: measured, generated and f_p over space and time", step)
     figure.tight_layout()
     return figure
@@ -195,11 +199,12 @@ def frames_figure(
             for c, frame in enumerate(frames):
                 ax = axes[3 * i + r, c]
                 image = ax.imshow(fields[name][i, frame], cmap="viridis", vmin=low, vmax=high)
-                ax.set_title(f"{name}, t={float(times[frame]):.2g}", fontsize=7)
+                unit = f" {physics.units['t']}" if "t" in physics.units else ""
+                ax.set_title(f"{name}, t={float(times[frame]):.2g}{unit}", fontsize=7)
                 ax.set_xlabel("y (cell)", fontsize=6)
                 ax.set_ylabel("x (cell)", fontsize=6)
                 ax.tick_params(labelsize=5)
-        label = f"{channel} ({theta_label(physics, theta[i])})"
+        label = f"{physics.axis_label(channel)} ({theta_label(physics, theta[i])})"
         figure.colorbar(image, ax=axes[3 * i : 3 * i + 3, :].ravel().tolist(), label=label)
     title(figure, f"{channel}: measured, generated and f_p at {len(frames)} frames", step)
     return figure
@@ -232,7 +237,7 @@ def components_figure(result: dict[str, Any], step: int | None = None) -> plt.Fi
     parts.set_ylabel("mean |f|", fontsize=8)
     parts.legend(fontsize=7)
     for ax in axes:
-        ax.set_xlabel("t", fontsize=8)
+        ax.set_xlabel(result["time_label"], fontsize=8)
     title(figure, "component analysis of the grey-box along its solve", step)
     if known:
         figure.tight_layout()
@@ -242,13 +247,15 @@ def components_figure(result: dict[str, Any], step: int | None = None) -> plt.Fi
     return figure
 
 
-def disagreement_figure(maps: list[tuple[Any, str]]) -> plt.Figure:
+def disagreement_figure(maps: list[tuple[Any, str]], time_label: str = "t") -> plt.Figure:
     """Disagreement maps (:class:`otgb.discovery.locate.DisagreementMap`) side by side on one scale, so that the
-    gap's shrinking is seen: curves per component (ODE) or a heatmap over (time, component x region) (fields)."""
+    gap's shrinking is seen: curves per component (ODE) or a heatmap over (time, component x region) (fields);
+    ``time_label``: the time axis's label, with its unit."""
     figure, axes = plt.subplots(1, len(maps), figsize=(6.5 * len(maps), 3.8), squeeze=False, sharey=True)
     top = max(float(m.statistic.max()) for m, _ in maps) or 1.0
     for ax, (disagreement, panel_title) in zip(axes[0], maps):
         _draw_disagreement(ax, disagreement, panel_title, top)
+        ax.set_xlabel(time_label)
     title(figure, "energy distance between the model's simulations and the measurements (dots: significant)")
     figure.tight_layout()
     return figure
@@ -280,7 +287,6 @@ def _draw_disagreement(ax: plt.Axes, result: Any, title: str, top: float) -> Non
         if len(rows):
             ax.legend(fontsize=7, loc="upper right")
         ax.figure.colorbar(image, ax=ax, label="energy distance")
-    ax.set_xlabel("t")
     ax.tick_params(labelleft=True)  # each panel its numbers: the shared scale is read on every one
     whole = "differ" if result.whole_significant else "no difference seen"  # a difference no single cell shows
     ax.set_title(f"{title}\nwhole trajectories: {whole} (permutation p = {result.whole_pvalue:.2g})", fontsize=9)

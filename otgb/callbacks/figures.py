@@ -77,7 +77,8 @@ class ValidationFigure(Callback):
         )
         physics = datamodule.physics
         samples = {"measured": data["y"][:, 0], "generated": y_hat[:, 0], "f_p": data["x"]}
-        return distribution_figure(samples, physics.observation_times(), list(physics.observed), step)
+        names = [physics.axis_label(name) for name in physics.observed]
+        return distribution_figure(samples, physics.observation_times(), names, step, physics.axis_label("t"))
 
     def draw(self, data: dict[str, torch.Tensor], y_hat: torch.Tensor, physics: PhysicsModel, step: int) -> plt.Figure:
         """data: the joint set's rows (x (N, T, *obs), y (N, M, T, *obs), theta, x0); y_hat (N, M, T, *obs)."""

@@ -477,8 +477,8 @@ def _selection_dict(selection: Any) -> dict[str, Any]:
     }
 
 
-def draw_locate(result: Discovery, path: Path) -> None:
-    figure = disagreement_figure(disagreement_panels(result))
+def draw_locate(result: Discovery, path: Path, time_label: str = "t") -> None:
+    figure = disagreement_figure(disagreement_panels(result), time_label)
     save(figure, path)
     close(figure)
 
@@ -514,8 +514,9 @@ def write_report(
         save(figure, figures / "components.png")
         close(figure)
     (run_dir / "report.json").write_text(json.dumps(report, indent=2))
-    draw_locate(result, figures / "disagreement.png")
-    figure = distribution_figure(samples, physics.observation_times(), physics.observed)
+    draw_locate(result, figures / "disagreement.png", physics.axis_label("t"))
+    names = [physics.axis_label(name) for name in physics.observed]
+    figure = distribution_figure(samples, physics.observation_times(), names, time_label=physics.axis_label("t"))
     save(figure, figures / "distributions.png")
     close(figure)
     (run_dir / "report.md").write_text(markdown(report, facts))
@@ -737,7 +738,11 @@ def _evidence_section(report: dict[str, Any]) -> list[str]:
             f"| {code(e['feature'])} | {e['alternative_name']} ({code(e['alternative'])}) | {e['alternative_coefficient']:.4g} "
             f"| {difference} | {errors} |"
         )
-    lines.append("\nPositive: the named term fits better. Within ±2 standard errors the measurements cannot tell the two apart.")
+    lines.append(
+        "\nThe alternatives: the strong candidates on its component that closed most of the gap alone, the terms it moves "
+        "with along the grey-box's solves (the confusable pairs above) and, for a friction, Coulomb friction. "
+        "Positive: the named term fits better. Within ±2 standard errors the measurements cannot tell the two apart."
+    )
     for a in report["added_by_evidence"]:
         errors = a["difference"] / a["standard_error"] if a["standard_error"] > 0 else float("inf")
         lines.append(

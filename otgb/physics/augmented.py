@@ -55,7 +55,7 @@ class Augmented(PhysicsModel):
         clash = sorted({n for n in names if names.count(n) > 1} | (set(names) & {*base.theta_names, *base.state_names}))
         if clash:
             raise InputError(f"Augmented: the term names {clash} repeat a name of the base model or of another term")
-        for attr in ("state_names", "observed", "angle_names", "velocity_names"):
+        for attr in ("state_names", "observed", "angle_names", "velocity_names", "units"):
             object.__setattr__(self, attr, getattr(base, attr))
         object.__setattr__(self, "theta_names", (*base.theta_names, *names))
         super().__init__(base.dt, base.n_obs, base.include_initial, base.step_size, base.method)

@@ -63,6 +63,12 @@ def _check_declarations(cls: type[PhysicsModel]) -> None:
         raise TypeError(f"{cls.__name__}.observed names {unknown}, which are not in state_names {cls.state_names}")
     if list(cls.observed) != [name for name in cls.state_names if name in cls.observed]:
         raise TypeError(f"{cls.__name__}.observed {cls.observed} must follow the order of state_names {cls.state_names}")
+    units = getattr(cls, "units", {})
+    if not isinstance(units, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in units.items()):
+        raise TypeError(f"{cls.__name__}.units must map names (str) to units (str), got {units!r}")
+    stray = [name for name in units if name not in ("t", *cls.state_names, *cls.theta_names)]
+    if stray:
+        raise TypeError(f"{cls.__name__}.units names {stray}, which are neither 't' nor in state_names or theta_names")
     for attr in ("angle_names", "velocity_names"):
         stray = [name for name in getattr(cls, attr) if name not in cls.state_names]
         if stray:
@@ -94,7 +100,8 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
     and make its ``repr``, the key of cached data sets. It may also name which states are
     angles (``angle_names``) and velocities (``velocity_names``): the missing-effect library
     (:mod:`otgb.discovery.library`) then offers sin/cos of the angles and drag-like terms of
-    the velocities.
+    the velocities. Where the units are known, ``units`` maps the time ``"t"``, state and theta
+    names to them (``{"t": "s", "angle": "rad"}``): figures label their axes with them.
 
     Args:
         dt: time between two observations.
@@ -114,6 +121,7 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
     theta_names: ClassVar[tuple[str, ...]]
     angle_names: ClassVar[tuple[str, ...]] = ()
     velocity_names: ClassVar[tuple[str, ...]] = ()
+    units: ClassVar[dict[str, str]] = {}
 
     def __init_subclass__(cls, **kwargs: object) -> None:
         super().__init_subclass__(**kwargs)
@@ -249,6 +257,11 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
     def observation_times(self, device: torch.device | None = None) -> Tensor:
         """The times of the observed trajectory, (n_obs,)."""
         return self.times(device)[-self.n_obs :]
+
+    def axis_label(self, name: str) -> str:
+        """``name`` ("t", a state or theta name) with its unit where the model declares one: "angle (rad)"."""
+        unit = self.units.get(name)
+        return f"{name} ({unit})" if unit else name
 
     def with_hidden_effect(self, terms: Sequence[Term], step_size: float | None = None) -> PhysicsModel:
         """A copy of this model with ``terms`` added to its field (and optionally a finer step).

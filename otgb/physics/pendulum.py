@@ -35,6 +35,7 @@ class Pendulum(PhysicsModel):
     theta_names = ("omega",)
     angle_names = ("angle",)
     velocity_names = ("velocity",)
+    units = {"t": "s", "angle": "rad", "velocity": "rad/s", "omega": "rad/s"}
 
     def __init__(
         self,
