@@ -310,7 +310,7 @@ def _named(t: dict, report: dict) -> str:
     interval = f" [{t['interval'][0]:.4g}, {t['interval'][1]:.4g}]" if t.get("interval") else ""
     alike = [
         f"{a['alternative']} {a['alternative_coefficient']:.4g} ({a['standard_errors']:+.1f} SE)"
-        for entry in report.get("ambiguous") or [] if (entry["feature"], entry["component"]) == (t["feature"], t["component"])
+        for entry in report["ambiguous"] if (entry["feature"], entry["component"]) == (t["feature"], t["component"])
         for a in entry["alternatives"]
     ]  # fmt: skip
     named = f"{t['name']}: {t['feature']} on d{t['component']}/dt {t['coefficient']:.4g}{interval}{_spread(t['distribution'])}"
@@ -320,8 +320,8 @@ def _named(t: dict, report: dict) -> str:
 
 
 def _unweighed(t: dict, report: dict) -> str:
-    """The terms a named term moves with (its regression's confusable pairs) that the run's evidence has no comparison
-    with: a run made before the evidence weighed them."""
+    """The terms a named term moves with (its regression's confusable pairs) that the run's evidence holds no
+    comparison with."""
     named = {(n["feature"], n["component"]) for n in report["terms"]}
     weighed = {frozenset({e["feature"], e["alternative"]}) for e in report["evidence"] if e["component"] == t["component"]}
     pairs = [p for s in report["regression"] if s["component"] == t["component"] for p in s["confusable_pairs"]]

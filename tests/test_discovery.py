@@ -522,7 +522,8 @@ def test_a_named_term_the_measurements_cannot_tell_from_another_is_named_with_it
 def test_the_alternatives_offered_for_each_kept_term_include_the_terms_it_moves_with():
     """React-diff-1-m, seed 1 of Table 1's augmented row: u, v and u^2 kept on du/dt where the process has u^3, which
     moves with u^2 along the solves (0.967) but was never a strong candidate: the terms each kept term moves with are
-    among its alternatives (started where the cross-check has no coefficient), once each, never a kept term."""
+    among its alternatives, once each, never a kept term, started afresh where the cross-check has no finite fit of
+    them alone."""
     u, v, u2 = (Candidate(f, "u") for f in ("u", "v", "u^2"))
     pairs = [("1", "v", 0.981), ("u", "u*v", 0.982), ("v", "v^2", 0.980), ("u^2", "u*v", 0.958), ("u^2", "u^3", 0.967)]
     pairs += [("u^2", "u^2*v", 0.979), ("u^3", "u^2*v", 0.962), ("u", "u^2", 0.951)]

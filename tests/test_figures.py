@@ -112,11 +112,6 @@ def test_axes_give_the_units_the_model_declares(figures):
     assert figures["distributions"].axes[0].get_ylabel() == "angle (rad)"
 
 
-def test_a_model_s_units_name_its_own_quantities():
-    with pytest.raises(TypeError, match=r"units names \['speed'\], which are neither 't' nor in state_names"):
-        type("Bad", (Pendulum,), {"units": {"t": "s", "speed": "m/s"}})
-
-
 def test_titles_fit_inside_their_figures(figures):
     for kind, figure in figures.items():
         figure.canvas.draw()

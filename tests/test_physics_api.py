@@ -12,11 +12,13 @@ from otgb.errors import InputError
 from otgb.physics import (
     Advection,
     AdvectionDiffusion,
+    Augmented,
     Choice,
     Constant,
     ConstantDrain,
     FieldModel,
     FitzHughNagumoReaction,
+    LibraryTerm,
     Pendulum,
     PhysicsModel,
     Prior,
@@ -111,6 +113,18 @@ def test_declarations_are_validated_when_the_class_is_made():
         type("Clash", (Oscillator,), {"theta_names": ("position",)})
     with pytest.raises(TypeError, match="Loose.theta_names must be a tuple of names"):
         type("Loose", (Oscillator,), {"theta_names": "k"})
+    with pytest.raises(TypeError, match=r"Stray.units names \['speed'\], which are neither 't' nor in state_names"):
+        type("Stray", (Oscillator,), {"units": {"t": "s", "speed": "m/s"}})
+    with pytest.raises(TypeError, match=r"Blank.units must map names \(str\) to units \(non-empty str\)"):
+        type("Blank", (Oscillator,), {"units": {"t": ""}})
+
+
+def test_axis_labels_carry_the_declared_units_also_for_the_augmented_physics():
+    pendulum = Pendulum()
+    drag = LibraryTerm("velocity*|velocity|", "velocity", Constant(-0.5))
+    for model in (pendulum, Augmented(pendulum, [drag])):
+        assert [model.axis_label(name) for name in ("t", "angle", "omega")] == ["t (s)", "angle (rad)", "omega (rad/s)"]
+    assert AdvectionDiffusion().axis_label("t") == "t", "a model that declares no unit labels its axes bare"
 
 
 def test_required_methods_are_abstract_and_default_samplers_need_priors():

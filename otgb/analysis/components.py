@@ -106,7 +106,8 @@ def component_analysis(model: MapTraining, datamodule: SimulationDataModule, n: 
       reason in ``func_err_unavailable`` (see :func:`true_field`);
     - ``f_p_abs``, ``f_phi_abs``: mean |f_p| and |f_phi| over trajectories and state components,
       and ``correction_share``: f_phi_abs / (f_p_abs + f_phi_abs), in [0, 1];
-    - ``times`` (T,), ``mode``, ``n_inputs``, ``draws_per_input``, and ``summary``: the floats
+    - ``times`` (T,), ``time_label`` (the time axis's label, with its unit where the physics declares one),
+      ``mode``, ``n_inputs``, ``draws_per_input``, and ``summary``: the floats
       ``traj_err``, ``func_err``, ``func_err_fp`` (time means; None if unavailable) and
       ``correction_share`` (of the time means).
     """

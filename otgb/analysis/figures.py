@@ -55,9 +55,13 @@ def title(figure: plt.Figure, what: str, step: int | None = None) -> None:
 
 
 def theta_label(physics: PhysicsModel, theta: Tensor) -> str:
-    """ "omega=1.23 rad/s, ...": each theta with its unit where the model declares one."""
-    units = [f" {physics.units[name]}" if name in physics.units else "" for name in physics.theta_names]
-    return ", ".join(f"{name}={v:.3g}{unit}" for name, v, unit in zip(physics.theta_names, theta.tolist(), units))
+    """Each theta with its unit where the model declares one: "omega=1.23 rad/s, ..."."""
+    return ", ".join(f"{name}={v:.3g}{_unit(physics, name)}" for name, v in zip(physics.theta_names, theta.tolist()))
+
+
+def _unit(physics: PhysicsModel, name: str) -> str:
+    """The unit to write after a value of ``name`` (" rad/s"), or "" where the model declares none."""
+    return f" {physics.units[name]}" if name in physics.units else ""
 
 
 def probe_series(trajectories: Tensor, names: Sequence[str]) -> tuple[Tensor, list[str]]:
@@ -188,7 +192,7 @@ def frames_figure(
     step: int | None = None,
 ) -> plt.Figure:  # fmt: skip
     """A 2-D field at ``frames``, one row per source, one colour scale per input. ``fields``: source -> (N, T, X, Y)."""
-    times = physics.observation_times()
+    times, unit = physics.observation_times(), _unit(physics, "t")
     n = len(theta)
     sources = ("measured", "generated", "f_p")
     figure, axes = plt.subplots(3 * n, len(frames), figsize=(max(2.4 * len(frames), 6.0), 2.4 * 3 * n + 0.6), squeeze=False)
@@ -199,7 +203,6 @@ def frames_figure(
             for c, frame in enumerate(frames):
                 ax = axes[3 * i + r, c]
                 image = ax.imshow(fields[name][i, frame], cmap="viridis", vmin=low, vmax=high)
-                unit = f" {physics.units['t']}" if "t" in physics.units else ""
                 ax.set_title(f"{name}, t={float(times[frame]):.2g}{unit}", fontsize=7)
                 ax.set_xlabel("y (cell)", fontsize=6)
                 ax.set_ylabel("x (cell)", fontsize=6)

@@ -477,7 +477,7 @@ def _selection_dict(selection: Any) -> dict[str, Any]:
     }
 
 
-def draw_locate(result: Discovery, path: Path, time_label: str = "t") -> None:
+def draw_locate(result: Discovery, path: Path, time_label: str) -> None:
     figure = disagreement_figure(disagreement_panels(result), time_label)
     save(figure, path)
     close(figure)
@@ -739,8 +739,9 @@ def _evidence_section(report: dict[str, Any]) -> list[str]:
             f"| {difference} | {errors} |"
         )
     lines.append(
-        "\nThe alternatives: the strong candidates on its component that closed most of the gap alone, the terms it moves "
-        "with along the grey-box's solves (the confusable pairs above) and, for a friction, Coulomb friction. "
+        "\nEach named term is weighed against the strong candidates on its component that closed most of the gap alone, "
+        "the terms it moves with along the grey-box's solves (the confusable pairs above) and, for a friction, Coulomb "
+        "friction. "
         "Positive: the named term fits better. Within ±2 standard errors the measurements cannot tell the two apart."
     )
     for a in report["added_by_evidence"]:

@@ -63,9 +63,9 @@ def _check_declarations(cls: type[PhysicsModel]) -> None:
         raise TypeError(f"{cls.__name__}.observed names {unknown}, which are not in state_names {cls.state_names}")
     if list(cls.observed) != [name for name in cls.state_names if name in cls.observed]:
         raise TypeError(f"{cls.__name__}.observed {cls.observed} must follow the order of state_names {cls.state_names}")
-    units = getattr(cls, "units", {})
-    if not isinstance(units, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in units.items()):
-        raise TypeError(f"{cls.__name__}.units must map names (str) to units (str), got {units!r}")
+    units = cls.units
+    if not isinstance(units, dict) or not all(isinstance(k, str) and isinstance(v, str) and v for k, v in units.items()):
+        raise TypeError(f"{cls.__name__}.units must map names (str) to units (non-empty str), got {units!r}")
     stray = [name for name in units if name not in ("t", *cls.state_names, *cls.theta_names)]
     if stray:
         raise TypeError(f"{cls.__name__}.units names {stray}, which are neither 't' nor in state_names or theta_names")
