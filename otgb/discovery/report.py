@@ -144,8 +144,7 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
             "no library term fits exactly, these are the best approximation",
             OUTSIDE_THE_LIBRARY,
         ]
-    parts = [*answer, *preferences(result, physics), *flags(result, physics)]
-    parts += [] if blind else low_power(result)
+    parts = [*answer, *preferences(result, physics), *flags(result, physics), *([] if blind else low_power(result))]
     if named := named_divergences(result):
         worst = max(named, key=lambda d: d["diverged"] / d["of"])
         parts.append(
