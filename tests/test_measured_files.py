@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from otgb.data import SimulationDataModule, read_measured, split_indices
+from otgb.data.files import check_time_grid
 from otgb.errors import InputError
 from otgb.physics import AdvectionDiffusion, Constant, Pendulum, ViscousFriction
 
@@ -93,7 +94,9 @@ def test_bad_files_are_named_in_one_line(tmp_path, pendulum, case):
     [
         ("", "the file is empty"),
         ("trajectory,t,angle\n", "a header but no rows"),
-        ("trajectory,t,angel\n0,0,1\n", r"missing \['angle'\], unknown \['angel'\]"),
+        ("trajectory,t,angel\n0,0,1\n", r"missing \['angle'\], unknown \['angel'\], did you mean 'angel' -> 'angle'\?;"),
+        ("trajectory,t,angle,temperature\n0,0,1,2\n", r"header \[.*\]: unknown \['temperature'\]; expected columns"),
+        ("trajectory,t,angle,t\n0,0,1,0\n", r"header \[.*\]: repeated \['t'\]; expected columns"),
         ("trajectory,t,angle\n0,0,1\n0,0.1\n", "line 3: 2 fields, expected 3"),
         ("trajectory,t,angle\n0,0,x\n", r"line 2: a field is not a number"),
         ("trajectory,t,angle\n0,0,1\n0,0.1,1\n1,0,1\n", r"trajectory 1 has 1 row\(s\), expected 2 as most trajectories have"),
@@ -261,3 +264,17 @@ def test_a_checkpoint_of_other_measurements_is_named_once_and_the_same_data_else
     other_friction = _module(tmp_path, hidden_effect=[ViscousFriction(Constant(0.5))])
     other_friction.load_state_dict(generated.state_dict())
     assert "Constant(value=0.5)" in caplog.records[-1].getMessage() and "split differently" not in caplog.records[-1].getMessage()
+
+
+@pytest.mark.parametrize(
+    "times, hint",
+    [
+        (np.arange(50) * 100.0, r"the file's times are 1000 x the model's, in another unit\? \(the model's is s\)$"),
+        (np.arange(25) * 0.1, r"the model's spacing with 25 points; set data.physics.init_args.n_obs to 25 to use them all$"),
+        (np.arange(50) * 0.1 + 0.05, r"\(physics dt=0.1, n_obs=50\)$"),
+    ],
+)
+def test_a_time_grid_that_differs_says_how(pendulum, times, hint):
+    """Times in milliseconds, or the model's spacing over another span: the error says which it looks like."""
+    with pytest.raises(InputError, match=hint):
+        check_time_grid(torch.tensor(times), pendulum, "lab.npz")

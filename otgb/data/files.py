@@ -25,6 +25,7 @@ was expected. The file is only read, never written.
 from __future__ import annotations
 
 import csv
+import difflib
 import os
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -112,8 +113,24 @@ def check_time_grid(t: Tensor, physics: PhysicsModel, where: str) -> None:
     if t.shape != expected.shape or not torch.allclose(t, expected, rtol=1e-6, atol=1e-6 * float(expected.abs().max())):
         raise InputError(
             f"{where}: the time grid {_grid(t)} differs from the model's {_grid(expected)} "
-            f"(physics dt={physics.dt}, n_obs={physics.n_obs})"
+            f"(physics dt={physics.dt}, n_obs={physics.n_obs}){_grid_hint(t, expected, physics)}"
         )
+
+
+def _grid_hint(t: Tensor, expected: Tensor, physics: PhysicsModel) -> str:
+    """Why a time grid may differ: times in another unit (a constant multiple of the model's), or a grid of the model's
+    spacing with another number of points."""
+    if t.shape == expected.shape and len(t) > 1 and float(expected[-1]) > 0:
+        ratio = float(t[-1] / expected[-1])
+        if ratio > 0 and torch.allclose(t, expected * ratio, rtol=1e-6, atol=1e-6 * float(t.abs().max())):
+            unit = f" (the model's is {physics.units['t']})" if "t" in physics.units else ""
+            return f": the file's times are {ratio:.6g} x the model's, in another unit?{unit}"
+    spacing = torch.diff(t)
+    if len(t) > 1 and abs(float(t[0] - expected[0])) <= 1e-6 * physics.dt and torch.allclose(spacing, spacing[:1], rtol=1e-6):
+        if abs(float(spacing[0]) - physics.dt) <= 1e-6 * physics.dt:
+            n = len(t)
+            return f": the file has the model's spacing with {n} points; set data.physics.init_args.n_obs to {n} to use them all"
+    return ""
 
 
 def _grid(t: Tensor) -> str:
@@ -196,11 +213,10 @@ def _read_csv(path: Path, physics: PhysicsModel) -> dict[str, Any]:
         raise InputError(f"{path}: the file is empty, expected a header 'trajectory,t,{','.join(observed)}' and rows")
     header = [name.strip() for name in rows[0]]
     allowed = ["trajectory", "t", *observed, *thetas, *initial]
-    missing = [name for name in ["trajectory", "t", *observed] if name not in header]
-    unknown = [name for name in header if name not in allowed]
-    if missing or unknown or len(set(header)) != len(header):
+    problems = _header_problems(header, ["trajectory", "t", *observed], allowed)
+    if problems:
         raise InputError(
-            f"{path}: header {header}: missing {missing}, unknown {unknown}; expected columns 'trajectory', 't', "
+            f"{path}: header {header}: {problems}; expected columns 'trajectory', 't', "
             f"{observed} and optionally {thetas} and {initial}, each once"
         )
     values = _numeric_rows(path, rows[1:], len(header))
@@ -245,6 +261,19 @@ def _read_csv(path: Path, physics: PhysicsModel) -> dict[str, Any]:
         if present:
             content[key] = _constant_per_trajectory(path, table, names, ids)
     return content
+
+
+def _header_problems(header: list[str], required: list[str], allowed: list[str]) -> str:
+    """What is wrong with a CSV header, as a clause ("missing ['angle'], unknown ['Angle'] (did you mean 'angle'?)"),
+    or "" where nothing is."""
+    missing = [name for name in required if name not in header]
+    unknown = [name for name in header if name not in allowed]
+    repeated = sorted({name for name in header if header.count(name) > 1})
+    guesses = {name: difflib.get_close_matches(name, allowed, n=1) for name in unknown}
+    hints = [f"{name!r} -> {guess[0]!r}" for name, guess in guesses.items() if guess]
+    parts = [f"missing {missing}"] * bool(missing) + [f"unknown {unknown}"] * bool(unknown)
+    parts += [f"did you mean {', '.join(hints)}?"] * bool(hints) + [f"repeated {repeated}"] * bool(repeated)
+    return ", ".join(parts)
 
 
 def _numeric_rows(path: Path, rows: list[list[str]], width: int) -> np.ndarray:
