@@ -73,6 +73,8 @@ from otgb.discovery.workflow import (
     Measurements,
     at_most,
     beside_f_p,
+    c2st_after,
+    c2st_tells_apart,
     family_step,
     fitting_for,
     locate_step,
@@ -721,6 +723,35 @@ def test_constant_terms_are_checked_on_the_test_parts_recorded_inputs_and_an_ine
     assert not confirmed(result)
     result.paired_after = exact
     assert verdict(result, Pendulum())[0].startswith("missing effect found, the gap is closed") and confirmed(result)
+
+
+def test_a_gap_the_c2st_still_sees_is_not_called_closed():
+    """A walk's heated rod (a heater fixed in space, outside the library): T, T^2 and T^3 brought the augmented physics
+    nearer than f_p alone and the disagreement map saw no difference on 30 test trajectories, but the gap table's C2ST
+    told it from them every time (1.00 against the Reference's 0.33 +- 0.11): the gap is not closed."""
+    result = Discovery(
+        before=SimpleNamespace(any_significant=True),
+        sentence_before="",
+        fitted=FittedTerms("constant", [Candidate("T", "T")], [Constant(-0.54)], Scores([0.6]), []),
+        after=SimpleNamespace(any_significant=False),
+        sentence_after="the tests see no difference",
+        gap={"augmented": {"c2st": 1.0}, "reference": {"c2st": 0.333, "c2st_std": 0.106}},
+        closer=closeness(1.27, 6.66, 30, 0.001),
+        draws={"f_p": torch.zeros(30, 2)},
+    )
+    assert c2st_tells_apart(result.gap, "augmented") == "C2ST 1.00, the Reference's 0.33 +- 0.11"
+    assert c2st_after(result.gap) == (
+        "; but the gap table's C2ST tells them apart (C2ST 1.00, the Reference's 0.33 +- 0.11): a difference remains "
+        "that these tests do not see"
+    )
+    assert outcome(result) == "partly found" and not confirmed(result)
+    assert verdict(result, AdvectionDiffusion())[0].startswith("missing effect partly found: linear decay")
+    for within in (0.5 + 2 * 0.106 - 1e-6, float("nan")):  # within two of the Reference's spreads; no figure
+        result.gap["augmented"]["c2st"] = within
+        assert c2st_tells_apart(result.gap, "augmented") is None and c2st_after(result.gap) == "", within
+        assert outcome(result) == "gap closed" and confirmed(result), within
+    result.gap["augmented"]["c2st"] = 0.5 + 2 * 0.106 + 1e-3  # the rule of test_part_blind for f_p, the same number
+    assert outcome(result) == "partly found"
 
 
 def closeness(augmented: float, f_p: float, measured: int, pvalue: float) -> Closeness:

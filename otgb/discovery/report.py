@@ -15,7 +15,7 @@ from otgb.discovery.library import implausible
 from otgb.discovery.locate import DisagreementMap
 from otgb.discovery.refine import centre, term_names
 from otgb.discovery.variation import FIRST_SPREAD, SPREAD_DOUBLINGS
-from otgb.discovery.workflow import Discovery, term_name, undertrained_text
+from otgb.discovery.workflow import Discovery, c2st_tells_apart, term_name, undertrained_text
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 from otgb.physics.priors import Prior
@@ -51,8 +51,8 @@ def distribution_text(distribution: dict[str, Any] | None) -> str:
 
 
 OUTSIDE_THE_LIBRARY = (
-    "what f_p lacks may lie outside the candidate library (a forcing that depends on time, an input the model does "
-    "not have): write it as a term of your own and compare again (docs/own-physics.md)"
+    "what f_p lacks may lie outside the candidate library (a forcing that depends on time or on position, an input the "
+    "model does not have): write it as a term of your own and compare again (docs/own-physics.md)"
 )
 
 
@@ -71,7 +71,7 @@ def outcome(result: Discovery) -> str:
         return "named, not confirmed"
     if closed_on_test(result):
         return "gap closed"
-    return "found, not exactly" if result.after is not None and not result.after.any_significant else "partly found"
+    return "found, not exactly" if distributions_agree(result) else "partly found"
 
 
 def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
@@ -238,9 +238,16 @@ def closer_on_test(result: Discovery) -> bool:
 
 
 def closed_on_test(result: Discovery) -> bool:
-    """Whether no test on the test part tells the augmented physics from the measurements: neither the disagreement
-    map nor, where the file recorded the inputs, the paired check."""
-    return result.after is not None and not result.after.any_significant and not inexact(result)
+    """Whether no test on the test part tells the augmented physics from the measurements: neither the distribution
+    tests (:func:`distributions_agree`) nor, where the file recorded the inputs, the paired check."""
+    return distributions_agree(result) and not inexact(result)
+
+
+def distributions_agree(result: Discovery) -> bool:
+    """Whether the test part's distribution tests see no difference between the augmented physics and the
+    measurements: neither the disagreement map nor the gap table's C2ST (:func:`c2st_tells_apart`)."""
+    after_agrees = result.after is not None and not result.after.any_significant
+    return after_agrees and c2st_tells_apart(result.gap, "augmented") is None
 
 
 def inexact(result: Discovery) -> bool:
@@ -254,12 +261,10 @@ def test_part_blind(result: Discovery) -> str | None:
     that say so; else None: why an augmented physics that agrees with such a part is not confirmed (the agreement would
     also have passed f_p), where it is not measurably nearer to it than f_p (:func:`closer_on_test`)."""
     f_p, reference = result.gap.get("f_p", {}), result.gap.get("reference", {})
-    if "c2st" not in f_p or "c2st_std" not in reference:
+    if "c2st" not in f_p or "c2st_std" not in reference or not math.isfinite(f_p["c2st"]):
         return None
-    if getattr(result.before_on_test, "any_significant", False):
-        return None  # the verification's own test tells f_p from this part
-    if not math.isfinite(f_p["c2st"]) or f_p["c2st"] - 0.5 > 2 * reference["c2st_std"]:
-        return None
+    if getattr(result.before_on_test, "any_significant", False) or c2st_tells_apart(result.gap, "f_p"):
+        return None  # the verification's own test, or the C2ST, tells f_p from this part
     return f"C2ST {f_p['c2st']:.2f}, the Reference's {reference['c2st']:.2f} +- {reference['c2st_std']:.2f}"
 
 

@@ -583,7 +583,27 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
     result.gap, result.draws = gap_step(sources, data.test, settings), sources
     if result.found:
         result.closer = closer_step(result.fitted.model(physics), physics, data.test, settings)
+        if not result.after.any_significant:
+            result.sentence_after += c2st_after(result.gap)
     return result
+
+
+def c2st_after(gap: dict[str, dict[str, float]]) -> str:
+    """The end of the sentence on the augmented physics where the disagreement map saw no difference: that the gap
+    table's C2ST tells them apart, where it does; else nothing."""
+    if (told := c2st_tells_apart(gap, "augmented")) is None:
+        return ""
+    return f"; but the gap table's C2ST tells them apart ({told}): a difference remains that these tests do not see"
+
+
+def c2st_tells_apart(gap: dict[str, dict[str, float]], source: str) -> str | None:
+    """Where the gap table's C2ST tells ``source``'s draws from the test measurements, its accuracy above 0.5 by more
+    than two of the Reference's standard deviations (half the test measurements against the other half, repeated),
+    the numbers that say so; else None (also where either figure is missing or not finite)."""
+    judged, reference = gap.get(source, {}), gap.get("reference", {})
+    if "c2st" not in judged or "c2st_std" not in reference or not judged["c2st"] - 0.5 > 2 * reference["c2st_std"]:
+        return None
+    return f"C2ST {judged['c2st']:.2f}, the Reference's {reference['c2st']:.2f} +- {reference['c2st_std']:.2f}"
 
 
 CLOSER_DRAWS = 4  # trajectories of each model per test trajectory in the test of which is nearer: more draws, more power
