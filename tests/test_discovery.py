@@ -73,7 +73,6 @@ from otgb.discovery.workflow import (
     Measurements,
     at_most,
     beside_f_p,
-    c2st_after,
     c2st_tells_apart,
     family_step,
     fitting_for,
@@ -81,6 +80,7 @@ from otgb.discovery.workflow import (
     paired_after,
     replaces,
     run,
+    sentence_after,
     simulate_candidate,
     undertrained,
     undertrained_text,
@@ -172,6 +172,19 @@ def test_the_sentence_after_the_fix_says_how_f_p_alone_fared_on_the_same_test_pa
     blind = locate(measured[:12], _draws(pendulum, 12, 2), pendulum.observation_times(), ("angle",), 199)
     assert not blind.any_significant, "12 trajectories cannot show a friction of 1.2"
     assert beside_f_p(blind) == "; nor between f_p alone and them, so this agreement alone does not show what the fix changed"
+    complete = pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))])
+    silent = locate(measured, _draws(complete, 200, 3), pendulum.observation_times(), ("angle",), 199)
+    assert not silent.any_significant, "the complete physics against its own process"
+    reference = {"c2st": 0.49, "c2st_std": 0.05}
+    result = SimpleNamespace(after=silent, before_on_test=f_p, paired_after=None, gap={"reference": reference})
+    for judged, clause in ((0.55, False), (0.7, True)):  # within 0.5 + 2 x 0.05, and beyond it
+        result.gap["augmented"] = {"c2st": judged}
+        said = sentence_after(result)
+        assert said.startswith(describe(silent, b_name="augmented-physics")) and said.endswith(beside_f_p(f_p)), said
+        told = "; but the gap table's C2ST tells the augmented physics from the measurements (C2ST 0.70, the Reference's"
+        assert (told in said) == clause, said
+    result.after = f_p  # a map that differs says so itself: no clause
+    assert "gap table's C2ST" not in sentence_after(result)
 
 
 def test_locate_tests_whole_trajectories_where_no_single_step_differs():
@@ -740,18 +753,18 @@ def test_a_gap_the_c2st_still_sees_is_not_called_closed():
         draws={"f_p": torch.zeros(30, 2)},
     )
     assert c2st_tells_apart(result.gap, "augmented") == "C2ST 1.00, the Reference's 0.33 +- 0.11"
-    assert c2st_after(result.gap) == (
-        "; but the gap table's C2ST tells them apart (C2ST 1.00, the Reference's 0.33 +- 0.11): a difference remains "
-        "that these tests do not see"
-    )
     assert outcome(result) == "partly found" and not confirmed(result)
     assert verdict(result, AdvectionDiffusion())[0].startswith("missing effect partly found: linear decay")
     for within in (0.5 + 2 * 0.106 - 1e-6, float("nan")):  # within two of the Reference's spreads; no figure
         result.gap["augmented"]["c2st"] = within
-        assert c2st_tells_apart(result.gap, "augmented") is None and c2st_after(result.gap) == "", within
+        assert c2st_tells_apart(result.gap, "augmented") is None, within
         assert outcome(result) == "gap closed" and confirmed(result), within
     result.gap["augmented"]["c2st"] = 0.5 + 2 * 0.106 + 1e-3  # the rule of test_part_blind for f_p, the same number
     assert outcome(result) == "partly found"
+    result.paired_after = SimpleNamespace(significant=True)  # recorded inputs, missed beyond the noise
+    assert outcome(result) == "partly found", "the C2ST tells them apart: the distributions do not agree"
+    result.gap["augmented"]["c2st"] = 0.5
+    assert outcome(result) == "found, not exactly"
 
 
 def closeness(augmented: float, f_p: float, measured: int, pvalue: float) -> Closeness:

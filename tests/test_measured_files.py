@@ -96,6 +96,8 @@ def test_bad_files_are_named_in_one_line(tmp_path, pendulum, case):
         ("trajectory,t,angle\n", "a header but no rows"),
         ("trajectory,t,angel\n0,0,1\n", r"missing \['angle'\], unknown \['angel'\], did you mean 'angel' -> 'angle'\?;"),
         ("trajectory,t,angle,temperature\n0,0,1,2\n", r"header \[.*\]: unknown \['temperature'\]; expected columns"),
+        ("trajectory,t,ANGLE\n0,0,1\n", r"did you mean 'ANGLE' -> 'angle'\?;"),
+        ("trajectory,t,angle,angle_std\n0,0,1,0\n", r"header \[.*\]: unknown \['angle_std'\]; expected"),  # not 'angle' again
         ("trajectory,t,angle,t\n0,0,1,0\n", r"header \[.*\]: repeated \['t'\]; expected columns"),
         ("trajectory,t,angle\n0,0,1\n0,0.1\n", "line 3: 2 fields, expected 3"),
         ("trajectory,t,angle\n0,0,x\n", r"line 2: a field is not a number"),
@@ -270,8 +272,11 @@ def test_a_checkpoint_of_other_measurements_is_named_once_and_the_same_data_else
     "times, hint",
     [
         (np.arange(50) * 100.0, r"the file's times are 1000 x the model's, in another unit\? \(the model's is s\)$"),
-        (np.arange(25) * 0.1, r"the model's spacing with 25 points; set data.physics.init_args.n_obs to 25 to use them all$"),
+        (np.arange(50) * 0.2, r"the file's step is 0.2, the model's dt 0.1 \(data.physics.init_args.dt\)$"),
+        (np.arange(25) * 0.1, r"the model's step with 25 points; set data.physics.init_args.n_obs to 25 to match it$"),
+        (np.float32(np.arange(100) * 0.1), r"the model's step with 100 points; set data.physics.init_args.n_obs to 100"),
         (np.arange(50) * 0.1 + 0.05, r"\(physics dt=0.1, n_obs=50\)$"),
+        (np.zeros(1), r"\(physics dt=0.1, n_obs=50\)$"),
     ],
 )
 def test_a_time_grid_that_differs_says_how(pendulum, times, hint):

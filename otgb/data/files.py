@@ -117,19 +117,27 @@ def check_time_grid(t: Tensor, physics: PhysicsModel, where: str) -> None:
         )
 
 
+UNIT_FACTORS = (1e-3, 1e3, 60.0, 1 / 60, 3600.0, 1 / 3600, 1e-6, 1e6)  # s <-> ms, min, h, us: a grid in another unit
+
+
 def _grid_hint(t: Tensor, expected: Tensor, physics: PhysicsModel) -> str:
-    """Why a time grid may differ: times in another unit (a constant multiple of the model's), or a grid of the model's
-    spacing with another number of points."""
-    if t.shape == expected.shape and len(t) > 1 and float(expected[-1]) > 0:
-        ratio = float(t[-1] / expected[-1])
-        if ratio > 0 and torch.allclose(t, expected * ratio, rtol=1e-6, atol=1e-6 * float(t.abs().max())):
+    """Why a time grid may differ: times in another unit (the model's times times a usual unit factor), another step
+    (evenly spaced from the model's first time, by another dt), or the model's step with another number of points."""
+    if len(t) < 2:
+        return ""
+    spacing, tol = torch.diff(t), 1e-6 * float(t.abs().max())
+    if abs(float(t[0] - expected[0])) > tol or not torch.allclose(spacing, spacing[:1].expand_as(spacing), rtol=1e-6, atol=tol):
+        return ""
+    step = float(spacing[0])
+    if t.shape == expected.shape:
+        ratio = step / physics.dt
+        if any(abs(ratio / factor - 1) < 1e-5 for factor in UNIT_FACTORS):
             unit = f" (the model's is {physics.units['t']})" if "t" in physics.units else ""
             return f": the file's times are {ratio:.6g} x the model's, in another unit?{unit}"
-    spacing = torch.diff(t)
-    if len(t) > 1 and abs(float(t[0] - expected[0])) <= 1e-6 * physics.dt and torch.allclose(spacing, spacing[:1], rtol=1e-6):
-        if abs(float(spacing[0]) - physics.dt) <= 1e-6 * physics.dt:
-            n = len(t)
-            return f": the file has the model's spacing with {n} points; set data.physics.init_args.n_obs to {n} to use them all"
+        return f": the file's step is {step:.6g}, the model's dt {physics.dt:.6g} (data.physics.init_args.dt)"
+    if abs(step - physics.dt) <= 1e-6 * physics.dt:
+        n = len(t)
+        return f": the file has the model's step with {n} points; set data.physics.init_args.n_obs to {n} to match it"
     return ""
 
 
@@ -269,8 +277,9 @@ def _header_problems(header: list[str], required: list[str], allowed: list[str])
     missing = [name for name in required if name not in header]
     unknown = [name for name in header if name not in allowed]
     repeated = sorted({name for name in header if header.count(name) > 1})
-    guesses = {name: difflib.get_close_matches(name, allowed, n=1) for name in unknown}
-    hints = [f"{name!r} -> {guess[0]!r}" for name, guess in guesses.items() if guess]
+    absent = {name.lower(): name for name in allowed if name not in header}  # a suggestion never repeats a column
+    guesses = {name: difflib.get_close_matches(name.lower(), list(absent), n=1) for name in unknown}
+    hints = [f"{name!r} -> {absent[guess[0]]!r}" for name, guess in guesses.items() if guess]
     parts = [f"missing {missing}"] * bool(missing) + [f"unknown {unknown}"] * bool(unknown)
     parts += [f"did you mean {', '.join(hints)}?"] * bool(hints) + [f"repeated {repeated}"] * bool(repeated)
     return ", ".join(parts)

@@ -26,7 +26,7 @@ class MissingEffect:
             overrides, e.g. ``"--data.simulation_budget=32000"`` or ``"--discover.alpha=0.01"``.
 
     After :meth:`fit`:
-        verdict_: the report's verdict sentence (gap closed, named but not confirmed, partly found, or nothing found).
+        verdict_: the report's verdict sentence (one of the outcomes below, with its numbers).
         outcome_: which verdict: "gap closed", "found, not exactly", "named, not confirmed", "partly found" (the
             library terms that came closest, not the missing effect itself), "nothing found" or "nothing detected".
         found_: whether terms were named and kept (any outcome but the last two).

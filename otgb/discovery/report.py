@@ -257,9 +257,10 @@ def inexact(result: Discovery) -> bool:
 
 def test_part_blind(result: Discovery) -> str | None:
     """When the test part cannot tell f_p itself from the measurements, neither by the disagreement map that verifies
-    the augmented physics nor by f_p's C2ST (within two of the Reference's standard deviations of 0.5), the numbers
-    that say so; else None: why an augmented physics that agrees with such a part is not confirmed (the agreement would
-    also have passed f_p), where it is not measurably nearer to it than f_p (:func:`closer_on_test`)."""
+    the augmented physics nor by f_p's C2ST (at most 0.5 plus two of the Reference's standard deviations:
+    :func:`c2st_tells_apart`), the numbers that say so; else None: why an augmented physics that agrees with such a
+    part is not confirmed (the agreement would also have passed f_p), where it is not measurably nearer to it than
+    f_p (:func:`closer_on_test`)."""
     f_p, reference = result.gap.get("f_p", {}), result.gap.get("reference", {})
     if "c2st" not in f_p or "c2st_std" not in reference or not math.isfinite(f_p["c2st"]):
         return None

@@ -574,26 +574,26 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
         sources["augmented"] = simulate_candidate(result.fitted.model(physics), len(data.test), settings.seed, "gap-augmented")
         result.before_on_test = locate_step(physics, data.test, settings, "f_p-test")
         result.after = locate_step(result.fitted.model(physics), data.test, settings, "augmented")
-        result.sentence_after = describe(result.after, b_name="augmented-physics") + " (on the test part, which no fit saw)"
-        result.sentence_after += beside_f_p(result.before_on_test)
         result.paired_after = paired_after(result.fitted, physics, data, settings.alpha)
-        if result.paired_after is not None:
-            result.sentence_after += f"; {result.paired_after.sentence()}"
     progress("verifying on the test part")
     result.gap, result.draws = gap_step(sources, data.test, settings), sources
     if result.found:
         result.closer = closer_step(result.fitted.model(physics), physics, data.test, settings)
-        if not result.after.any_significant:
-            result.sentence_after += c2st_after(result.gap)
+        result.sentence_after = sentence_after(result)
     return result
 
 
-def c2st_after(gap: dict[str, dict[str, float]]) -> str:
-    """The end of the sentence on the augmented physics where the disagreement map saw no difference: that the gap
-    table's C2ST tells them apart, where it does; else nothing."""
-    if (told := c2st_tells_apart(gap, "augmented")) is None:
-        return ""
-    return f"; but the gap table's C2ST tells them apart ({told}): a difference remains that these tests do not see"
+def sentence_after(result: Discovery) -> str:
+    """The sentence on the augmented physics against the test part: its disagreement map; where the map sees no
+    difference but the gap table's C2ST does, that; the same map of f_p alone (:func:`beside_f_p`); the paired check."""
+    sentence = describe(result.after, b_name="augmented-physics") + " (on the test part, which no fit saw)"
+    if not result.after.any_significant and (told := c2st_tells_apart(result.gap, "augmented")):
+        sentence += (
+            f"; but the gap table's C2ST tells the augmented physics from the measurements ({told}): a difference "
+            "remains that the disagreement map does not see"
+        )
+    sentence += beside_f_p(result.before_on_test)
+    return sentence + (f"; {result.paired_after.sentence()}" if result.paired_after is not None else "")
 
 
 def c2st_tells_apart(gap: dict[str, dict[str, float]], source: str) -> str | None:
