@@ -156,7 +156,8 @@ def test_locate_finds_when_and_how_samples_differ():
     pendulum = Pendulum()
     measured = _draws(pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))]), 200, 1)
     same = locate(_draws(pendulum, 200, 2), _draws(pendulum, 200, 3), pendulum.observation_times(), ("angle",), 199)
-    assert not same.any_significant and describe(same).startswith("the tests see no difference between simulated and measured")
+    said = describe(same)
+    assert not same.any_significant and said.startswith("the disagreement map's tests see no difference between simulated and")
     found = locate(measured, _draws(pendulum, 200, 2), pendulum.observation_times(), ("angle",), 199)
     assert found.any_significant and not found.significant[0].any()  # t = 0: the same initial states
     assert "amplitude (mean |value|) is smaller" in describe(found) and "agree up to t =" in describe(found)

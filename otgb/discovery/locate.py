@@ -244,7 +244,7 @@ def _distributions(result: DisagreementMap, a_name: str, b_name: str) -> str:
     """:func:`describe`'s sentence on the two-sample tests alone."""
     if not (result.significant.any() or result.whole_significant):
         sentence = (
-            f"the tests see no difference between {b_name} and {a_name} trajectories ({result.sizes[1]} and "
+            f"the disagreement map's tests see no difference between {b_name} and {a_name} trajectories ({result.sizes[1]} and "
             f"{result.sizes[0]}{f' of {result.drawn_from}, drawn at random' if result.drawn_from else ''}): "
             f"neither the whole trajectories nor any time step, component or region differ at a false discovery rate of "
             f"{result.alpha:g} ({result.n_permutations} permutations)"

@@ -590,7 +590,7 @@ def sentence_after(result: Discovery) -> str:
     if not result.after.any_significant and (told := c2st_tells_apart(result.gap, "augmented")):
         sentence += (
             f"; but the gap table's C2ST tells the augmented physics from the measurements ({told}): a difference "
-            "remains that the disagreement map does not see"
+            "remains that the map does not see"
         )
     sentence += beside_f_p(result.before_on_test)
     return sentence + (f"; {result.paired_after.sentence()}" if result.paired_after is not None else "")
