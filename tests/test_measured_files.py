@@ -271,8 +271,10 @@ def test_a_checkpoint_of_other_measurements_is_named_once_and_the_same_data_else
 @pytest.mark.parametrize(
     "times, hint",
     [
-        (np.arange(50) * 100.0, r"the file's times are 1000 x the model's, in another unit\? \(the model's is s\)$"),
+        (np.arange(50) * 100.0, r"the file's step is 1000 x the model's dt, in another unit\? \(the model's is s\)$"),
+        (np.arange(50) * 0.1 / 60, r"the file's step is 0.0166667 x the model's dt, in another unit\? \(the model's is s\)$"),
         (np.arange(50) * 0.2, r"the file's step is 0.2, the model's dt 0.1 \(data.physics.init_args.dt\)$"),
+        (np.arange(25) * 0.2, r"the file's step is 0.2, the model's dt 0.1 \(data.physics.init_args.dt\)$"),
         (np.arange(25) * 0.1, r"the model's step with 25 points; set data.physics.init_args.n_obs to 25 to match it$"),
         (np.float32(np.arange(100) * 0.1), r"the model's step with 100 points; set data.physics.init_args.n_obs to 100"),
         (np.arange(50) * 0.1 + 0.05, r"\(physics dt=0.1, n_obs=50\)$"),

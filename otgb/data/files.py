@@ -121,24 +121,22 @@ UNIT_FACTORS = (1e-3, 1e3, 60.0, 1 / 60, 3600.0, 1 / 3600, 1e-6, 1e6)  # s <-> m
 
 
 def _grid_hint(t: Tensor, expected: Tensor, physics: PhysicsModel) -> str:
-    """Why a time grid may differ: times in another unit (the model's times times a usual unit factor), another step
-    (evenly spaced from the model's first time, by another dt), or the model's step with another number of points."""
+    """Why an evenly spaced time grid that starts at the model's first time may differ: another unit (its step is the
+    model's dt times a usual unit factor), another step, or the model's step over another number of points."""
     if len(t) < 2:
         return ""
     spacing, tol = torch.diff(t), 1e-6 * float(t.abs().max())
     if abs(float(t[0] - expected[0])) > tol or not torch.allclose(spacing, spacing[:1].expand_as(spacing), rtol=1e-6, atol=tol):
         return ""
     step = float(spacing[0])
-    if t.shape == expected.shape:
-        ratio = step / physics.dt
-        if any(abs(ratio / factor - 1) < 1e-5 for factor in UNIT_FACTORS):
-            unit = f" (the model's is {physics.units['t']})" if "t" in physics.units else ""
-            return f": the file's times are {ratio:.6g} x the model's, in another unit?{unit}"
+    ratio = step / physics.dt
+    if any(abs(ratio / factor - 1) < 1e-5 for factor in UNIT_FACTORS):
+        unit = f" (the model's is {physics.units['t']})" if "t" in physics.units else ""
+        return f": the file's step is {ratio:.6g} x the model's dt, in another unit?{unit}"
+    if abs(ratio - 1) > 1e-6:
         return f": the file's step is {step:.6g}, the model's dt {physics.dt:.6g} (data.physics.init_args.dt)"
-    if abs(step - physics.dt) <= 1e-6 * physics.dt:
-        n = len(t)
-        return f": the file has the model's step with {n} points; set data.physics.init_args.n_obs to {n} to match it"
-    return ""
+    n = len(t)
+    return f": the file has the model's step with {n} points; set data.physics.init_args.n_obs to {n} to match it"
 
 
 def _grid(t: Tensor) -> str:
