@@ -282,6 +282,7 @@ def test_a_checkpoint_of_other_measurements_is_named_once_and_the_same_data_else
     ],
 )
 def test_a_time_grid_that_differs_says_how(pendulum, times, hint):
-    """Times in milliseconds, or the model's spacing over another span: the error says which it looks like."""
+    """Times in another unit, another step, or the model's step over another span: the error says which it looks like;
+    a grid that is not evenly spaced from the model's first time (or has one point) gets no guess."""
     with pytest.raises(InputError, match=hint):
         check_time_grid(torch.tensor(times), pendulum, "lab.npz")

@@ -270,16 +270,18 @@ def _read_csv(path: Path, physics: PhysicsModel) -> dict[str, Any]:
 
 
 def _header_problems(header: list[str], required: list[str], allowed: list[str]) -> str:
-    """What is wrong with a CSV header, as a clause ("missing ['angle'], unknown ['Angle'] (did you mean 'angle'?)"),
-    or "" where nothing is."""
+    """What is wrong with a CSV header, as a clause ("missing ['angle'], unknown ['Angle'], did you mean 'Angle' ->
+    'angle'?"), or "" where nothing is."""
     missing = [name for name in required if name not in header]
     unknown = [name for name in header if name not in allowed]
     repeated = sorted({name for name in header if header.count(name) > 1})
     absent = {name.lower(): name for name in allowed if name not in header}  # a suggestion never repeats a column
     guesses = {name: difflib.get_close_matches(name.lower(), list(absent), n=1) for name in unknown}
     hints = [f"{name!r} -> {absent[guess[0]]!r}" for name, guess in guesses.items() if guess]
-    parts = [f"missing {missing}"] * bool(missing) + [f"unknown {unknown}"] * bool(unknown)
-    parts += [f"did you mean {', '.join(hints)}?"] * bool(hints) + [f"repeated {repeated}"] * bool(repeated)
+    parts = [f"missing {missing}"] if missing else []
+    parts += [f"unknown {unknown}"] if unknown else []
+    parts += [f"did you mean {', '.join(hints)}?"] if hints else []
+    parts += [f"repeated {repeated}"] if repeated else []
     return ", ".join(parts)
 
 
