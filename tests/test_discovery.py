@@ -27,7 +27,7 @@ from otgb.discovery.closer import Closeness, closer
 from otgb.discovery.evidence import Comparison, alternatives, choose_swap, moves_with, weigh
 from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.intervals import Intervals, fitted_intervals, sandwich_intervals
-from otgb.discovery.library import Candidate, build_library, physical_name
+from otgb.discovery.library import Candidate, build_library, feature_names, physical_name
 from otgb.discovery.locate import describe, locate, permutation_energy, z_scored
 from otgb.discovery.log import DivergenceLog, OncePerModel, diverged, rounded, short
 from otgb.discovery.paired import paired_check
@@ -61,6 +61,7 @@ from otgb.discovery.report import (
     low_power,
     named_divergences,
     outcome,
+    outside_the_library,
     share_removed,
     verdict,
     write_report,
@@ -149,6 +150,49 @@ def test_bad_features_are_refused_in_one_line(feature, expected):
     with pytest.raises(InputError, match=expected) as error:
         LibraryTerm(feature, "velocity", Constant(1.0)).check_model(Pendulum())
     assert "\n" not in str(error.value)
+
+
+def test_a_fields_coordinates_are_features_and_a_source_fixed_in_space_is_a_term():
+    """On a field, ``s`` (``x``, ``y``) is the grid's coordinate: as a hidden effect, as a term of an augmented physics,
+    and in the library only when ``position_degree`` asks for it; a state or parameter of that name keeps its own."""
+    rod, square = AdvectionDiffusion(), ReactionDiffusion(n_grid=4)
+    assert rod.coordinate_names == ("s",) and torch.equal(rod.coordinate("s"), torch.arange(1, 21) * torch.tensor(rod.dx))
+    assert square.coordinate_names == ("x", "y") and square.coordinate("y")[0].tolist() == [-1.0, -0.5, 0.0, 0.5]
+    assert square.coordinate("x")[:, 0].tolist() == [-1.0, -0.5, 0.0, 0.5]
+    heater = LibraryTerm("s^2", "T", Constant(0.5))
+    g = torch.Generator().manual_seed(0)
+    x0, theta = rod.sample_initial_state(3, g), rod.sample_theta(3, g)
+    heated = rod.with_hidden_effect([heater]).simulate(x0, theta, torch.full((3, 1), 0.5))
+    augmented = Augmented(rod, [LibraryTerm("s^2", "T", Constant(0.5))])
+    assert torch.equal(heated, augmented.simulate(x0, torch.cat([theta, torch.full((3, 1), 0.5)], 1)))
+    rate = augmented.field(torch.zeros(1, 1, 20), torch.tensor([[0.05, 0.5]]))
+    assert torch.allclose(rate[0, 0], 0.5 * rod.grid**2)
+    assert "s" not in feature_names(rod) and feature_names(rod, position_degree=2)[4:6] == ["s", "s^2"]
+    assert {"x", "y", "x^2", "x*y", "y^2"} <= set(feature_names(square, position_degree=2))
+    assert physical_name("s^2", "T", 0.5, rod) == "forcing fixed in space"
+    with pytest.raises(InputError, match="discover.position_degree=4 is invalid; expected a whole number 0..3"):
+        DiscoverySettings(position_degree=4)
+
+
+def test_on_a_field_whose_library_held_no_term_fixed_in_space_the_verdict_says_how_to_offer_them():
+    nothing = Discovery(before=SimpleNamespace(any_significant=True), sentence_before="they differ")
+    assert outside_the_library(nothing, Pendulum()) == OUTSIDE_THE_LIBRARY, "no grid, no position"
+    rod = outside_the_library(nothing, AdvectionDiffusion())
+    assert rod.startswith(OUTSIDE_THE_LIBRARY) and rod.endswith("--discover.position_degree 2 adds s and its powers")
+    assert "adds x and y and their powers and products" in outside_the_library(nothing, ReactionDiffusion(n_grid=4))
+    nothing.selections = [SimpleNamespace(inclusion={"T": 0.1, "s^2": 0.0})]
+    assert outside_the_library(nothing, AdvectionDiffusion()) == OUTSIDE_THE_LIBRARY, "they were offered"
+    assert verdict(nothing, AdvectionDiffusion())[1] == OUTSIDE_THE_LIBRARY
+
+
+def test_a_state_named_like_a_coordinate_is_the_state():
+    class RodWithPosition(AdvectionDiffusion):
+        state_names = ("T", "s")
+        observed = ("T",)
+
+    assert RodWithPosition().coordinate_names == ()
+    with pytest.raises(InputError, match="'s' is not a name of AdvectionDiffusion"):
+        LibraryTerm("d_s(s)", "T", Constant(1.0)).check_model(AdvectionDiffusion())
 
 
 # --- locate ---------------------------------------------------------------------------
@@ -1184,6 +1228,12 @@ def test_a_forward_route_still_improving_at_six_terms_is_cut_short_and_hands_ove
     assert "cut short" in workflow.search_reason(Pendulum(), kept, truncated, torch.zeros(0), DiscoverySettings(**FAST), False)
     reason = partial(workflow.search_reason, Pendulum(), None, False, torch.zeros(0), DiscoverySettings(**FAST))
     assert reason(False) == "f_phi named nothing" and "f_phi's terms are not used" in reason(True), "undertrained: unused"
+    rod = AdvectionDiffusion()
+    kept_on_rod = FittedTerms("constant", [Candidate("T^2", "T")], [Constant(0.3)], Scores([1.0, 1.1]), [])
+    in_space = workflow.search_reason(
+        rod, kept_on_rod, False, torch.zeros(0), DiscoverySettings(**FAST, position_degree=2), False
+    )
+    assert in_space.startswith("terms fixed in space were asked for"), "the search runs whatever f_phi's route found"
 
 
 def test_the_search_replaces_a_longer_model_the_data_cannot_tell_from_it():
@@ -1196,6 +1246,9 @@ def test_the_search_replaces_a_longer_model_the_data_cannot_tell_from_it():
     much_worse = fitted(["velocity"], [0.090, 0.092, 0.088, 0.091])
     assert replaces(short, long) and not replaces(long, short)
     assert not replaces(much_worse, long) and replaces(long, much_worse)  # more terms, but better by far
+    nearer = fitted(["velocity", "angle"], [0.0595, 0.0605, 0.0585, 0.0605])  # as sparse as short, within its noise
+    assert replaces(nearer, short) and not replaces(short, nearer), "of two as sparse, the nearer"
+    assert not replaces(short, short), "a tie keeps f_phi's model"
 
 
 def test_the_search_keeps_nothing_when_no_library_model_beats_f_p_alone():
@@ -1449,6 +1502,23 @@ def test_workflow_names_advection_on_a_field():
     result = run(module, data, settings, locate_step(model, data.train, settings))
     assert [(c.feature, c.component) for c in result.fitted.candidates] == [("d_s(T)", "T")]
     assert abs(result.fitted.priors[0].value + 0.1) < 0.01
+    assert result.gap["augmented"]["c2st"] < 0.7 < result.gap["f_p"]["c2st"]
+
+
+@pytest.mark.slow
+def test_workflow_names_a_source_fixed_in_space_when_position_terms_are_asked_for():
+    """A rod heated along its length by 0.9 s (2.1 - s): with ``position_degree`` 2 the workflow names s and s^2 on
+    dT/dt with the heater's coefficients, and the augmented physics closes the gap."""
+    model = AdvectionDiffusion()
+    dgp = model.with_hidden_effect([LibraryTerm("s", "T", Constant(1.89)), LibraryTerm("s^2", "T", Constant(-0.9))])
+    module = _knowing(model, lambda state: (1.89 * model.grid - 0.9 * model.grid**2).to(state).expand_as(state))
+    data = Measurements(_draws(dgp, 300, 1), _draws(dgp, 100, 2), _draws(dgp, 100, 3))
+    settings = DiscoverySettings(**FAST, position_degree=2)
+    result = run(module, data, settings, locate_step(model, data.train, settings))
+    assert result.search_reason.startswith("terms fixed in space were asked for")
+    named = {c.feature: p.value for c, p in zip(result.fitted.candidates, result.fitted.priors)}
+    assert set(named) == {"s", "s^2"} and all(c.component == "T" for c in result.fitted.candidates), named
+    assert abs(named["s"] - 1.89) < 0.19 and abs(named["s^2"] + 0.9) < 0.09, named
     assert result.gap["augmented"]["c2st"] < 0.7 < result.gap["f_p"]["c2st"]
 
 

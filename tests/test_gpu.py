@@ -16,7 +16,7 @@ from otgb.data import generate_measured
 from otgb.discovery.library import Candidate
 from otgb.discovery.refine import Fitting
 from otgb.metrics.c2st import c2st
-from otgb.physics import Constant, LibraryTerm, ReactionDiffusion
+from otgb.physics import AdvectionDiffusion, Augmented, Constant, LibraryTerm, ReactionDiffusion
 
 pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")]
 SYSTEMS = [c for c in CONFIGS if c.stem in ("pendulum", "advdiff", "reactdiff")]
@@ -95,3 +95,21 @@ def test_coefficient_fits_on_the_gpu_reach_the_cpus_coefficients_without_falling
     gpu, cpu = on_gpu.priors[0].value, on_cpu.priors[0].value
     assert abs(gpu - cpu) < 1e-3 * abs(cpu), (gpu, cpu)
     assert abs(on_gpu.heldout_energy - on_cpu.heldout_energy) < 1e-3 * abs(on_cpu.heldout_energy) + 1e-6
+
+
+def test_a_term_fixed_in_space_solves_on_the_gpu_as_on_the_cpu():
+    """A feature of the grid's coordinates (``s^2``) is made on the state's device inside the solve, with no copy from
+    the host, which a CUDA graph's capture refuses: the compiled solve on the GPU equals the eager one on the CPU."""
+    from otgb.physics import solvers
+
+    heated = Augmented(AdvectionDiffusion(), [LibraryTerm("s^2", "T", Constant(0.5))])
+    g = torch.Generator().manual_seed(0)
+    x0, theta = heated.sample_initial_state(8, g), heated.sample_theta(8, g)
+    on_cpu = heated.simulate(x0, theta)
+    solvers.set_solver("compiled")
+    try:
+        with torch.no_grad():
+            on_gpu = heated.cuda().simulate(x0.cuda(), theta.cuda())
+    finally:
+        solvers.reset()
+    assert torch.allclose(on_gpu.cpu(), on_cpu, atol=1e-5), float((on_gpu.cpu() - on_cpu).abs().max())

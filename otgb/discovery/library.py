@@ -7,7 +7,8 @@ correction acts on:
 - the constant ``1``; the states and their products and powers up to degree 3;
 - ``sin`` and ``cos`` of angles; ``v*|v|`` and ``sign(v)`` of velocities;
 - for fields: first spatial derivatives and the Laplacian of each channel, and the advective
-  products ``w*d_s(u)``;
+  products ``w*d_s(u)``; optionally (``position_degree``) the grid's coordinates and their products
+  and powers up to that degree (``s``, ``s^2``, ``x*y``), for a source or sink fixed in space;
 - optionally (``theta_products``) each of those times each physics parameter, for an effect
   whose strength depends on theta.
 
@@ -55,9 +56,10 @@ def spatial_features(model: PhysicsModel) -> list[str]:
     return derivatives + laplacians + advective
 
 
-def feature_names(model: PhysicsModel, theta_products: bool = False) -> list[str]:
+def feature_names(model: PhysicsModel, theta_products: bool = False, position_degree: int = 0) -> list[str]:
     """Every candidate feature of ``model`` (the same for each component)."""
     features = ["1", *monomials(tuple(model.state_names))]
+    features += monomials(tuple(getattr(model, "coordinate_names", ())), position_degree)
     features += [f"{f}({a})" for a in model.angle_names for f in ("sin", "cos")]
     features += [f"{v}*|{v}|" for v in model.velocity_names] + [f"sign({v})" for v in model.velocity_names]
     features += spatial_features(model)
@@ -66,9 +68,11 @@ def feature_names(model: PhysicsModel, theta_products: bool = False) -> list[str
     return features
 
 
-def build_library(model: PhysicsModel, components: list[str], theta_products: bool = False) -> list[Candidate]:
+def build_library(
+    model: PhysicsModel, components: list[str], theta_products: bool = False, position_degree: int = 0
+) -> list[Candidate]:
     """The candidates for each component the correction acts on."""
-    features = feature_names(model, theta_products)
+    features = feature_names(model, theta_products, position_degree)
     return [Candidate(feature, component) for component in components for feature in features]
 
 
@@ -116,6 +120,8 @@ def _named(feature: str, own: str, coefficient: float, model: PhysicsModel) -> s
     field = bool(getattr(model, "spatial_dims", 0))
     if feature == "1":
         return ("constant drain" if coefficient < 0 else "constant source") if field else "constant forcing"
+    if fixed_in_space(feature, model):
+        return "forcing fixed in space"
     if feature == own:
         if is_velocity:
             return "viscous friction" if coefficient < 0 else "negative damping (self-excitation)"
@@ -143,6 +149,12 @@ def _named(feature: str, own: str, coefficient: float, model: PhysicsModel) -> s
     if all(_base(f) in model.state_names for f in feature.split("*")) and len({_base(f) for f in feature.split("*")}) > 1:
         return f"coupling {feature}"
     return None
+
+
+def fixed_in_space(feature: str, model: PhysicsModel) -> bool:
+    """Whether ``feature`` is a product of the grid's coordinates alone (``s^2``, ``x*y``): a source fixed in space."""
+    names = getattr(model, "coordinate_names", ())
+    return bool(names) and all(_base(factor) in names for factor in feature.split("*"))
 
 
 def _base(factor: str) -> str:

@@ -11,7 +11,7 @@ import yaml
 
 from otgb.analysis.components import to_json
 from otgb.analysis.figures import close, components_figure, disagreement_figure, distribution_figure, save
-from otgb.discovery.library import implausible
+from otgb.discovery.library import fixed_in_space, implausible
 from otgb.discovery.locate import DisagreementMap
 from otgb.discovery.refine import centre, term_names
 from otgb.discovery.variation import FIRST_SPREAD, SPREAD_DOUBLINGS
@@ -56,6 +56,15 @@ OUTSIDE_THE_LIBRARY = (
 )
 
 
+def outside_the_library(result: Discovery, physics: PhysicsModel) -> str:
+    """:data:`OUTSIDE_THE_LIBRARY`; on a field whose library held no term fixed in space, also how to offer them."""
+    names = getattr(physics, "coordinate_names", ())
+    if not names or any(fixed_in_space(f, physics) for s in result.selections for f in s.inclusion):
+        return OUTSIDE_THE_LIBRARY
+    offered = f"{names[0]} and its powers" if len(names) == 1 else f"{' and '.join(names)} and their powers and products"
+    return f"{OUTSIDE_THE_LIBRARY}; for one fixed in space (a heater, a sink), --discover.position_degree 2 adds {offered}"
+
+
 OUTCOMES = ("gap closed", "found, not exactly", "named, not confirmed", "partly found", "nothing found", "nothing detected")
 
 
@@ -86,7 +95,7 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
         return [
             f"no missing effect found in the library: the measurements differ from f_p ({result.sentence_before}), but {why}",
             *closest_unkept(result),
-            OUTSIDE_THE_LIBRARY,
+            outside_the_library(result, physics),
             *undertrained_note(result, "and the library search named nothing"),
             *low_power(result),
         ]
@@ -121,7 +130,7 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
             f"{tested(result)} test trajectories, which no fit saw, the augmented physics is not significantly nearer "
             f"to the measurements than f_p alone ({versus}{closer_clause(result)})",
             result.sentence_after,
-            OUTSIDE_THE_LIBRARY,
+            outside_the_library(result, physics),
         ]
     elif kind == "gap closed":
         answer = [
@@ -142,7 +151,7 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
             f"missing effect partly found: {names} {closes} {share_removed(result)}",
             result.sentence_after,
             "no library term fits exactly, these are the best approximation",
-            OUTSIDE_THE_LIBRARY,
+            outside_the_library(result, physics),
         ]
     parts = [*answer, *preferences(result, physics), *flags(result, physics), *([] if blind else low_power(result))]
     if named := named_divergences(result):

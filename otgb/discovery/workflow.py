@@ -38,7 +38,7 @@ from otgb.discovery.closer import Closeness, closer
 from otgb.discovery.evidence import Comparison, moves_with, weigh
 from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.intervals import Intervals, fitted_intervals
-from otgb.discovery.library import Candidate, build_library, physical_name
+from otgb.discovery.library import MAX_DEGREE, Candidate, build_library, physical_name
 from otgb.discovery.locate import DisagreementMap, describe, locate
 from otgb.discovery.log import DivergenceLog, diverged, progress, rounded, short
 from otgb.discovery.paired import PairedCheck, paired_check
@@ -81,6 +81,8 @@ class DiscoverySettings:
         n_trajectories: Generated trajectories along which the correction f_phi is evaluated.
         n_bootstrap: Bootstrap resamples (of f_phi's trajectories) for inclusion probabilities and f_phi's slope intervals.
         theta_products: Whether the library also offers each feature times each physics parameter.
+        position_degree: On a field, the library also offers the grid's coordinates (``s``; ``x``, ``y``) and their
+            products and powers up to this degree, as terms fixed in space (a heater, a sink); 0: none.
         strong_candidates: Candidates per component cross-checked alone (besides the selected ones), by univariate R^2.
         fit_steps: L-BFGS iterations of each distribution-matching fit of coefficients.
         fit_batch: Simulated (and at most as many measured) trajectories of each distribution-matching fit; its
@@ -104,6 +106,7 @@ class DiscoverySettings:
         n_trajectories: int = 256,
         n_bootstrap: int = 30,
         theta_products: bool = False,
+        position_degree: int = 0,
         strong_candidates: int = 3,
         fit_steps: int = 50,
         fit_batch: int = 1024,
@@ -121,12 +124,15 @@ class DiscoverySettings:
             raise InputError(
                 "discover: need n_trajectories >= 10, n_bootstrap >= 1, fit_steps >= 1, fit_batch >= 2, strong_candidates >= 0"
             )
+        if isinstance(position_degree, bool) or not (isinstance(position_degree, int) and 0 <= position_degree <= MAX_DEGREE):
+            raise InputError(f"discover.position_degree={position_degree!r} is invalid; expected a whole number 0..{MAX_DEGREE}")
         unknown = [f for f in families if f not in FAMILIES]
         if unknown or not families:
             raise InputError(f"discover.families={list(families)}: expected a non-empty list among {list(FAMILIES)}")
         self.n_permutations, self.alpha, self.regions_per_axis = n_permutations, alpha, regions_per_axis
         self.locate_rows, self.score_rows = locate_rows, score_rows
         self.n_trajectories, self.n_bootstrap, self.theta_products = n_trajectories, n_bootstrap, theta_products
+        self.position_degree = position_degree
         self.strong_candidates, self.fit_steps, self.fit_batch = strong_candidates, fit_steps, fit_batch
         self.families, self.c2st_classifier, self.seed = tuple(families), c2st_classifier, seed
         self.fit_cache = fit_cache
@@ -286,7 +292,7 @@ def name_step(module: Any, settings: DiscoverySettings) -> tuple[list[Selection]
     selections, designs = [], {}
     for component in acting_components(physics):
         index = physics.state_names.index(component)
-        candidates = build_library(physics, [component], settings.theta_products)
+        candidates = build_library(physics, [component], settings.theta_products, settings.position_degree)
         design = design_matrix(
             physics, candidates, draws["states"], draws["theta"], draws["correction"][:, :, index], settings.seed
         )
@@ -654,8 +660,9 @@ def search_reason(
     physics: PhysicsModel, kept: FittedTerms | None, truncated: bool, val: Tensor, settings: DiscoverySettings, unused: bool
 ) -> str | None:
     """Why the library search runs, or None: f_phi's terms were not used (``unused``: an undertrained grey-box), its
-    route named nothing, was truncated (:func:`add_step`), or the physics it augmented still disagrees with the
-    validation measurements."""
+    route named nothing, was truncated (:func:`add_step`), terms fixed in space were asked for (a correction network
+    that convolves over the field hardly shows them), or the physics it augmented still disagrees with the validation
+    measurements."""
     if kept is None:
         return (
             "the grey-box does not beat f_p alone by two standard errors, so f_phi's terms are not used"
@@ -664,6 +671,11 @@ def search_reason(
         )
     if truncated:
         return f"f_phi's route reached {MAX_FORWARD_TERMS} terms and was cut short"
+    if settings.position_degree and getattr(physics, "coordinate_names", ()):
+        return (
+            "terms fixed in space were asked for (discover.position_degree), so they are searched for directly, "
+            "not only along f_phi's route"
+        )
     if locate_step(kept.model(physics), val, settings, "augmented-check").any_significant:
         return "the physics augmented along f_phi's route still disagrees with the validation measurements"
     return None
@@ -687,10 +699,16 @@ def search_step(kept: FittedTerms | None, result: Discovery, designs: dict, fitt
 
 def replaces(found: FittedTerms, kept: FittedTerms) -> bool:
     """Whether the search's model replaces f_phi's: it fits the validation part better by two standard errors, or
-    it has fewer terms and f_phi's model does not fit better by two (the sparser of two models the data cannot tell
-    apart, the rule of every other step)."""
-    sparser = len(found.candidates) < len(kept.candidates)
-    return beats(found.heldout, kept.heldout) or (sparser and not beats(kept.heldout, found.heldout))
+    f_phi's model does not fit better by two and the search's has fewer terms (the sparser of two models the data
+    cannot tell apart, the rule of every other step) or as many with a lower discrepancy (of two as sparse, the
+    nearer: f_phi's route ranks terms by how its correction network uses them, which can miss a term it hardly
+    shows, such as one fixed in space)."""
+    if beats(found.heldout, kept.heldout):
+        return True
+    if beats(kept.heldout, found.heldout):
+        return False
+    size, kept_size = len(found.candidates), len(kept.candidates)
+    return size < kept_size or (size == kept_size and found.heldout.mean < kept.heldout.mean)
 
 
 UNDERTRAINED_REPEATS = 5  # simulation draws per held-out score of the grey-box and of f_p

@@ -60,7 +60,7 @@ class AdvectionDiffusion(FieldModel):
     @property
     def grid(self) -> Tensor:
         """Positions s_i of the grid points, (n_grid,)."""
-        return torch.arange(1, self.n_grid + 1, dtype=torch.float32) * self.dx
+        return self.coordinates()[0]
 
     def field(self, state: Tensor, theta: Tensor) -> Tensor:
         alpha = theta[:, :1, None]

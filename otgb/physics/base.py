@@ -37,6 +37,7 @@ VectorField = Callable[..., Tensor]  # field(state, *args) -> d(state)/dt
 
 FIXED_STEP_METHODS = ("euler", "midpoint", "heun2", "heun3", "rk4", "explicit_adams", "implicit_adams", "fixed_adams")
 BOUNDARIES = ("dirichlet", "periodic")
+COORDINATE_NAMES = {1: ("s",), 2: ("x", "y")}  # a grid's axes in features, as in its derivatives d_s, d_x, d_y
 
 
 def _check_declarations(cls: type[PhysicsModel]) -> None:
@@ -420,6 +421,25 @@ class FieldModel(PhysicsModel):
     def second_derivative(self, u: Tensor, axis: int = -1) -> Tensor:
         """d^2u/ds^2 along a spatial ``axis`` (negative) by the 3-point stencil."""
         return second_difference(u, self.dx, self.boundary, axis)
+
+    @property
+    def coordinate_names(self) -> tuple[str, ...]:
+        """The grid's coordinates as names in features (``s`` on a 1-D grid, ``x`` and ``y`` on a 2-D one, as in
+        ``d_s(u)``, ``d_x(u)``), less any that a state or physics parameter of the model already uses."""
+        taken = {*self.state_names, *self.theta_names}
+        return tuple(name for name in COORDINATE_NAMES.get(self.spatial_dims, ()) if name not in taken)
+
+    def coordinates(self, device: torch.device | None = None, dtype: torch.dtype = torch.float32) -> tuple[Tensor, ...]:
+        """The position of every grid point along each axis, one tensor of ``grid_shape`` per axis: on a Dirichlet
+        grid the points lie at dx, 2 dx, ..., n dx (the field is zero at 0 and (n + 1) dx), on a periodic one at
+        0, dx, ..., (n - 1) dx. A model whose grid lies elsewhere overrides this."""
+        first = 1 if self.boundary == "dirichlet" else 0
+        axes = [torch.arange(first, n + first, device=device, dtype=dtype) * self.dx for n in self.grid_shape]
+        return tuple(torch.meshgrid(*axes, indexing="ij"))
+
+    def coordinate(self, name: str, device: torch.device | None = None, dtype: torch.dtype = torch.float32) -> Tensor:
+        """The coordinate ``name`` (one of :attr:`coordinate_names`) of every grid point, of ``grid_shape``."""
+        return self.coordinates(device, dtype)[COORDINATE_NAMES[self.spatial_dims].index(name)]
 
     @abstractmethod
     def sample_initial_state(self, n: int, generator: torch.Generator) -> Tensor:

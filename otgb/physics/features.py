@@ -4,6 +4,8 @@ A feature is a product of factors separated by ``*``; each factor is an atom, op
 raised to an integer power with ``^``:
 
 - ``1`` (the constant), a state name (``angle``, ``u``);
+- on a field (a :class:`FieldModel`), a coordinate of its grid: ``s`` on a 1-D grid, ``x`` and ``y`` on a
+  2-D one (``s^2`` on ``T`` is a source fixed in space), unless a state or parameter has that name;
 - ``sin(x)``, ``cos(x)``, ``sign(x)``, ``|x|`` of a state name;
 - spatial derivatives of a field's channel (a :class:`FieldModel`): ``d_s(u)`` and
   ``d_ss(u)`` on a 1-D grid, ``d_x(u)``, ``d_y(u)``, ``d_xx(u)``, ``d_yy(u)`` on a 2-D grid,
@@ -73,10 +75,14 @@ def _parse_factor(text: str, feature: str, model: object) -> Factor:
 
 
 def _checked_name(name: str, feature: str, model: object, states_only: bool = False) -> str:
-    names = tuple(model.state_names) + (() if states_only else tuple(model.theta_names))
+    names = tuple(model.state_names) + (() if states_only else (*model.theta_names, *_coordinate_names(model)))
     if name not in names:
         raise InputError(f"feature {feature!r}: {name!r} is not a name of {type(model).__name__}; expected one of {names}")
     return name
+
+
+def _coordinate_names(model: object) -> tuple[str, ...]:
+    return tuple(getattr(model, "coordinate_names", ()))
 
 
 def _spatial_ops(model: object) -> dict[str, tuple[int, int]]:
@@ -87,7 +93,8 @@ def _spatial_ops(model: object) -> dict[str, tuple[int, int]]:
 def _grammar_hint(model: object) -> str:
     spatial = ", ".join(f"{op}(u)" for op in [*_spatial_ops(model), "lap"]) if getattr(model, "spatial_dims", 0) else "none"
     return (
-        f"expected factors joined by '*' among 1, a name of {tuple(model.state_names) + tuple(model.theta_names)}, "
+        f"expected factors joined by '*' among 1, a name of "
+        f"{(*model.state_names, *model.theta_names, *_coordinate_names(model))}, "
         f"sin(x), cos(x), sign(x), |x|, each optionally '^k'; spatial operators: {spatial}"
     )
 
@@ -115,6 +122,8 @@ def evaluate_feature(
 def _atom(factor: Factor, state: Tensor, theta: Tensor, model: object) -> Tensor:
     if factor.name in model.state_names:
         u = state[:, model.state_names.index(factor.name)]
+    elif factor.name in _coordinate_names(model):
+        u = model.coordinate(factor.name, state.device, state.dtype).expand_as(state[:, 0])
     else:
         u = theta[:, model.theta_names.index(factor.name)].reshape(-1, *([1] * (state.dim() - 2))).expand_as(state[:, 0])
     if factor.op == "var":

@@ -72,6 +72,10 @@ class ReactionDiffusion(FieldModel):
         dv = diffusion[:, 1] + u - v
         return torch.stack([du, dv], dim=1)
 
+    def coordinates(self, device: torch.device | None = None, dtype: torch.dtype = torch.float32) -> tuple[Tensor, ...]:
+        """x and y of every cell of the square [-1, 1)^2: -1, -1 + dx, ..., 1 - dx along each axis."""
+        return tuple(position - 1.0 for position in super().coordinates(device, dtype))
+
     def sample_initial_state(self, n: int, generator: torch.Generator) -> Tensor:
         """u(0), v(0) ~ U(0, 1) independently in every cell."""
         return torch.rand(n, *self.state_shape, generator=generator)
