@@ -79,6 +79,14 @@ CASES = {
         None,
         ADVDIFF,
     ),  # fmt: skip
+    "advdiff_heater": (
+        "advdiff.yaml",
+        AdvectionDiffusion,
+        [term("s", "T", Constant(1.89)), term("s^2", "T", Constant(-0.9))],  # a heater 0.9 s (2.1 - s) along the rod
+        1000,
+        None,
+        [*ADVDIFF, "--discover.position_degree=2"],
+    ),  # fmt: skip
     "reactdiff_reaction": (
         "reactdiff.yaml",
         lambda: ReactionDiffusion(u_reaction=False),
