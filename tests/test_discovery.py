@@ -102,6 +102,7 @@ from otgb.physics import (
     Uniform,
     ViscousFriction,
 )
+from otgb.physics.features import evaluate_feature, parse_feature
 from otgb.training import MapTraining
 
 ROOT = Path(__file__).parents[1]
@@ -190,9 +191,14 @@ def test_a_state_named_like_a_coordinate_is_the_state():
         state_names = ("T", "s")
         observed = ("T",)
 
-    assert RodWithPosition().coordinate_names == ()
+    rod = RodWithPosition()
+    assert rod.coordinate_names == () and feature_names(rod, position_degree=2) == feature_names(rod)
+    state = torch.randn(2, 2, 20)
+    assert torch.equal(evaluate_feature(parse_feature("s", rod), state, torch.zeros(2, 1), rod), state[:, 1])
     with pytest.raises(InputError, match="'s' is not a name of AdvectionDiffusion"):
         LibraryTerm("d_s(s)", "T", Constant(1.0)).check_model(AdvectionDiffusion())
+    with pytest.raises(InputError, match=r"the term names \['s'\] repeat a name"):
+        Augmented(AdvectionDiffusion(), [LibraryTerm("T", "T", Constant(-0.5), name="s")])
 
 
 # --- locate ---------------------------------------------------------------------------
@@ -1249,6 +1255,8 @@ def test_the_search_replaces_a_longer_model_the_data_cannot_tell_from_it():
     nearer = fitted(["velocity", "angle"], [0.0595, 0.0605, 0.0585, 0.0605])  # as sparse as short, within its noise
     assert replaces(nearer, short) and not replaces(short, nearer), "of two as sparse, the nearer"
     assert not replaces(short, short), "a tie keeps f_phi's model"
+    refitted = fitted(["velocity", "sin(angle)"], [0.0600, 0.0605, 0.0585, 0.0610])  # the same terms, a lower mean
+    assert not replaces(refitted, short), "the same terms refitted are f_phi's model: it stays"
 
 
 def test_the_search_keeps_nothing_when_no_library_model_beats_f_p_alone():
@@ -1435,6 +1443,7 @@ def _bad_file(tmp_path: Path, kind: str) -> Path:
         (("setting", "--discover.alpha=2"), "discover: need"),
         (("setting", "--discover.families=[constant,gamma]"), "discover.families=['constant', 'gamma']: expected"),
         (("setting", "--discover.fit_cache=measured.npz"), "discover.fit_cache='measured.npz': expected a folder"),
+        (("setting", "--discover.position_degree=2"), "discover.position_degree=2: Pendulum has no grid coordinate"),
     ],
 )
 def test_discover_refuses_bad_input_in_one_line_and_writes_nothing(tmp_path, mistake, expected):

@@ -51,6 +51,7 @@ from otgb.discovery.workflow import (
     run,
     simulate_from_priors,
 )
+from otgb.errors import InputError
 from otgb.parser_errors import ConciseParser
 from otgb.physics.base import PhysicsModel
 from otgb.quiet import quiet_known_harmless
@@ -145,6 +146,16 @@ def discover(args: list[str]) -> Path:
     return finished.run_dir
 
 
+def refuse_position_terms_without_a_grid(settings: DiscoverySettings, physics: PhysicsModel) -> None:
+    """``discover.position_degree`` asks for terms fixed in space: only a field with a free coordinate name has them."""
+    if settings.position_degree and not getattr(physics, "coordinate_names", ()):
+        raise InputError(
+            f"discover.position_degree={settings.position_degree}: {type(physics).__name__} has no grid coordinate to "
+            "offer; terms fixed in space need a field (otgb.physics.FieldModel) whose s, x or y is not a state or "
+            "parameter name: expected 0"
+        )
+
+
 def discover_run(args: list[str]) -> Finished:
     """The workflow with ``otgb discover`` arguments: report, figures and ``augmented.yaml`` written."""
     quiet_known_harmless()  # as the otgb command, when MissingEffect calls it from Python
@@ -155,6 +166,7 @@ def discover_run(args: list[str]) -> Finished:
             MapTraining, SimulationDataModule, args=args, run=False, parser_kwargs=parser, parser_class=ConciseParser
         )
     settings: DiscoverySettings = cli.config_init["discover"]
+    refuse_position_terms_without_a_grid(settings, cli.datamodule.physics)
     refuse_written_log_dirs(cli.trainer)  # the report goes into the trainer's log folder
     settings.cache_beside(Path(cli.trainer.log_dir).parent)
     device = cli.trainer.strategy.root_device  # the coefficient fits run where the grey-box trains, on a CUDA device

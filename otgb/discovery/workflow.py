@@ -708,7 +708,9 @@ def replaces(found: FittedTerms, kept: FittedTerms) -> bool:
     if beats(kept.heldout, found.heldout):
         return False
     size, kept_size = len(found.candidates), len(kept.candidates)
-    return size < kept_size or (size == kept_size and found.heldout.mean < kept.heldout.mean)
+    other_terms = set(found.candidates) != set(kept.candidates)  # the same terms refitted: a tie, f_phi's stays
+    nearer = kept.heldout.mean - found.heldout.mean > 1e-9 * abs(kept.heldout.mean)  # beyond float rounding
+    return size < kept_size or (size == kept_size and other_terms and nearer)
 
 
 UNDERTRAINED_REPEATS = 5  # simulation draws per held-out score of the grey-box and of f_p

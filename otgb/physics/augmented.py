@@ -52,7 +52,8 @@ class Augmented(PhysicsModel):
         if isinstance(terms, (str, LibraryTerm)) or not all(isinstance(t, LibraryTerm) for t in terms):
             raise InputError(f"Augmented: terms={terms!r} is invalid; expected a list of otgb.physics.LibraryTerm")
         names = [term.name for term in terms]
-        clash = sorted({n for n in names if names.count(n) > 1} | (set(names) & {*base.theta_names, *base.state_names}))
+        taken = {*base.theta_names, *base.state_names, *getattr(base, "coordinate_names", ())}
+        clash = sorted({n for n in names if names.count(n) > 1} | (set(names) & taken))
         if clash:
             raise InputError(f"Augmented: the term names {clash} repeat a name of the base model or of another term")
         for attr in ("state_names", "observed", "angle_names", "velocity_names", "units"):
