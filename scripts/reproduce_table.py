@@ -256,11 +256,10 @@ def task_table(results: Path, task: str) -> list[str]:
         walls = [r["fit_s"] for r in runs if r["fit_s"] is not None]
         wall = f"{statistics.mean(walls) / 60:.1f} min" if walls and source == "model" else "-"
         seeds = len(runs) if row in (*METHODS, AUGMENTED) else "-"
-        name = f"{row} {OTHER_SETTINGS}" if earlier.get(row) else row
-        lines.append(f"| {name} | {seeds} | {cells} | {published} | {wall} |")
+        lines.append(f"| {marked(row, runs, earlier.get(row, []))} | {seeds} | {cells} | {published} | {wall} |")
     if any(untolerant(runs, "model", "c2st_paper") for runs in records.values()) or untolerant(floor, "reference", "c2st_paper"):
         lines += ["", f"{UNTOLERANT} {UNTOLERANT_NOTE}"]
-    lines += settings_note(task, [pair for pairs in earlier.values() for pair in pairs])
+    lines += settings_note(task, [one for ones in earlier.values() for one in ones])
     if records[AUGMENTED]:
         named = [f"seed {r['seed']}: {', '.join(map(describe, r['terms'])) or 'nothing'}" for r in records[AUGMENTED]]
         lines += ["", f"The terms otgb discover named: {'; '.join(named)}."]
@@ -321,18 +320,27 @@ def short(class_path: str) -> str:
     return class_path.rsplit(".", 1)[-1]
 
 
-def earlier_settings(task: str, row: str, runs: list[dict]) -> list[tuple[str, dict]]:
-    """The recorded settings of ``runs`` that are not what the task's config sets now, as (name, recorded)."""
+def earlier_settings(task: str, row: str, runs: list[dict]) -> list[tuple[str, dict, int]]:
+    """The recorded settings of ``runs`` that are not what the task's config sets now, as (name, recorded, seed)."""
     now = {name: configured(task, name) for name in trained_with(row)}
-    return [(name, r[name]) for r in runs for name in now if r.get(name) and now[name] and differs(r[name], now[name])]
+    return [(name, r[name], r["seed"]) for r in runs for name in now if r.get(name) and now[name] and differs(r[name], now[name])]
 
 
-def settings_note(task: str, earlier: list[tuple[str, dict]]) -> list[str]:
+def marked(row: str, runs: list[dict], earlier: list[tuple[str, dict, int]]) -> str:
+    """``row`` with the mark of other settings where some of its runs had them, and which seeds where not all did."""
+    seeds = sorted({seed for *_, seed in earlier})
+    if not seeds:
+        return row
+    which = "" if len(seeds) == len(runs) else f" (seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))})"
+    return f"{row} {OTHER_SETTINGS}{which}"
+
+
+def settings_note(task: str, earlier: list[tuple[str, dict, int]]) -> list[str]:
     """The note under a task's table where some rows were trained with other settings than its config's now."""
     if not earlier:
         return []
     texts: dict[str, set[str]] = {}
-    for name, value in earlier:
+    for name, value, _ in earlier:
         texts.setdefault(name, set()).add(setting_text(value, configured(task, name)))
     before = "; ".join(f"the {name} {' and '.join(sorted(shown))}" for name, shown in texts.items())
     now = "; ".join(f"the {name} {setting_text(configured(task, name), configured(task, name))}" for name in texts)

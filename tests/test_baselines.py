@@ -192,6 +192,12 @@ def test_gather_marks_the_rows_trained_with_other_settings_than_the_configs_now(
         f"`ConvCritic`(channels=[16, 32, 64], time_as_channels=true); the correction {correction}."
     )
     assert f"\n{note}\n" in text, text
+    for seed in (1, 2):  # two more seeds of WGAN-GB with the configured critic: only seed 0 is marked
+        record = {"seed": seed, "fit_s": 60.0, "machine": "m", "command": [], "reference": {}, "critic": current}
+        record |= {"model": {"nrmse": 0.03, "abs_err": 0.03}, "correction": table.configured("React-diff-1-m", "correction")}
+        (tmp_path / "runs" / "React-diff-1-m" / table.folder_of("WGAN-GB") / f"seed{seed}.json").write_text(json.dumps(record))
+    table.gather(tmp_path / "runs", target)
+    assert f"| WGAN-GB {table.OTHER_SETTINGS} (seed 0) | 3 |" in target.read_text()
 
 
 def test_gather_writes_both_judges_the_seeds_and_the_tasks_not_measured(tmp_path):
