@@ -55,7 +55,10 @@ class Augmented(PhysicsModel):
         taken = {*base.theta_names, *base.state_names, *getattr(base, "coordinate_names", ())}
         clash = sorted({n for n in names if names.count(n) > 1} | (set(names) & taken))
         if clash:
-            raise InputError(f"Augmented: the term names {clash} repeat a name of the base model or of another term")
+            raise InputError(
+                f"Augmented: the term names {clash} repeat a name of the base model (a state, parameter or grid "
+                "coordinate) or of another term"
+            )
         for attr in ("state_names", "observed", "angle_names", "velocity_names", "units"):
             object.__setattr__(self, attr, getattr(base, attr))
         object.__setattr__(self, "theta_names", (*base.theta_names, *names))
