@@ -1099,10 +1099,10 @@ def test_a_stopped_run_resumed_from_its_fit_cache_reaches_the_result_of_a_run_ne
 
 
 @contextmanager
-def warnings_said() -> Iterator[list[str]]:
-    """The warnings the ``otgb.discover`` logger says within it (its own handler: ``otgb discover``'s stderr handler
-    stops propagation to the root logger, where pytest's caplog listens)."""
-    said, logger = [], logging.getLogger("otgb.discover")
+def warnings_said(name: str = "otgb.discover") -> Iterator[list[str]]:
+    """The warnings the logger ``name`` says within it (its own handler: ``otgb discover``'s stderr handler stops
+    propagation to the root logger, where pytest's caplog listens)."""
+    said, logger = [], logging.getLogger(name)
     handler = logging.Handler(logging.WARNING)
     handler.emit = lambda record: said.append(record.getMessage())
     logger.addHandler(handler)

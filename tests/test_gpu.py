@@ -4,7 +4,6 @@ Marked ``gpu``; skipped where no CUDA device is present (``pytest -m gpu`` on a 
 """
 
 import json
-import logging
 import math
 
 import pytest
@@ -107,15 +106,11 @@ def test_a_term_fixed_in_space_solves_on_the_gpu_as_on_the_cpu():
     g = torch.Generator().manual_seed(0)
     x0, theta = heated.sample_initial_state(8, g), heated.sample_theta(8, g)
     on_cpu = heated.simulate(x0, theta)
-    said, handler = [], logging.Handler(logging.WARNING)
-    handler.emit = lambda record: said.append(record.getMessage())
-    logging.getLogger("otgb.solvers").addHandler(handler)  # where a compile that fails says it falls back to eager
     solvers.set_solver("compiled")
     try:
-        with torch.no_grad():
+        with warnings_said("otgb.solvers") as said, torch.no_grad():  # where a failed compile says it runs eagerly
             on_gpu = heated.cuda().simulate(x0.cuda(), theta.cuda())
     finally:
         solvers.reset()
-        logging.getLogger("otgb.solvers").removeHandler(handler)
     assert not said, said
     assert torch.allclose(on_gpu.cpu(), on_cpu, atol=1e-5), float((on_gpu.cpu() - on_cpu).abs().max())
