@@ -92,6 +92,13 @@ def source_batches(t_max: int, critic_steps: int) -> int:
     return t_max + critic_steps - 1
 
 
+DESCRIPTION = "otgb: grey-box maps that complete an incomplete physics model from unpaired measurements."
+OTHER_COMMANDS = (
+    "Two more commands, each with its own --help: otgb discover (name the effect that f_p misses, add it, show the "
+    "gap shrink) and otgb tune (an Optuna study over a config's settings)."
+)
+
+
 class OTGBCLI(LightningCLI):
     """LightningCLI with otgb's shared defaults, a checkpoint section and two ``auto`` settings.
 
@@ -120,6 +127,7 @@ class OTGBCLI(LightningCLI):
         defaults = {"default_config_files": [str(DEFAULTS)]}
         if add_subcommands:
             subparser_kwargs = {name: {**defaults, **subparser_kwargs.get(name, {})} for name in self.subcommands()}
+            main_kwargs = {"description": DESCRIPTION, "epilog": OTHER_COMMANDS, **main_kwargs}
         else:
             main_kwargs = {**defaults, **main_kwargs}
         super().setup_parser(add_subcommands, main_kwargs, subparser_kwargs)

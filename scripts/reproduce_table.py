@@ -336,7 +336,7 @@ def marked(row: str, runs: list[dict], earlier: list[tuple[str, dict, int]]) -> 
 
 
 def settings_note(task: str, earlier: list[tuple[str, dict, int]]) -> list[str]:
-    """The note under a task's table where some rows were trained with other settings than its config's now."""
+    """The note under a task's table where some rows were trained with other settings than its config has."""
     if not earlier:
         return []
     texts: dict[str, set[str]] = {}
@@ -344,7 +344,7 @@ def settings_note(task: str, earlier: list[tuple[str, dict, int]]) -> list[str]:
         texts.setdefault(name, set()).add(setting_text(value, configured(task, name)))
     before = "; ".join(f"the {name} {' and '.join(sorted(shown))}" for name, shown in texts.items())
     now = "; ".join(f"the {name} {setting_text(configured(task, name), configured(task, name))}" for name in texts)
-    return ["", f"{OTHER_SETTINGS} trained with {before}; the config's is now {now}."]
+    return ["", f"{OTHER_SETTINGS} trained with {before}; the config has {now}."]
 
 
 def setting_text(value: dict, configured: dict) -> str:

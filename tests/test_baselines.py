@@ -188,7 +188,7 @@ def test_gather_marks_the_rows_trained_with_other_settings_than_the_configs_now(
     correction = table.compact(table.configured("React-diff-1-m", "correction"))
     note = (
         f"{table.OTHER_SETTINGS} trained with the critic `ConvCritic`(channels=[16, 32, 64], time_as_channels=false); "
-        "the correction `ConditionalMLP`(hidden=[8]); the config's is now the critic "
+        "the correction `ConditionalMLP`(hidden=[8]); the config has the critic "
         f"`ConvCritic`(channels=[16, 32, 64], time_as_channels=true); the correction {correction}."
     )
     assert f"\n{note}\n" in text, text

@@ -68,13 +68,16 @@ def option_help(text: str) -> dict[str, str]:
     return {name: TYPE_NOTE.split(" ".join(parts), maxsplit=1)[0].strip() for name, parts in entries.items()}
 
 
-def command_help(subcommand: str) -> dict[str, str]:
+def help_text(*subcommand: str) -> str:
     """The real command's help, on a wide terminal so that lines do not wrap, for this checkout's code."""
     env = {**os.environ, "COLUMNS": "200", "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    out = subprocess.run(
-        [sys.executable, "-m", "otgb.cli", subcommand, "--help"], capture_output=True, text=True, check=True, env=env, cwd=ROOT
-    ).stdout
-    return option_help(out)
+    command = [sys.executable, "-m", "otgb.cli", *subcommand, "--help"]
+    return subprocess.run(command, capture_output=True, text=True, check=True, env=env, cwd=ROOT).stdout
+
+
+def command_help(subcommand: str) -> dict[str, str]:
+    """A subcommand's options with their help."""
+    return option_help(help_text(subcommand))
 
 
 @pytest.fixture(scope="module")
@@ -135,3 +138,10 @@ def test_no_two_options_of_a_group_share_their_help(fit_help):
             by_text[name.split(".")[0], text].append(name)
     shared = [names for names in by_text.values() if len(names) > 1]
     assert not shared, f"options with the same help text: {shared}"
+
+
+def test_otgb_help_names_the_commands_lightning_does_not_list():
+    """`otgb --help` lists Lightning's subcommands; discover and tune, which otgb adds, are named below them."""
+    out = help_text()
+    assert "{fit,validate,test,predict}" in out
+    assert "otgb discover" in out and "otgb tune" in out and "own --help" in out
