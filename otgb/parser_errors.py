@@ -69,10 +69,11 @@ def concise(message: str, parser: ArgumentParser) -> tuple[str, bool]:
         options = [token.split("=")[0] for token in unknown.group(1).split() if token.startswith("--")]
         hints = "".join(_did_you_mean(closest(o, option_names(parser))) for o in options)
         return f"unknown option {' '.join(options) or unknown.group(1)}{hints}", True
-    key = re.search(r"does not accept option '([\w.]+)'", message)
-    if key:
-        names = [o[2:] for o in closest("--" + key.group(1), option_names(parser))]
-        return f"unknown key '{key.group(1)}'{_did_you_mean(names)}", True
+    key = re.search(r"(?:Group '([\w.]+)' )?does not accept option '([\w.]+)'", message)
+    if key:  # a group's error names the key inside it ('batch_sise' in 'data'): name it in full, as a subcommand's does
+        full = ".".join(filter(None, key.groups()))
+        names = [o[2:] for o in closest("--" + full, option_names(parser))]
+        return f"unknown key '{full}'{_did_you_mean(names)}", True
     option = re.search(r"Option '([\w.]+)' is not accepted", message)
     bad_class = _owner(message, option.start() if option else len(message))
     if bad_class and option:

@@ -647,3 +647,19 @@ def test_test_without_a_checkpoint_says_it_scores_an_untrained_map_and_f_p_alone
         assert untrained not in caplog.text and "otgb: evaluation mode" in caplog.text
     finally:
         logging.getLogger("lightning.pytorch.utilities.rank_zero").removeHandler(caplog.handler)
+
+
+def test_a_misspelt_key_reads_the_same_from_discover_as_from_fit(tmp_path, monkeypatch, capsys):
+    """discover's parser reports a key inside a group ('batch_sise' of 'data'); the line names it in full, as fit's."""
+    (tmp_path / "bad.yaml").write_text("data:\n  simulation_budgit: 5\n")
+    monkeypatch.chdir(tmp_path)
+    for command, extra in (("fit", []), ("discover", ["--data.measured_path=m.csv"])):
+        with pytest.raises(SystemExit) as exit_info:
+            main([command, "--config", CONFIG, "--config", "bad.yaml", *extra])
+        line = capsys.readouterr().err.splitlines()[-1]
+        assert exit_info.value.code == 2
+        assert line == (
+            "otgb: error: unknown key 'data.simulation_budgit' (did you mean data.simulation_budget?) in bad.yaml; "
+            f"list the options with: otgb {command} --help"
+        )
+    assert not (tmp_path / "runs").exists(), "nothing written"
