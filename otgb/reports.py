@@ -31,6 +31,7 @@ from typing import Any
 
 SOURCES = {"model": "", "fp": "fp_", "reference": "ref_"}
 HEADERS = {"model": "model", "fp": "f_p alone", "reference": "Reference"}
+UNTRAINED = "no checkpoint was given, so the model is the map as initialised, not a trained one"
 GROUPS = {"": "", "joint_": "joint with recorded inputs: "}  # metric-name prefix -> row label prefix
 LABELS = {
     "abs_err": "ABS ERR",
@@ -153,8 +154,15 @@ def summary_of(run_dir: Path) -> str:
         return ""
     content = json.loads(path.read_text())
     sentence = summary({source: content.get(source, {}) for source in SOURCES}).strip()
-    trained_on = content.get("run", {}).get("trained_on")
-    return f"{sentence[:-1]} ({elsewhere(trained_on)})." if sentence and trained_on else sentence
+    run = content.get("run", {})
+    caveats = [UNTRAINED] if run.get("untrained") else []
+    caveats += [elsewhere(run["trained_on"])] if run.get("trained_on") else []
+    return f"{sentence[:-1]} ({'; '.join(caveats)})." if sentence and caveats else sentence
+
+
+def checkpoint_text(run: dict[str, Any]) -> str:
+    """The checkpoint a report scored, or that there was none."""
+    return f"checkpoint `{run['ckpt_path']}`" if run.get("ckpt_path") else "no checkpoint"
 
 
 def elsewhere(trained_on: str) -> str:
@@ -204,8 +212,10 @@ def write_report(
     header = (
         f"# Test metrics: {run.get('name')}\n\n"
         f"Evaluation mode **{run.get('mode')}**: {run.get('description', '')}\n\n"
-        f"checkpoint `{run.get('ckpt_path')}` (step {run.get('global_step')}), {run.get('sample_sizes')}\n\n"
+        f"{checkpoint_text(run)} (step {run.get('global_step')}), {run.get('sample_sizes')}\n\n"
     )
+    if run.get("untrained"):
+        header += f"**Note: {UNTRAINED}: give `--ckpt_path` a checkpoint of a fit to test it.**\n\n"
     if run.get("trained_on"):
         header += f"**Note: {elsewhere(run['trained_on'])}.**\n\n"
     over = ("test inputs (ABS ERR, N-RMSE) or " if "abs_err" in by_source["model"] else "") + "C2ST folds"

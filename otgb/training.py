@@ -200,6 +200,12 @@ class MapTraining(LightningModule):
             return torch.nn.functional.one_hot(category, self.z_dim).to(torch.get_default_dtype())
         return torch.randn(shape, device=self.device, generator=self.generator)
 
+    @property
+    def map_has_weights(self) -> bool:
+        """Whether the map has weights to train (not f_p alone, nor a complete physics): scored without a checkpoint,
+        it is scored untrained."""
+        return any(True for _ in self.transport_map.parameters())
+
     def evaluation_map(self) -> nn.Module:
         """The map that evaluation uses: the moving average of its weights when there is one, else the map itself."""
         return self.map_average.module if self.map_average is not None else self.transport_map

@@ -282,7 +282,7 @@ def table(out: Path) -> str:
     lines += ["|---" * 8 + "|"]
     for name, results in sweeps.items():
         for budget, batch in sorted({(r["budget"], r["batch"]) for r in results.values()}):
-            group = [r for r in results.values() if (r["budget"], r["batch"]) == (budget, batch)]
+            group = sorted((r for r in results.values() if (r["budget"], r["batch"]) == (budget, batch)), key=lambda r: r["seed"])
             values = [r[f"model_{metric}"] for r in group]
             rates = f"{group[0]['map_lr']:.3g} / {group[0]['critic_lr']:.3g}"
             cells = [name, f"{budget:,}".replace(",", " "), str(batch), rates, str(len(group)), mean_spread(values)]
@@ -291,9 +291,10 @@ def table(out: Path) -> str:
     lines.append("")
     for name, results in sweeps.items():
         first = next(iter(results.values()))
+        machines = " and ".join(dict.fromkeys(r["machine"] for r in results.values()))  # each once, in run order
         minutes = sum(r["fit_s"] for r in results.values()) / len(results) / 60
         settings = f", overrides `{' '.join(first['overrides'])}`" if first["overrides"] else ""
-        lines.append(f"- `{name}`: {first['machine']}{settings}; {minutes:.1f} min per fit on average.")
+        lines.append(f"- `{name}`: {machines}{settings}; {minutes:.1f} min per fit on average.")
     lines += study_lines(out) + averaged_lines(out) + gap_lines(out)
     return "\n".join(lines) + "\n"
 

@@ -21,6 +21,7 @@ from otgb.cli import main
 from otgb.command import OTGBCLI, BestAndLastCheckpoint, logger_override
 from otgb.data import SimulationDataModule
 from otgb.errors import InputError
+from otgb.reports import summary_of
 from otgb.runs import load_run
 from otgb.training import MapTraining
 
@@ -631,6 +632,10 @@ def test_a_second_run_reads_f_p_and_the_reference_from_the_cache_and_gives_the_s
     assert _last(second, "val/fp_c2st") > 0.5 and _last(second, "val/fp_mmd") > 0
 
 
+def _report(tmp_path: Path, version: int) -> str:
+    return (tmp_path / "run" / f"version_{version}" / "metrics.md").read_text()
+
+
 def test_test_without_a_checkpoint_says_it_scores_an_untrained_map_and_f_p_alone_does_not(tmp_path, caplog):
     untrained = "otgb test: no --ckpt_path: scoring the map as initialised, untrained"
     caplog.set_level(logging.INFO)
@@ -638,9 +643,12 @@ def test_test_without_a_checkpoint_says_it_scores_an_untrained_map_and_f_p_alone
     try:
         main(["test", *_args(tmp_path, "--evaluation.reference_repeats=1")])
         assert untrained in caplog.text
+        assert "**Note: no checkpoint was given, so the model is the map as initialised" in _report(tmp_path, 0)
+        assert "no checkpoint was given" in summary_of(tmp_path / "run" / "version_0"), "the closing sentence says it too"
         caplog.clear()
         main(["test", *_args(tmp_path, "--evaluation.reference_repeats=1", "--model.transport_map=otgb.models.IdentityMap")])
         assert untrained not in caplog.text, "nothing to train: nothing to say"
+        assert "no checkpoint was given" not in _report(tmp_path, 1) and "no checkpoint (step 0)" in _report(tmp_path, 1)
         main(["fit", *_args(tmp_path, "--trainer.max_steps=3")])
         caplog.clear()
         main(["test", *_args(tmp_path, "--evaluation.reference_repeats=1"), f"--ckpt_path={next(tmp_path.rglob('last.ckpt'))}"])

@@ -218,6 +218,7 @@ class Evaluation(Callback):
                 "n_inputs": len(data["y"]),
                 "draws_per_input": data["y"].shape[1],
                 "sample_sizes": datamodule.source.sample_sizes(len(data["y"]), data["y"].shape[1]),
+                "untrained": trainer.ckpt_path is None and pl_module.map_has_weights,
             }
             per_time = {name: value for name, value in results.items() if value.dim() > 0}
             write_report(Path(log_dir), run, scalars, per_time, self._labels(pl_module))
