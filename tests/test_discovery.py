@@ -1,5 +1,6 @@
 """Missing-effect discovery: the library term, the augmented physics, locate, name, add, and `otgb discover`."""
 
+import dataclasses
 import json
 import logging
 import math
@@ -211,6 +212,11 @@ def test_locate_finds_when_and_how_samples_differ():
     found = locate(measured, _draws(pendulum, 200, 2), pendulum.observation_times(), ("angle",), 199)
     assert found.any_significant and not found.significant[0].any()  # t = 0: the same initial states
     assert "amplitude (mean |value|) is smaller" in describe(found) and "agree up to t =" in describe(found)
+    flagged = torch.zeros_like(found.significant)
+    flagged[[3, *range(6, 14), *range(18, 50)]] = True  # a lone step, an earlier episode, then the onset
+    episodes = dataclasses.replace(found, significant=flagged)
+    said = "agree up to t = 1.7 (apart from t = 0.6 to 1.3 and 1 isolated earlier step); from t = 1.8 on"
+    assert said in describe(episodes), describe(episodes)
 
 
 def test_the_sentence_after_the_fix_says_how_f_p_alone_fared_on_the_same_test_part():

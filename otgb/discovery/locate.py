@@ -264,31 +264,44 @@ def _distributions(result: DisagreementMap, a_name: str, b_name: str) -> str:
     times = result.times
     flagged = result.significant.any(2).any(1)
     first = onset(flagged)
-    earlier = int(flagged[:first].sum())
-    aside = f" (apart from {earlier} isolated earlier step{'s' if earlier > 1 else ''})" if earlier else ""
     start = "differ from the start:"
     if first > 0:
-        start = f"agree up to t = {times[first - 1]:.3g}{aside}; from t = {times[first]:.3g} on"
+        start = f"agree up to t = {times[first - 1]:.3g}{_earlier(flagged, first, times)}; from t = {times[first]:.3g} on"
     parts = [_component_difference(result, c, a_name, b_name) for c in range(len(result.components))]
     return f"{b_name} and {a_name} trajectories {start} " + "; ".join(p for p in parts if p)
 
 
+def _earlier(flagged: Tensor, first: int, times: Tensor) -> str:
+    """The flagged steps before the onset, as an aside: spans of two steps or more by their times, single steps by count
+    (they can pass by chance, :func:`onset`)."""
+    earlier = runs(flagged[:first])
+    spans = [f"t = {times[begin]:.3g} to {times[end - 1]:.3g}" for begin, end in earlier if end - begin > 1]
+    single = sum(end - begin == 1 for begin, end in earlier)
+    spans += [f"{single} isolated earlier step{'s' if single > 1 else ''}"] if single else []
+    return f" (apart from {' and '.join(spans)})" if spans else ""
+
+
+def runs(flagged: Tensor) -> list[tuple[int, int]]:
+    """The runs of consecutive flagged steps, as (first, one past the last) index pairs in time order."""
+    found, start = [], None
+    for i, value in enumerate([*flagged.tolist(), False]):
+        if value and start is None:
+            start = i
+        elif not value and start is not None:
+            found.append((start, i))
+            start = None
+    return found
+
+
 def onset(flagged: Tensor) -> int:
-    """The first time step of the longest run of flagged steps.
+    """The first time step of the longest run of flagged steps (the earliest of the longest).
 
     At a false discovery rate of alpha, about alpha of the flagged cells are null ones, and when
     most cells are truly different the Benjamini-Hochberg threshold nears alpha itself: a few
     early steps (neighbours, so alike) can pass by chance. The longest run is where the
     disagreement sets in.
     """
-    runs, start = [], None
-    for i, value in enumerate([*flagged.tolist(), False]):
-        if value and start is None:
-            start = i
-        elif not value and start is not None:
-            runs.append((i - start, -start))
-            start = None
-    return -max(runs)[1]
+    return max(runs(flagged), key=lambda run: (run[1] - run[0], -run[0]))[0]
 
 
 def _component_difference(result: DisagreementMap, c: int, a_name: str, b_name: str) -> str:
