@@ -187,13 +187,7 @@ class OTGBCLI(LightningCLI):
         refuse_written_log_dirs(self.trainer)
 
     def before_test(self) -> None:
-        """Also one line when ``otgb test`` is given no checkpoint for a map with weights: it scores them untrained."""
         refuse_written_log_dirs(self.trainer)
-        if self.config["test"].get("ckpt_path") is None and self.model.map_has_weights:
-            rank_zero_info(
-                "otgb test: no --ckpt_path: scoring the map as initialised, untrained "
-                "(give --ckpt_path=<run>/checkpoints/best-step=*.ckpt or last.ckpt)"
-            )
 
     def before_predict(self) -> None:
         refuse_written_log_dirs(self.trainer)

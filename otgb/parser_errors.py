@@ -106,7 +106,8 @@ def _names_in(folder: Path) -> list[str]:
 def _owner(message: str, at: int) -> str | None:
     """The class an error at position ``at`` of ``message`` is about: the value a callable was given right after it
     (``Got value: Namespace(class_path='X'``), else the innermost class given before it (``given class_path 'X'``)."""
-    after = re.search(r"Got value: Namespace\(class_path='([\w.]+)'", message[at:])
+    value = message[at:].split("Got value: ")[1:2]  # the value the error was raised on, up to the next one
+    after = re.search(r"class_path='([\w.]+)'", value[0]) if value and value[0].startswith("Namespace(") else None
     before = re.findall(r"given class_path '([\w.]+)'", message[:at])
     return after.group(1) if after else (before[-1] if before else None)
 

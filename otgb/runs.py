@@ -111,6 +111,7 @@ def load_weights(model: MapTraining, ckpt_path: str | Path, datamodule: Simulati
     except (KeyError, RuntimeError) as error:
         first = str(error).splitlines()[0]
         raise InputError(f"ckpt_path={str(ckpt_path)!r}: not a checkpoint of this config's model ({first})") from None
+    model.restored_step, model.loaded_from = state.get("global_step"), str(path)
     if datamodule is not None:
         datamodule.compare_with_training(state.get(type(datamodule).__qualname__, {}))
 

@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from lightning import LightningModule
+from lightning import LightningModule, Trainer
 from lightning.pytorch.cli import LRSchedulerCallable, OptimizerCallable
 from torch import Tensor, nn
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
@@ -150,6 +150,7 @@ class MapTraining(LightningModule):
         self.map_updates = 0
         self.elapsed_before = 0.0
         self.restored_step: int | None = None  # global step of the checkpoint this module was loaded from
+        self.loaded_from: str | None = None  # the checkpoint otgb.runs.load_weights loaded, outside a Trainer's restore
         self._fit_clock: float | None = None
         self._steps: float = math.inf  # the fit's training steps, known when training starts
         self._generator: torch.Generator | None = None
@@ -202,9 +203,14 @@ class MapTraining(LightningModule):
 
     @property
     def map_has_weights(self) -> bool:
-        """Whether the map has weights to train (not f_p alone, nor a complete physics): scored without a checkpoint,
-        it is scored untrained."""
+        """Whether the map has weights to train (not f_p alone, nor a complete physics)."""
         return any(True for _ in self.transport_map.parameters())
+
+    def scored_untrained(self, trainer: Trainer) -> bool:
+        """Whether ``trainer`` scores the map as initialised: it has weights, and no checkpoint (given to the Trainer
+        or loaded by :func:`otgb.runs.load_weights`) and no training in this Trainer set them."""
+        loaded = trainer.ckpt_path is not None or self.restored_step is not None or self.loaded_from is not None
+        return self.map_has_weights and not loaded and trainer.global_step == 0
 
     def evaluation_map(self) -> nn.Module:
         """The map that evaluation uses: the moving average of its weights when there is one, else the map itself."""

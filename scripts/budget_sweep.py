@@ -291,7 +291,7 @@ def table(out: Path) -> str:
     lines.append("")
     for name, results in sweeps.items():
         first = next(iter(results.values()))
-        machines = " and ".join(dict.fromkeys(r["machine"] for r in results.values()))  # each once, in run order
+        machines = "; ".join(f"`{m}`" for m in dict.fromkeys(r["machine"] for r in results.values()))  # once each, in file order
         minutes = sum(r["fit_s"] for r in results.values()) / len(results) / 60
         settings = f", overrides `{' '.join(first['overrides'])}`" if first["overrides"] else ""
         lines.append(f"- `{name}`: {machines}{settings}; {minutes:.1f} min per fit on average.")

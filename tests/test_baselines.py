@@ -159,7 +159,7 @@ def test_the_committed_table_1_is_what_gather_writes_from_the_committed_result_f
     assert copy.read_text() == committed, "run: python scripts/reproduce_table.py --gather docs/results.md"
 
 
-def test_gather_marks_the_rows_trained_with_other_settings_than_the_configs_now(tmp_path):
+def test_gather_marks_the_rows_trained_with_other_settings_than_the_config_has(tmp_path):
     """A row whose runs recorded another critic or correction than the task's config sets now is marked, with a note
     naming both; a row with the configured ones (its record holds more settings than the config names) or none
     recorded is not."""

@@ -278,6 +278,10 @@ def test_bad_input_is_one_line_status_2_and_no_run_directory(tmp_path):
             ["--config", "critic.yaml"],
             "--model.critic: otgb.models.MLPCritic has no option 'hiden' (did you mean hidden?) in critic.yaml",
         ),
+        (  # a file that sets only init_args: the class is the config's, named after the option in the error
+            ["--config", "critic_args.yaml"],
+            "--model.critic: otgb.models.MLPCritic has no option 'hiden' (did you mean hidden?) in critic_args.yaml",
+        ),
         (["--config", "critc.yaml"], "--config: no such file '{tmp_path}/critc.yaml' (did you mean critic.yaml"),
         (["--trainer.accelerator=gpux"], "trainer: You selected an invalid accelerator name"),
         (["--trainer.precision=bf16-mixed"], "--trainer.precision=bf16-mixed: otgb trains in float32 (expected 32-true)"),
@@ -296,6 +300,7 @@ def test_parser_errors_are_a_few_lines_ending_with_the_closest_names(tmp_path, m
     (tmp_path / "constant.yaml").write_text(effect.format("xi") + constant.format("valu"))
     critic = "model:\n  critic:\n    class_path: otgb.models.MLPCritic\n    init_args: {hiden: [5]}\n"
     (tmp_path / "critic.yaml").write_text(critic)
+    (tmp_path / "critic_args.yaml").write_text("model:\n  critic:\n    init_args: {hiden: [5]}\n")
     correction = "model:\n  transport_map:\n    init_args:\n      correction:\n        class_path: otgb.models.ConditionalMLP\n"
     (tmp_path / "correction.yaml").write_text(correction + "        init_args: {hiden: [64, 64]}\n")
     monkeypatch.chdir(tmp_path)
@@ -637,7 +642,7 @@ def _report(tmp_path: Path, version: int) -> str:
 
 
 def test_test_without_a_checkpoint_says_it_scores_an_untrained_map_and_f_p_alone_does_not(tmp_path, caplog):
-    untrained = "otgb test: no --ckpt_path: scoring the map as initialised, untrained"
+    untrained = "otgb test: no checkpoint: scoring the map as initialised, untrained"
     caplog.set_level(logging.INFO)
     logging.getLogger("lightning.pytorch.utilities.rank_zero").addHandler(caplog.handler)  # lightning's own does not propagate
     try:
@@ -651,8 +656,14 @@ def test_test_without_a_checkpoint_says_it_scores_an_untrained_map_and_f_p_alone
         assert "no checkpoint was given" not in _report(tmp_path, 1) and "no checkpoint (step 0)" in _report(tmp_path, 1)
         main(["fit", *_args(tmp_path, "--trainer.max_steps=3")])
         caplog.clear()
-        main(["test", *_args(tmp_path, "--evaluation.reference_repeats=1"), f"--ckpt_path={next(tmp_path.rglob('last.ckpt'))}"])
+        last = next(tmp_path.rglob("last.ckpt"))
+        main(["test", *_args(tmp_path, "--evaluation.reference_repeats=1"), f"--ckpt_path={last}"])
         assert untrained not in caplog.text and "otgb: evaluation mode" in caplog.text
+        caplog.clear()
+        run = load_run(tmp_path / "run" / "version_2" / "config.yaml", ckpt_path=last)  # docs/runs.md's Python way
+        run.trainer.test(run.model, run.datamodule, verbose=False)
+        assert untrained not in caplog.text and "no checkpoint was given" not in _report(tmp_path, 4)
+        assert f"checkpoint `{last}` (step 3)" in _report(tmp_path, 4)
     finally:
         logging.getLogger("lightning.pytorch.utilities.rank_zero").removeHandler(caplog.handler)
 

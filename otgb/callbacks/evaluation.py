@@ -200,6 +200,13 @@ class Evaluation(Callback):
             self.baselines_logged = True
         self._log(pl_module, "val", results)
 
+    def on_test_start(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        if pl_module.scored_untrained(trainer):  # after Lightning restored any checkpoint
+            rank_zero_info(
+                "otgb test: no checkpoint: scoring the map as initialised, untrained "
+                "(give --ckpt_path=<run>/checkpoints/best-step=*.ckpt or last.ckpt)"
+            )
+
     def on_test_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
         datamodule = trainer.datamodule
         results = self._model_results(tests=True)
@@ -211,14 +218,14 @@ class Evaluation(Callback):
             run = {
                 "log_dir": str(log_dir),
                 "name": Path(log_dir).parent.name,
-                "ckpt_path": str(trainer.ckpt_path) if trainer.ckpt_path else None,
+                "ckpt_path": str(trainer.ckpt_path) if trainer.ckpt_path else pl_module.loaded_from,
                 "global_step": trainer.global_step if pl_module.restored_step is None else pl_module.restored_step,
                 "seed": torch.initial_seed(),
                 **self.mode_facts(datamodule),
                 "n_inputs": len(data["y"]),
                 "draws_per_input": data["y"].shape[1],
                 "sample_sizes": datamodule.source.sample_sizes(len(data["y"]), data["y"].shape[1]),
-                "untrained": trainer.ckpt_path is None and pl_module.map_has_weights,
+                "untrained": pl_module.scored_untrained(trainer),
             }
             per_time = {name: value for name, value in results.items() if value.dim() > 0}
             write_report(Path(log_dir), run, scalars, per_time, self._labels(pl_module))
