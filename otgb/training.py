@@ -411,7 +411,7 @@ class MapTraining(LightningModule):
 
     def on_fit_start(self) -> None:
         self._fit_clock = time.perf_counter()
-        self.restored_step = None  # training moves on from the loaded checkpoint
+        self.restored_step = self.loaded_from = None  # training moves on from the loaded checkpoint
 
     def on_train_start(self) -> None:
         self.sigterm.install(self.trainer)
