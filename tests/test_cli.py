@@ -2,7 +2,6 @@
 
 import csv
 import json
-import logging
 import os
 import re
 import subprocess
@@ -14,6 +13,7 @@ import pytest
 import torch
 import yaml
 from lightning import Callback
+from logcapture import records_of, text_of
 
 from otgb.callbacks import progress
 from otgb.callbacks.progress import SimulationProgressBar
@@ -533,31 +533,29 @@ def test_own_config_gets_the_defaults_and_names_the_run(tmp_path, monkeypatch):
     assert [logger.name for logger in named.trainer.loggers] == ["mine", "mine"], "a logger named by the user keeps its name"
 
 
-def test_a_run_whose_loggers_write_to_two_folders_says_so_in_one_line(tmp_path, monkeypatch, caplog):
+def test_a_run_whose_loggers_write_to_two_folders_says_so_in_one_line(tmp_path, monkeypatch):
     """``--trainer.logger.init_args.save_dir`` moves only the last logger of the list: the run says where each went."""
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(logging.getLogger("lightning.pytorch"), "propagate", True)  # Lightning's info lines reach caplog
     args = ["--config", CONFIG, "--trainer.logger.init_args.save_dir=elsewhere"]
-    with caplog.at_level(logging.INFO):
+    with records_of("lightning.pytorch") as records:
         cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=args)
     folders = [Path(logger.log_dir).parent.parent for logger in cli.trainer.loggers]
     assert folders == [Path("runs"), Path("elsewhere")]
-    lines = [r.getMessage() for r in caplog.records if "loggers write to" in r.getMessage()]
+    lines = [r.getMessage() for r in records if "loggers write to" in r.getMessage()]
     assert len(lines) == 1 and "runs/pendulum/version_0" in lines[0] and "elsewhere/pendulum/version_0" in lines[0], lines
 
 
 @pytest.mark.parametrize(
     "max_steps, every, first", [(3, "100", 100), (200, "100", None), (50, "0.5", 1562), (2000, "0.5", None), (-1, "100", None)]
 )
-def test_a_run_stopped_before_its_first_validation_says_so(tmp_path, monkeypatch, caplog, max_steps, every, first):
+def test_a_run_stopped_before_its_first_validation_says_so(tmp_path, monkeypatch, max_steps, every, first):
     """An int val_check_interval counts steps, a float is a fraction of the run (3125 steps of the config's budget)."""
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(logging.getLogger("lightning.pytorch"), "propagate", True)
     args = ["--config", CONFIG, f"--trainer.max_steps={max_steps}", f"--trainer.val_check_interval={every}"]
-    with caplog.at_level(logging.INFO):
+    with records_of("lightning.pytorch") as records:
         cli = OTGBCLI(MapTraining, SimulationDataModule, run=False, args=args)
         cli.before_fit()
-    lines = [r.getMessage() for r in caplog.records if "before its first validation" in r.getMessage()]
+    lines = [r.getMessage() for r in records if "before its first validation" in r.getMessage()]
     expected = f"otgb: --trainer.max_steps={max_steps} ends the run before its first validation (at step {first} of the budget's"
     assert lines == [] if first is None else len(lines) == 1 and lines[0].startswith(expected), lines
 
@@ -618,17 +616,17 @@ def test_load_run_takes_a_test_runs_saved_config_and_writes_neither_into_that_ru
     assert list((tmp_path / "refit" / "run").glob("version_*/checkpoints/last.ckpt")), "otgb fit takes the saved config"
 
 
-def test_a_second_run_reads_f_p_and_the_reference_from_the_cache_and_gives_the_same_numbers(tmp_path, caplog):
-    caplog.set_level(logging.INFO)
-    logging.getLogger("lightning.pytorch.utilities.rank_zero").addHandler(caplog.handler)  # lightning's own does not propagate
-    main(["fit", *_args(tmp_path, "--trainer.max_steps=3")])
+def test_a_second_run_reads_f_p_and_the_reference_from_the_cache_and_gives_the_same_numbers(tmp_path):
+    with records_of("lightning.pytorch") as records:
+        main(["fit", *_args(tmp_path, "--trainer.max_steps=3")])
     assert len(list((tmp_path / "cache").glob("baselines-*.pt"))) == 1, "the validation set's f_p and Reference scores"
-    assert "read from" not in caplog.text and "scoring f_p alone and the Reference on this set (once: kept in" in caplog.text
-    caplog.clear()
-    main(["fit", *_args(tmp_path, "--trainer.max_steps=3")])
-    logging.getLogger("lightning.pytorch.utilities.rank_zero").removeHandler(caplog.handler)
-    assert f"the Reference on this set: read from {tmp_path / 'cache'}/baselines-" in caplog.text
-    assert "scoring f_p alone" not in caplog.text
+    said = text_of(records)
+    assert "read from" not in said and "scoring f_p alone and the Reference on this set (once: kept in" in said
+    with records_of("lightning.pytorch") as records:
+        main(["fit", *_args(tmp_path, "--trainer.max_steps=3")])
+    said = text_of(records)
+    assert f"the Reference on this set: read from {tmp_path / 'cache'}/baselines-" in said
+    assert "scoring f_p alone" not in said
     timing = ("eval_seconds", "wall_time_s")
     first, second = (_rows(tmp_path / "run" / f"version_{v}") for v in (0, 1))
     assert _last(second, "val/ref_eval_seconds") == 0.0 < _last(first, "val/ref_eval_seconds"), "read, not scored"
@@ -641,31 +639,27 @@ def _report(tmp_path: Path, version: int) -> str:
     return (tmp_path / "run" / f"version_{version}" / "metrics.md").read_text()
 
 
-def test_test_without_a_checkpoint_says_it_scores_an_untrained_map_and_f_p_alone_does_not(tmp_path, caplog):
+def test_test_without_a_checkpoint_says_it_scores_an_untrained_map_and_f_p_alone_does_not(tmp_path):
     untrained = "otgb test: no checkpoint: scoring the map as initialised, untrained"
-    caplog.set_level(logging.INFO)
-    logging.getLogger("lightning.pytorch.utilities.rank_zero").addHandler(caplog.handler)  # lightning's own does not propagate
-    try:
+    with records_of("lightning.pytorch") as records:
         main(["test", *_args(tmp_path, "--evaluation.reference_repeats=1")])
-        assert untrained in caplog.text
+        assert untrained in text_of(records)
         assert "**Note: no checkpoint was given, so the model is the map as initialised" in _report(tmp_path, 0)
         assert "no checkpoint was given" in summary_of(tmp_path / "run" / "version_0"), "the closing sentence says it too"
-        caplog.clear()
+        records.clear()
         main(["test", *_args(tmp_path, "--evaluation.reference_repeats=1", "--model.transport_map=otgb.models.IdentityMap")])
-        assert untrained not in caplog.text, "nothing to train: nothing to say"
+        assert untrained not in text_of(records), "nothing to train: nothing to say"
         assert "no checkpoint was given" not in _report(tmp_path, 1) and "no checkpoint (step 0)" in _report(tmp_path, 1)
         main(["fit", *_args(tmp_path, "--trainer.max_steps=3")])
-        caplog.clear()
+        records.clear()
         last = next(tmp_path.rglob("last.ckpt"))
         main(["test", *_args(tmp_path, "--evaluation.reference_repeats=1"), f"--ckpt_path={last}"])
-        assert untrained not in caplog.text and "otgb: evaluation mode" in caplog.text
-        caplog.clear()
+        assert untrained not in text_of(records) and "otgb: evaluation mode" in text_of(records)
+        records.clear()
         run = load_run(tmp_path / "run" / "version_2" / "config.yaml", ckpt_path=last)  # docs/runs.md's Python way
         run.trainer.test(run.model, run.datamodule, verbose=False)
-        assert untrained not in caplog.text and "no checkpoint was given" not in _report(tmp_path, 4)
+        assert untrained not in text_of(records) and "no checkpoint was given" not in _report(tmp_path, 4)
         assert f"checkpoint `{last}` (step 3)" in _report(tmp_path, 4)
-    finally:
-        logging.getLogger("lightning.pytorch.utilities.rank_zero").removeHandler(caplog.handler)
 
 
 def test_a_misspelt_key_reads_the_same_from_discover_as_from_fit(tmp_path, monkeypatch, capsys):

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from logcapture import records_of
 from scipy.integrate import solve_ivp
 from torch import nn
 
@@ -1106,16 +1107,14 @@ def test_a_stopped_run_resumed_from_its_fit_cache_reaches_the_result_of_a_run_ne
 
 @contextmanager
 def warnings_said(name: str = "otgb.discover") -> Iterator[list[str]]:
-    """The warnings the logger ``name`` says within it (its own handler: ``otgb discover``'s stderr handler stops
-    propagation to the root logger, where pytest's caplog listens)."""
-    said, logger = [], logging.getLogger(name)
-    handler = logging.Handler(logging.WARNING)
-    handler.emit = lambda record: said.append(record.getMessage())
-    logger.addHandler(handler)
-    try:
-        yield said
-    finally:
-        logger.removeHandler(handler)
+    """The warnings the logger ``name`` says within it, once each (``otgb discover``'s stderr handler stops
+    propagation to the root logger)."""
+    said: list[str] = []
+    with records_of(name, level=logging.WARNING) as records:
+        try:
+            yield said
+        finally:
+            said[:] = [record.getMessage() for record in records]
 
 
 def test_fits_on_a_device_that_fails_fall_back_to_the_cpu_with_one_warning_and_give_the_cpu_result(tmp_path):

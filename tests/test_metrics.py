@@ -1,10 +1,12 @@
 """Known-answer tests of the evaluation metrics (ABS ERR, N-RMSE, MMD, MMDAgg, C2ST, joint evaluation)."""
 
+import logging
 import math
 
 import numpy as np
 import pytest
 import torch
+from logcapture import records_of
 from sklearn.neural_network import MLPClassifier
 
 from otgb.data import generate_joint
@@ -340,15 +342,15 @@ def test_a_paper_judge_fit_on_the_fused_loops_is_its_fit_on_torchs_operations(ge
     np.testing.assert_allclose(fused.validation_scores_, torch_ops.validation_scores_, rtol=1e-4, atol=1e-6)
 
 
-def test_the_paper_judge_without_numba_trains_on_torch_after_one_line(generator, monkeypatch, caplog):
+def test_the_paper_judge_without_numba_trains_on_torch_after_one_line(generator, monkeypatch):
     monkeypatch.setitem(fused_judge._state, "why", "numba did not import (ModuleNotFoundError: No module named 'numba')")
     monkeypatch.setitem(fused_judge._state, "said", False)
     rows = torch.cat([torch.randn(60, 20, generator=generator), torch.randn(60, 20, generator=generator) + 1]).numpy()
     labels = np.r_[np.zeros(60), np.ones(60)].astype(np.int64)
-    with caplog.at_level("WARNING", logger="otgb.metrics"):
+    with records_of("otgb.metrics", level=logging.WARNING) as records:
         judge = PaperConvClassifier(max_epochs=3, precision="32-true").fit(rows, labels)
         judge.predict(rows)
-    lines = [record.getMessage() for record in caplog.records]
+    lines = [record.getMessage() for record in records]
     assert len(lines) == 1 and "numba did not import (ModuleNotFoundError" in lines[0], lines
     assert judge.n_iter_ == 3
 
@@ -476,7 +478,7 @@ def test_cell_and_whole_distances_from_one_product_are_the_cells_and_the_whole_r
         assert torch.isfinite(y).all() and torch.allclose(x, y, rtol=1e-5, atol=1e-5), (x, y)
 
 
-def test_energy_distances_that_cannot_be_compiled_run_eagerly_after_one_line(monkeypatch, caplog):
+def test_energy_distances_that_cannot_be_compiled_run_eagerly_after_one_line(monkeypatch):
     def cannot_compile(function):
         def fail(*samples):
             raise RuntimeError("no C compiler\nsecond line")
@@ -491,11 +493,11 @@ def test_energy_distances_that_cannot_be_compiled_run_eagerly_after_one_line(mon
     monkeypatch.setattr(energy, "_not_compilable", set())
     energy._compiled.cache_clear()
     try:
-        with caplog.at_level("WARNING", logger="otgb.metrics"):
+        with records_of("otgb.metrics", level=logging.WARNING) as records:
             assert torch.equal(energy.cross_row_means(a, b), expected)
             assert torch.equal(energy.cross_row_means(a, b), expected)
     finally:
         energy._compiled.cache_clear()  # the next test compiles for real
-    assert [r.getMessage() for r in caplog.records] == [
+    assert [r.getMessage() for r in records] == [
         "otgb: energy distances run eagerly: they could not be compiled (RuntimeError: no C compiler)"
     ]

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from logcapture import records_of
 
 from otgb.models import ConditionalConvNet, ConditionalMLP, GreyBoxODE
 from otgb.physics import (
@@ -125,9 +126,8 @@ def _inputs(greybox: GreyBoxODE, n: int) -> tuple[torch.Tensor, torch.Tensor, to
     return physics.sample_initial_state(n, g), physics.sample_theta(n, g), torch.randn(n, greybox.z_dim, generator=g)
 
 
-def test_auto_solves_eagerly_until_a_models_field_has_been_solved_often(monkeypatch, caplog):
+def test_auto_solves_eagerly_until_a_models_field_has_been_solved_often(monkeypatch):
     monkeypatch.setattr(solvers, "COMPILE_AFTER", 3)
-    caplog.set_level(logging.INFO, logger="otgb.solvers")
     compiled_solves = []
 
     def recording_solve(device_type):
@@ -135,14 +135,14 @@ def test_auto_solves_eagerly_until_a_models_field_has_been_solved_often(monkeypa
 
     monkeypatch.setattr(solvers, "_compiled_whole_solve", recording_solve)
     counts, pendulum = [], Pendulum()
-    with torch.no_grad():
+    with torch.no_grad(), records_of("otgb.solvers") as records:
         for _ in range(4):
             _simulate(pendulum, "auto")
             counts.append(len(compiled_solves))
         _simulate(Pendulum(), "auto")
     assert counts == [0, 0, 0, 1], "the 4th solve of the model's field is its first compiled one"
     assert len(compiled_solves) == 1, "another model (as each of discovery's fits makes) counts its own solves"
-    assert [r.getMessage() for r in caplog.records] == [
+    assert [r.getMessage() for r in records] == [
         "otgb: compiling the solve of Pendulum.vector_field (solver auto: 3 solves of it run or planned): once a run, a "
         "minute or more on a few cores, less where torch's compile cache holds it"
     ], "a compile is announced once, when it starts"
@@ -184,27 +184,27 @@ def _branching_field(state: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
     return torch.stack([state[:, 1], -(theta[:, 0] ** 2) * torch.sin(state[:, 0])], dim=1)
 
 
-def test_a_field_that_cannot_be_compiled_runs_eagerly_with_one_line(caplog):
+def test_a_field_that_cannot_be_compiled_runs_eagerly_with_one_line():
     model = Pendulum()
     g = torch.Generator().manual_seed(0)
     x0, theta = model.sample_initial_state(4, g), model.sample_theta(4, g)
     solvers.set_solver("torchdiffeq")
     reference = model.solve(_branching_field, x0, theta)
     solvers.set_solver("compiled")
-    with caplog.at_level(logging.WARNING, logger="otgb.solvers"):
+    with records_of("otgb.solvers", level=logging.WARNING) as records:
         fast = model.solve(_branching_field, x0, theta)
         again = model.solve(_branching_field, x0, theta)
     assert torch.allclose(fast, reference, atol=1e-6) and torch.equal(fast, again)
-    lines = [r.getMessage() for r in caplog.records]
+    lines = [r.getMessage() for r in records]
     assert len(lines) == 1 and lines[0].startswith("otgb: the solve of _branching_field runs eagerly: it could not be compiled (")
 
 
-def test_an_input_error_in_the_field_is_raised_not_hidden_by_the_fallback(caplog):
+def test_an_input_error_in_the_field_is_raised_not_hidden_by_the_fallback():
     model = Pendulum()
     solvers.set_solver("compiled")
-    with pytest.raises(RuntimeError), caplog.at_level(logging.WARNING, logger="otgb.solvers"):
+    with pytest.raises(RuntimeError), records_of("otgb.solvers", level=logging.WARNING) as records:
         model.solve(model.vector_field, torch.zeros(3, 2), torch.zeros(5, 1))  # theta of another batch
-    assert not caplog.records
+    assert not records
 
 
 def _fit(tmp_path: Path, solver: str) -> list[dict]:
@@ -301,16 +301,16 @@ def test_the_solve_designs_are_recorded_under_their_label_with_the_machine(tmp_p
     assert results["pendulum-here/eager loop"]["machine"].startswith(("x86_64", "aarch64", "arm64", "i386"))
 
 
-def test_compiled_gradients_that_differ_from_the_eager_loop_make_the_field_run_eagerly_with_one_line(monkeypatch, caplog):
+def test_compiled_gradients_that_differ_from_the_eager_loop_make_the_field_run_eagerly_with_one_line(monkeypatch):
     """As torch 2.11's compiled loop did (right trajectories, parameter gradients near zero): caught on the first solve."""
     monkeypatch.setattr(solvers, "_compiled_whole_solve", lambda d: lambda *args: solvers._whole_solve(*args).detach())
     greybox = _pendulum_greybox()
     reference = _forward_backward(greybox, "torchdiffeq", 8)
-    with caplog.at_level(logging.WARNING, logger="otgb.solvers"):
+    with records_of("otgb.solvers", level=logging.WARNING) as records:
         first, second = _forward_backward(greybox, "compiled", 8), _forward_backward(greybox, "compiled", 8)
     _assert_same(first, reference, 1e-4)
     _assert_same(second, reference, 1e-4)
-    lines = [r.getMessage() for r in caplog.records]
+    lines = [r.getMessage() for r in records]
     assert len(lines) == 1 and "runs eagerly: its compiled gradients differ from the eager loop's" in lines[0], lines
 
 
