@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from otgb.data import generate_measured
-from otgb.discovery.report import distribution_text
+from otgb.discovery.prior_text import distribution_text
 from otgb.physics import AdvectionDiffusion, Constant, LibraryTerm, Pendulum, ReactionDiffusion, Uniform
 from otgb.reports import write_between
 from otgb.runs import machine, newest

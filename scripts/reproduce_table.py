@@ -42,7 +42,7 @@ import torch
 import yaml
 
 from otgb.command import logger_override
-from otgb.discovery.report import distribution_text
+from otgb.discovery.prior_text import distribution_text
 from otgb.metrics.classifiers import PaperConvClassifier
 from otgb.reports import mean_spread
 from otgb.runs import asks_for_gpu, machine, newest, run_otgb

@@ -32,7 +32,9 @@ from otgb.discovery.intervals import Intervals, fitted_intervals, sandwich_inter
 from otgb.discovery.library import Candidate, build_library, feature_names, physical_name
 from otgb.discovery.locate import describe, locate, permutation_energy, z_scored
 from otgb.discovery.log import DivergenceLog, OncePerModel, diverged, rounded, short
+from otgb.discovery.markdown import _cross_check_row, _family_section, _search_section, grey_box_elsewhere
 from otgb.discovery.paired import paired_check
+from otgb.discovery.prior_text import distribution, distribution_text
 from otgb.discovery.refine import (
     FAMILIES,
     FAMILY_REPEATS,
@@ -48,28 +50,21 @@ from otgb.discovery.refine import (
     row_terms,
 )
 from otgb.discovery.regression import SelectedTerm, Selection, design_matrix, regress
-from otgb.discovery.report import (
+from otgb.discovery.report import augmented_config, write_report
+from otgb.discovery.search import SearchStep, best_subsets, search, sparsest_kept, subset_values, supported
+from otgb.discovery.variation import choose_family
+from otgb.discovery.verdict import (
     OUTCOMES,
     OUTSIDE_THE_LIBRARY,
-    _cross_check_row,
-    _family_section,
-    _search_section,
-    augmented_config,
     confirmed,
-    distribution,
-    distribution_text,
     flags,
-    grey_box_elsewhere,
     low_power,
     named_divergences,
     outcome,
     outside_the_library,
     share_removed,
     verdict,
-    write_report,
 )
-from otgb.discovery.search import SearchStep, best_subsets, search, sparsest_kept, subset_values, supported
-from otgb.discovery.variation import choose_family
 from otgb.discovery.workflow import (
     Discovery,
     DiscoverySettings,
@@ -1461,44 +1456,50 @@ def test_discover_refuses_bad_input_in_one_line_and_writes_nothing(tmp_path, mis
     assert not (tmp_path / "runs").exists(), "nothing written"
 
 
-def test_discover_from_python_as_the_tutorial_does_finds_friction_and_writes_a_config_fit_accepts(tmp_path, monkeypatch, capfd):
-    """docs/discover.md's Python block as written, at a small budget: the grey-box trained, its f_phi named, no
-    stand-in; the attributes agree with report.json, no known-harmless third-party line, and `otgb fit` takes
+def test_discover_from_python_as_the_tutorial_does_names_friction_with_its_interval_and_writes_only_when_asked(
+    tmp_path, monkeypatch, capfd
+):
+    """docs/discover.md's Python block as written, at a small budget, on an in-memory array of a pendulum with a hidden
+    friction in a clean folder: the grey-box trained, its f_phi named with an interval, nothing written until
+    ``result.write``; the result agrees with report.json, no known-harmless third-party line, and `otgb fit` takes
     augmented.yaml."""
     _export(tmp_path, -1.2)
     block = re.findall(r"```python\n(.*?)\n```", (ROOT / "docs" / "discover.md").read_text(), re.S)[0]
-    settings = [str(ROOT / "configs" / "pendulum.yaml"), "--data.simulation_budget=16000", "--trainer.val_check_interval=250"]
-    settings += [f"--data.cache_dir={tmp_path / 'cache'}", "--trainer.enable_progress_bar=false"]
-    settings += [f"--discover.{k}={v}" for k, v in FAST.items()]
-    written = '"configs/pendulum.yaml", "--data.simulation_budget=32000"'
+    overrides = {"data.simulation_budget": 16000, "trainer.val_check_interval": 250, "trainer.enable_progress_bar": False}
+    overrides |= {f"discover.{k}": v for k, v in FAST.items()}
+    written = '"configs/pendulum.yaml", {"data.simulation_budget": 32000}'
     assert written in block
     monkeypatch.chdir(tmp_path)
+    before_write, write = block.split('result.write("discovery")')
     names: dict = {}
-    exec(block.replace(written, ", ".join(map(repr, settings))), names)
-    finder, report = names["finder"], names["report"]
+    exec(before_write.replace(written, f"{str(ROOT / 'configs' / 'pendulum.yaml')!r}, {overrides!r}"), names)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["measured.npz"], "nothing written in the working directory"
+    exec('result.write("discovery")' + write, names)
+    result, run_dir = names["result"], tmp_path / "discovery"
     printed = capfd.readouterr()
+    assert printed.out.startswith(f"verdict: {result.verdict}") and "viscous friction" in printed.out
     assert "litlogger" not in printed.err + printed.out and "TPU available" not in printed.err + printed.out
     assert "Trainable params" not in printed.err + printed.out, "no layer table: the grey-box's training is a step"
-    assert report == json.loads((finder.run_dir_ / "report.json").read_text()) and finder.verdict_ == report["verdict"]
-    assert finder.found_ and finder.outcome_ == report["outcome"] in OUTCOMES[:4], report["outcome"]
+    report = json.loads((run_dir / "report.json").read_text())
+    assert report == result.to_dict() and result.verdict == report["verdict"]
+    assert result.found and result.outcome == report["outcome"] in OUTCOMES[:4], report["outcome"]
     assert report["closer"]["significant"] and report["closer"]["pvalue"] < 0.05, report["closer"]
-    assert "the larger of a permutation test" in (finder.run_dir_ / "report.md").read_text()
-    assert [t["feature"] for t in report["terms"]] == ["velocity"], report["terms"]
-    assert abs(report["terms"][0]["coefficient"] + 1.2) < 0.12 and report["terms"][0]["name"] == "viscous friction"
-    named = [(t.feature, t.priors["coefficient"].value) for t in finder.terms_]
-    assert named == [("velocity", report["terms"][0]["coefficient"])]
+    assert "the larger of a permutation test" in (run_dir / "report.md").read_text()
+    [term] = result.terms
+    assert (term.name, term.feature, term.component, term.distribution) == ("viscous friction", "velocity", "velocity", None)
+    assert abs(term.coefficient + 1.2) < 0.12 and term.coefficient == report["terms"][0]["coefficient"]
+    assert isinstance(term.interval, tuple) and term.interval[0] < term.coefficient < term.interval[1], term.interval
     assert isinstance(names["augmented"], Augmented) and names["augmented"].added[0].feature == "velocity"
     assert report["undertrained"] is None and report["route"] == "f_phi regression"
-    low, high = report["terms"][0]["interval"]
-    assert low < report["terms"][0]["coefficient"] < high
     coulomb = next(e for e in report["evidence"] if e["alternative"] == "sign(velocity)")
     assert coulomb["standard_errors"] > 0 and "(sign(velocity))" in report["verdict"], report["verdict"]  # 30 held out
-    config = yaml.safe_load((finder.run_dir_ / "augmented.yaml").read_text())
+    config = yaml.safe_load((run_dir / "augmented.yaml").read_text())
     assert config["data"]["physics"]["class_path"] == "otgb.physics.Augmented"
+    assert Path(config["data"]["measured_path"]) == run_dir / "measured.npz", "the array, kept beside the report"
     loggers = [logger["init_args"] for logger in config["trainer"]["logger"]]
     assert all(args["name"] == "auto" and args["version"] is None for args in loggers), "each round: a new version_N"
     fit = subprocess.run(
-        [sys.executable, "-m", "otgb.cli", "fit", "--config", str(finder.run_dir_ / "augmented.yaml"), "--trainer.max_steps=2",
+        [sys.executable, "-m", "otgb.cli", "fit", "--config", str(run_dir / "augmented.yaml"), "--trainer.max_steps=2",
          "--trainer.enable_progress_bar=false"],
         cwd=tmp_path, capture_output=True, text=True, timeout=600,
     )  # fmt: skip

@@ -1,66 +1,173 @@
-"""Discovery from Python, in the scikit-learn / PySINDy style: configure, ``fit``, then read the results.
+"""Discovery from Python: configure a :class:`MissingEffect`, ``fit`` it to measurements, read the result.
 
     from otgb.discovery import MissingEffect
 
-    finder = MissingEffect("configs/pendulum.yaml", "--data.simulation_budget=32000").fit("measured.npz")
-    finder.verdict_, finder.terms_, finder.augmented_physics_, finder.report_
+    finder = MissingEffect.from_config("configs/pendulum.yaml", {"data.simulation_budget": 32000})
+    result = finder.fit(measurements)        # a file, an array (N, T, *obs) or a run from otgb.runs.load_run
+    result.print()                           # the verdict, the named terms, the gap
+    result.terms[0].name, result.terms[0].interval, result.augmented_physics
 
-``fit`` runs exactly what ``otgb discover`` runs (:func:`otgb.discovery.cli.discover_run`): the
-same config files and overrides, the same run directory with ``report.md``, ``report.json``,
-``figures/`` and ``augmented.yaml``.
+``fit`` runs what ``otgb discover`` runs (:func:`otgb.discovery.pipeline.discover`) on those measurements alone
+(marginal mode: a config's ``data.hidden_effect`` is ignored). It writes nothing in the working directory: without
+``run_dir`` the grey-box's logs and the fit cache go to a temporary folder that is removed; ``result.write(folder)``
+writes the report's files where you choose.
 """
 
 from __future__ import annotations
 
+import difflib
+import inspect
+import os
+import tempfile
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
-from otgb.discovery.cli import discover_run
+import numpy as np
+import torch
+import yaml
+
+from otgb.data.sources import FileMeasurements
+from otgb.discovery.pipeline import discover
+from otgb.discovery.result import DiscoveryResult
+from otgb.discovery.session import build
+from otgb.discovery.workflow import DiscoverySettings
 from otgb.errors import InputError
+from otgb.physics.augmented import Augmented
+from otgb.physics.base import PhysicsModel
+from otgb.runs import Run
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"  # a clone's task configs (README installs from a clone)
+BUILT_IN = {"Pendulum": "pendulum.yaml", "AdvectionDiffusion": "advdiff.yaml", "ReactionDiffusion": "reactdiff.yaml"}
 
 
 class MissingEffect:
-    """Find what a physics model lacks from a file of its measurements.
+    """Find what a physics model lacks from its measurements.
 
-    Args:
-        *config: config files (as ``otgb discover --config``; the first names f_p), then any command-line
-            overrides, e.g. ``"--data.simulation_budget=32000"`` or ``"--discover.alpha=0.01"``.
-
-    After :meth:`fit`:
-        verdict_: the report's verdict sentence (one of the outcomes below, with its numbers).
-        outcome_: which verdict: "gap closed", "found, not exactly", "named, not confirmed", "partly found" (the
-            library terms that came closest, not the missing effect itself), "nothing found" or "nothing detected".
-        found_: whether terms were named and kept (any outcome but the last two).
-        confirmed_: whether the test part confirms them: the augmented physics significantly nearer to it than f_p
-            alone (:mod:`otgb.discovery.closer`) and no test telling it from the measurements.
-        terms_: the kept terms, :class:`otgb.physics.LibraryTerm` with their fitted coefficient priors.
-        augmented_physics_: f_p with the kept terms added (an :class:`otgb.physics.Augmented`), or None.
-        report_: ``report.json`` as a dict (terms with intervals, evidence, gap table, ...).
-        result_: the workflow's full :class:`otgb.discovery.workflow.Discovery`.
-        run_dir_: the run directory (report, figures, ``augmented.yaml``, the grey-box's logs and checkpoints).
+    ``MissingEffect(physics, **settings)`` takes a :class:`~otgb.physics.PhysicsModel` built in Python (a pendulum,
+    advection-diffusion or reaction-diffusion model, or one of them augmented), with the grey-box, critic and budget of
+    the matching config in ``configs/``, and ``discover:`` settings as keywords
+    (:class:`~otgb.discovery.workflow.DiscoverySettings`: ``seed=1``, ``alpha=0.01``, ...). Any other physics:
+    :meth:`from_config` with a config of your own.
     """
 
-    def __init__(self, *config: str) -> None:
-        files = [c for c in config if not c.startswith("-")]
-        if not files:
-            raise InputError("MissingEffect: give at least one config file (the first names f_p)")
-        self.overrides = [c for c in config if c.startswith("-")]
-        self.config_files = files
+    def __init__(self, physics: PhysicsModel, **settings: Any) -> None:
+        if not isinstance(physics, PhysicsModel):
+            raise InputError(f"MissingEffect: physics={physics!r} is not an otgb.physics.PhysicsModel; expected one")
+        self._files = [str(built_in_config(physics))]
+        self._overrides = {f"discover.{key}": value for key, value in checked_settings(settings).items()}
+        self._physics: PhysicsModel | None = physics
 
-    def fit(self, measured_path: str | Path | None = None, ckpt_path: str | Path | None = None) -> MissingEffect:
-        """Run the workflow on ``measured_path`` (None: the measurements the config's hidden effect generates),
-        with the grey-box trained here or loaded from ``ckpt_path``. Returns self."""
-        args = [arg for path in self.config_files for arg in ("--config", str(path))]
-        if measured_path is not None:
-            args += ["--data.hidden_effect=[]", f"--data.measured_path={measured_path}"]
-        args += self.overrides + ([f"--ckpt_path={ckpt_path}"] if ckpt_path is not None else [])
-        finished = discover_run(args)
-        self.run_dir_, self.result_, self.report_ = finished.run_dir, finished.result, finished.report
-        self.verdict_, self.found_ = self.report_["verdict"], finished.result.found
-        self.confirmed_, self.outcome_ = self.report_["confirmed"], self.report_["outcome"]
-        self.terms_ = finished.result.fitted.terms() if self.found_ else []
-        self.augmented_physics_ = finished.result.fitted.model(finished.physics) if self.found_ else None
-        return self
+    @classmethod
+    def from_config(cls, path: str | Path, overrides: Mapping[str, Any] | None = None) -> MissingEffect:
+        """From a config file as ``otgb discover --config`` takes it, with ``overrides``: dotted keys as the command
+        spells them and their values, e.g. ``{"data.simulation_budget": 8000, "discover.seed": 1}``."""
+        if overrides is not None and not isinstance(overrides, Mapping):
+            raise InputError(f"MissingEffect.from_config: overrides={overrides!r}; expected a mapping of dotted keys to values")
+        finder = cls.__new__(cls)
+        finder._files, finder._overrides, finder._physics = [str(Path(path).resolve())], dict(overrides or {}), None
+        return finder
+
+    def fit(self, measurements: Any, run_dir: str | Path | None = None) -> DiscoveryResult:
+        """Discover what the physics lacks from ``measurements``: a file (``.csv``, ``.npz``, ``.pt``), a numpy array or
+        torch tensor ``(N, T, *obs)`` on the model's time grid, or a run of :func:`otgb.runs.load_run` (its
+        measurements, and its loaded checkpoint as the grey-box). With ``run_dir``, the report's files, the grey-box's
+        logs and checkpoints (``runs/<config stem>/version_N``) and the fit cache (``runs/<config stem>/fit_cache``:
+        the same call resumes) go there; without, nothing is kept."""
+        with working_folder(run_dir) as folder:
+            measured, ckpt_path = measurements_in(measurements, folder)
+            args = self._arguments(measured, ckpt_path)
+            with inside(folder):  # the config's relative folders (runs/, its data cache) are the working folder's
+                result = discover(build(args, physics=self._physics))
+            if run_dir is not None:
+                result.write(folder)
+        return result
+
+    def _arguments(self, measured: str, ckpt_path: str | None) -> list[str]:
+        args = [arg for path in self._files for arg in ("--config", path)]
+        args += ["--data.hidden_effect=[]", f"--data.measured_path={measured}"]
+        args += [f"--{key}={as_argument(value)}" for key, value in self._overrides.items()]
+        return args + ([f"--ckpt_path={ckpt_path}"] if ckpt_path else [])
 
     def __repr__(self) -> str:
-        state = f", verdict_={self.verdict_!r}" if hasattr(self, "verdict_") else ""
-        return f"MissingEffect({', '.join(map(repr, [*self.config_files, *self.overrides]))}{state})"
+        given = f"physics={self._physics!r}" if self._physics is not None else repr(self._files[0])
+        return f"MissingEffect({given}, overrides={self._overrides!r})"
+
+
+def built_in_config(physics: PhysicsModel) -> Path:
+    """The task config whose grey-box, critic and budget suit ``physics`` (an augmented model: its base's)."""
+    base = physics.base if isinstance(physics, Augmented) else physics
+    name = BUILT_IN.get(type(base).__name__)
+    if name is None or not (CONFIGS / name).is_file():
+        where = f"no built-in config for {type(base).__name__}" if name is None else f"{CONFIGS / name} is not there"
+        raise InputError(
+            f"MissingEffect({type(physics).__name__}(...)): {where}; give a config of your own: "
+            "MissingEffect.from_config('my_model.yaml') (docs/own-physics.md)"
+        )
+    return CONFIGS / name
+
+
+def checked_settings(settings: dict[str, Any]) -> dict[str, Any]:
+    """``settings`` if each names a :class:`DiscoverySettings` parameter, else one line naming the closest."""
+    known = list(inspect.signature(DiscoverySettings).parameters)
+    for key in settings:
+        if key not in known:
+            close = difflib.get_close_matches(key, known, n=3)
+            hint = f"; did you mean {', '.join(close)}?" if close else f"; expected one of {', '.join(known)}"
+            raise InputError(f"MissingEffect: no discover setting {key!r}{hint}")
+    return settings
+
+
+def as_argument(value: Any) -> str:
+    """A value as the command line spells it: a string as it is, anything else as YAML on one line."""
+    if isinstance(value, str):
+        return value
+    return yaml.safe_dump(value, default_flow_style=True, width=10**9).strip().removesuffix("\n...")
+
+
+@contextmanager
+def inside(folder: Path) -> Iterator[None]:
+    """Within it, ``folder`` is the working directory."""
+    before = Path.cwd()
+    os.chdir(folder)
+    try:
+        yield
+    finally:
+        os.chdir(before)
+
+
+@contextmanager
+def working_folder(run_dir: str | Path | None) -> Iterator[Path]:
+    """``run_dir`` (made if missing), or a temporary folder removed afterwards."""
+    if run_dir is not None:
+        Path(run_dir).mkdir(parents=True, exist_ok=True)
+        yield Path(run_dir).resolve()
+        return
+    with tempfile.TemporaryDirectory(prefix="otgb-discover-") as folder:
+        yield Path(folder)
+
+
+def measurements_in(measurements: Any, folder: Path) -> tuple[str, str | None]:
+    """The file that ``data.measured_path`` reads for ``measurements``, and a grey-box checkpoint that comes with
+    them (a loaded run's) or None. An array or tensor is written to ``folder/measured.npz``."""
+    if isinstance(measurements, (str, Path)):
+        return str(Path(measurements).resolve()), None
+    if isinstance(measurements, Run):
+        source, loaded = measurements.datamodule.source, getattr(measurements.model, "loaded_from", None)
+        if isinstance(source, FileMeasurements):
+            return str(Path(source.path).resolve()), loaded
+        data = measurements.datamodule
+        data.setup("fit")
+        data.setup("test")
+        measurements = torch.cat([data.measured, data.val_set["y"].flatten(0, 1), data.test_set["y"].flatten(0, 1)])
+        return measurements_in(measurements, folder)[0], loaded
+    if isinstance(measurements, (np.ndarray, torch.Tensor)):
+        array = measurements.detach().cpu().numpy() if isinstance(measurements, torch.Tensor) else measurements
+        path = folder / "measured.npz"
+        np.savez(path, y=array)
+        return str(path), None
+    raise InputError(
+        f"MissingEffect.fit: measurements of type {type(measurements).__name__}; expected a file path, a numpy array or "
+        "torch tensor (N, T, *obs), or a run of otgb.runs.load_run"
+    )
