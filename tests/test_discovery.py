@@ -26,13 +26,14 @@ from otgb.data import generate_measured
 from otgb.data.measured import CHUNK, simulate_in_chunks
 from otgb.discovery import refine
 from otgb.discovery.closer import Closeness, closer
+from otgb.discovery.details import cross_check_row, family_section, search_section
 from otgb.discovery.evidence import Comparison, alternatives, choose_swap, moves_with, weigh
 from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.intervals import Intervals, fitted_intervals, sandwich_intervals
 from otgb.discovery.library import Candidate, build_library, feature_names, physical_name
 from otgb.discovery.locate import describe, locate, permutation_energy, z_scored
 from otgb.discovery.log import DivergenceLog, OncePerModel, diverged, rounded, short
-from otgb.discovery.markdown import _cross_check_row, _family_section, _search_section, grey_box_elsewhere
+from otgb.discovery.markdown import grey_box_elsewhere
 from otgb.discovery.paired import paired_check
 from otgb.discovery.prior_text import distribution, distribution_text
 from otgb.discovery.refine import (
@@ -1292,10 +1293,10 @@ def test_the_search_drops_a_term_whose_interval_holds_zero_and_keeps_the_rest(tm
     assert found.candidates == [velocity] and [s.candidates for s in path][0] == [velocity] and unsupported == []
     report = {"search": [], "search_unsupported": [{"feature": "angle", "component": "velocity", "coefficient": -0.04,
               "interval": list(dropped[0].interval)}]}  # fmt: skip
-    assert _search_section(report) == [], "no section without a search path"
+    assert search_section(report) == [], "no section without a search path"
     step = {"terms": [{"feature": "velocity", "component": "velocity"}], "g_residual": 0.2, "heldout_energy": 0.1,
             "below_f_p": 7.0, "standard_error": 0.3, "validation_trajectories": 100}  # fmt: skip
-    text = "\n".join(_search_section(report | {"search": [step], "route": "library search"}))
+    text = "\n".join(search_section(report | {"search": [step], "route": "library search"}))
     assert "95 % intervals holding zero: `angle` on dvelocity/dt (coefficient -0.04, interval [" in text
 
 
@@ -1304,13 +1305,11 @@ def test_the_cross_check_gives_a_share_of_the_gap_only_where_the_validation_part
     candidate scoring -0.075 'closed 4.12 of the gap'; a share is now given only where the lead over f_p alone
     exceeds two standard errors."""
     row = {"feature": "angle^3", "component": "velocity", "coefficient": 0.1954, "gap_closed": 4.12}
-    noise = _cross_check_row(row | {"below_f_p": 0.099, "standard_error": 0.18})
+    noise = cross_check_row(row | {"below_f_p": 0.099, "standard_error": 0.18})
     assert noise == "| `angle^3` | dvelocity/dt | 0.1954 | 0.099 ± 0.18 | within noise |"
-    assert _cross_check_row(row | {"gap_closed": 0.93, "below_f_p": 6.8, "standard_error": 0.29}).endswith(
-        "| 6.8 ± 0.29 | 0.93 |"
-    )
+    assert cross_check_row(row | {"gap_closed": 0.93, "below_f_p": 6.8, "standard_error": 0.29}).endswith("| 6.8 ± 0.29 | 0.93 |")
     diverged = row | {"gap_closed": -math.inf, "below_f_p": -math.inf, "standard_error": math.nan}
-    assert _cross_check_row(diverged).endswith("| diverges | diverges |")
+    assert cross_check_row(diverged).endswith("| diverges | diverges |")
 
 
 def test_best_subsets_tries_every_subset_where_forward_selection_fails():
@@ -1673,12 +1672,12 @@ def test_the_report_says_when_the_measurements_cannot_tell_two_varying_families_
         return {"family": "two_point", "family_difference": differences, "family_training_discrepancy": scores,
                 "family_stopped_short": [], "terms": []}  # fmt: skip
 
-    alike = "\n".join(_family_section(report((0.0005, 0.0007))))
+    alike = "\n".join(family_section(report((0.0005, 0.0007))))
     assert "cannot tell the two_point family from uniform" in alike and "constant" not in alike.split("\n")[-1]
-    assert "cannot tell" not in "\n".join(_family_section(report((0.0049, 0.0007))))
+    assert "cannot tell" not in "\n".join(family_section(report((0.0049, 0.0007))))
     noise = "The simulations carried no measurement noise"
-    assert noise in alike and noise not in "\n".join(_family_section(report((0.0049, 0.0007)) | {"family": "constant"}))
-    given = "\n".join(_family_section(report((0.0005, 0.0007)) | {"run": {"measurement_noise": 0.03}}))
+    assert noise in alike and noise not in "\n".join(family_section(report((0.0049, 0.0007)) | {"family": "constant"}))
+    given = "\n".join(family_section(report((0.0005, 0.0007)) | {"run": {"measurement_noise": 0.03}}))
     assert noise not in given and "carried white noise of sd 0.03 (theirs)" in given
 
 

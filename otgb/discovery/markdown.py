@@ -2,14 +2,10 @@
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
+from otgb.discovery.details import GAP_ROWS, code, naming_section, pointwise_section
 from otgb.discovery.prior_text import distribution_text
-from otgb.discovery.variation import FIRST_SPREAD, SPREAD_DOUBLINGS
-from otgb.discovery.workflow import undertrained_text
-
-GAP_ROWS = {"f_p": "f_p alone", "greybox": "OT grey-box", "augmented": "augmented physics", "reference": "Reference"}
 
 
 def grey_box_elsewhere(facts: dict[str, Any]) -> list[str]:
@@ -21,6 +17,8 @@ def grey_box_elsewhere(facts: dict[str, Any]) -> list[str]:
 
 
 def markdown(report: dict[str, Any], facts: dict[str, Any]) -> str:
+    """report.md, top-down: its first screen holds the verdict, the named terms, the gap before and after and the
+    disagreement figure; the evidence, cross-checks, diverged solves and family scores follow under "Details"."""
     lines = [
         "# Missing-effect discovery",
         "",
@@ -28,48 +26,31 @@ def markdown(report: dict[str, Any], facts: dict[str, Any]) -> str:
         "",
         *(f"- {part}" for part in report["verdict_parts"][1:]),
         *([""] if len(report["verdict_parts"]) > 1 else []),
-        f"Measurements: {facts.get('description', '')}",
-        "",
         *grey_box_elsewhere(facts),
+        *_named_terms(report),
+        *_gap_section(report),
         "## Where f_p and the measurements disagree",
         "",
-        f"{report['locate']['sentence_before']}.",
+        f"Before: {report['locate']['sentence_before']}.",
+        *([f"After the fix: {report['locate']['sentence_after']}."] if report["locate"]["sentence_after"] else []),
         "",
         "![disagreement map](figures/disagreement.png)",
         "",
-        "Each cell (time step, component, region) compares the two samples by the energy distance; "
+        "# Details",
+        "",
+        f"Measurements: {facts.get('description', '')}",
+        "",
+        "Each cell of the disagreement map (time step, component, region) compares the two samples by the energy distance; "
         "p-values from label permutations, significant cells kept by Benjamini-Hochberg at the stated false discovery rate.",
         "",
+        *_components_section(report["components"]),
     ]
-    if report["components"] is not None:
-        c = report["components"]
-        lines += [
-            "## The grey-box's components over time",
-            "",
-            "Along the OT grey-box's solves (validation inputs), the learned correction f_phi makes up "
-            f"{c['correction_share']:.3g} "
-            "of |f_p| + |f_phi| (the paper's component analysis, Figure 3). Trajectory level: the grey-box against the "
-            "held-out measurements per time step; function level needs a known vector field, which measurements alone "
-            "do not give.",
-            "",
-            "![components](figures/components.png)",
-            "",
-        ]
     if report["regression"]:
-        lines += _naming_section(report)
+        lines += naming_section(report)
+    lines += pointwise_section(report["pointwise"])
     lines += [
-        "## Gap on held-out test measurements",
         "",
-        "| model | MMD (paper-code) | C2ST | energy distance (raw observations) |",
-        "|---|---|---|---|",
-    ]
-    for key, label in GAP_ROWS.items():
-        if key in report["gap"]:
-            g = report["gap"][key]
-            lines.append(f"| {label} | {g['mmd']:.4g} | {g['c2st']:.3f} ± {g['c2st_std']:.3f} | {g['energy']:.4g} |")
-    lines += _closer_line(report)
-    lines += _pointwise_section(report["pointwise"])
-    lines += [
+        "## The gap table's samples",
         "",
         "Reference: one half of the test measurements against the other, the noise floor of these metrics (half-size samples: "
         "the biased paper-code MMD sits about twice as high as a full-size comparison at the floor; C2ST and the unbiased "
@@ -83,14 +64,64 @@ def markdown(report: dict[str, Any], facts: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _cross_check_row(row: dict[str, Any]) -> str:
-    """One strong candidate alone added to f_p: its coefficient, its lead over f_p alone, and the share of the gap it
-    closes where that lead exceeds two standard errors."""
-    below, error = row["below_f_p"], row["standard_error"]
-    lead, closed = f"{below:.3g} ± {error:.2g}", f"{row['gap_closed']:.2f}" if below > 2 * error else "within noise"
-    if not math.isfinite(row["gap_closed"]):
-        lead = closed = "diverges"
-    return f"| {code(row['feature'])} | d{row['component']}/dt | {row['coefficient']:.4g} | {lead} | {closed} |"
+def _named_terms(report: dict[str, Any]) -> list[str]:
+    """The named terms, a line each: physical name, term, coefficient, 95 % interval, constant or its distribution;
+    where no interval could be given, why."""
+    if not report["terms"]:
+        return []
+    lines = ["## Named terms", "", "| name | term | coefficient | 95 % interval | varies |", "|---|---|---|---|---|"]
+    for t in report["terms"]:
+        interval = f"[{t['interval'][0]:.4g}, {t['interval'][1]:.4g}]" if t["interval"] else "-"
+        lines.append(
+            f"| {t['name']} | {code(t['feature'])} on d{t['component']}/dt | {t['coefficient']:.4g} | {interval} "
+            f"| {distribution_text(t['distribution'])} |"
+        )
+    if report["interval_method"]:
+        form = (
+            " They hold for the named term's form; an ambiguous alternative (Details) has its own coefficient."
+            if report["ambiguous"]
+            else ""
+        )
+        lines.append(f"\n95 % intervals: {report['interval_method']} (docs/discovery.md gives their measured coverage).{form}")
+    else:
+        lines.append("\nNo intervals: the fit's discrepancy is not at a minimum there (its Hessian is not positive definite).")
+    for t in report["terms"]:
+        if t["flag"]:
+            lines.append(f"\n**Flagged:** {t['name']} ({t['coefficient']:+.4g} {code(t['feature'])}) {t['flag']}.")
+    return lines + [""]
+
+
+def _gap_section(report: dict[str, Any]) -> list[str]:
+    """The gap table on the test part (before: f_p alone; after: the augmented physics), and the test of which is
+    nearer."""
+    lines = [
+        "## Gap on held-out test measurements",
+        "",
+        "| model | MMD (paper-code) | C2ST | energy distance (raw observations) |",
+        "|---|---|---|---|",
+    ]
+    for key, label in GAP_ROWS.items():
+        if key in report["gap"]:
+            g = report["gap"][key]
+            lines.append(f"| {label} | {g['mmd']:.4g} | {g['c2st']:.3f} ± {g['c2st_std']:.3f} | {g['energy']:.4g} |")
+    return lines + _closer_line(report) + [""]
+
+
+def _components_section(components: dict[str, Any] | None) -> list[str]:
+    if components is None:
+        return []
+    return [
+        "## The grey-box's components over time",
+        "",
+        "Along the OT grey-box's solves (validation inputs), the learned correction f_phi makes up "
+        f"{components['correction_share']:.3g} "
+        "of |f_p| + |f_phi| (the paper's component analysis, Figure 3). Trajectory level: the grey-box against the "
+        "held-out measurements per time step; function level needs a known vector field, which measurements alone "
+        "do not give.",
+        "",
+        "![components](figures/components.png)",
+        "",
+    ]
 
 
 def _closer_line(report: dict[str, Any]) -> list[str]:
@@ -113,251 +144,3 @@ def _closer_line(report: dict[str, Any]) -> list[str]:
         f"({closer['normal_pvalue']:.3g}); threshold {closer['alpha']:g}{diverged}. This test decides whether the named "
         "terms are confirmed.",
     ]
-
-
-def _naming_section(report: dict[str, Any]) -> list[str]:
-    lines = ["## What the learned correction is", ""]
-    if report["correction_share"] is not None:
-        lines.append(
-            f"The grey-box's correction f_phi has {report['correction_share']:.3g} times the size (RMS) of f_p "
-            "along its trajectories."
-        )
-        lines.append("")
-    for s in report["regression"]:
-        lines.append(
-            f"- d{s['component']}/dt: selected {', '.join(s['selected']) or 'nothing'}; "
-            f"R^2 of f_phi explained {s['explained_r2']:.3f}; "
-            f"library condition number {s['condition_number']:.3g}" + _confusable(s["confusable_pairs"])
-        )
-    if report["terms"]:
-        lines += [
-            "",
-            "| term | feature | on | coefficient | 95 % interval | inclusion | f_phi's slope [95 %] "
-            "| share of f_phi (R^2) | distribution |",
-            "|---|---|---|---|---|---|---|---|---|",
-        ]
-        for t in report["terms"]:
-            interval = f"[{t['interval'][0]:.4g}, {t['interval'][1]:.4g}]" if t["interval"] else "-"
-            inclusion = f"{t['inclusion_probability']:.2f}" if t["inclusion_probability"] is not None else "-"
-            share = f"{t['r2_share']:.3f}" if t["r2_share"] is not None else "-"
-            slope = (
-                f"{t['regression_coefficient']:.4g} [{t['regression_interval'][0]:.4g}, {t['regression_interval'][1]:.4g}]"
-                if t["regression_coefficient"] is not None
-                else "-"
-            )
-            dist = distribution_text(t["distribution"])
-            lines.append(
-                f"| {t['name']} | {code(t['feature'])} | d{t['component']}/dt | {t['coefficient']:.4g} | {interval} "
-                f"| {inclusion} | {slope} | {share} | {dist} |"
-            )
-    if report["terms"] and report["interval_method"]:
-        form = (
-            " They hold for the named term's form; an ambiguous alternative (below) has its own coefficient."
-            if report["ambiguous"]
-            else ""
-        )
-        lines.append(f"\n95 % intervals: {report['interval_method']} (docs/discovery.md gives their measured coverage).{form}")
-    elif report["terms"]:
-        lines.append("\nNo intervals: the fit's discrepancy is not at a minimum there (its Hessian is not positive definite).")
-    for t in report["terms"]:
-        if t["flag"]:
-            lines.append(f"\n**Flagged:** {t['name']} ({t['coefficient']:+.4g} {code(t['feature'])}) {t['flag']}.")
-    if report["undertrained"]:
-        u = report["undertrained"]
-        said = undertrained_text(
-            u["difference"], u["standard_error"], u["validation_trajectories"], u["greybox_heldout_energy"],
-            u["f_p_heldout_energy"],
-        )  # fmt: skip
-        lines.append(f"\n**The OT grey-box's correction is not used:** it {said}.")
-    if report["diverged"]:
-        lines += ["", "### Solves that diverged", ""]
-        lines.append(
-            "A fit or a score whose solve diverged counts its model as infinitely worse in that step; a verification leaves "
-            "the diverged trajectories out. **named**: the model this report names."
-        )
-        lines += ["", "| step | f_p plus | diverged trajectories | first inputs |", "|---|---|---|---|"]
-        for d in report["diverged"]:
-            terms = ", ".join(code(t) for t in d["terms"]) or "nothing"
-            terms += " (**named**)" if d.get("named") else ""
-            if d.get("coefficients"):
-                terms += f" with {', '.join(d['coefficients'])}"
-            first = ", ".join(f"{v:.4g}" for v in d["first_inputs"]) if d["first_inputs"] else "-"
-            lines.append(f"| {d['what']} | {terms} | {d['diverged']} of {d['of']} | {first} |")
-    lines += _evidence_section(report)
-    lines += [
-        "",
-        "### Cross-check: each strong candidate alone added to f_p",
-        "",
-        "Held-out energy on the validation part, lower is better; the share of f_p alone's that a candidate removes is "
-        "given where it lies below f_p alone's by more than two standard errors (else it is noise: a share of a gap the "
-        "validation part cannot see).",
-        "",
-        "| feature | on | fitted coefficient | below f_p alone's held-out energy (± standard error) | share of the gap closed |",
-        "|---|---|---|---|---|",
-    ]
-    lines += [_cross_check_row(row) for row in report["cross_check"]]
-    lines += _search_section(report)
-    if report["dropped_by_heldout_check"]:
-        lines.append("")
-        dropped = ", ".join(f"`{d['feature']}`" for d in report["dropped_by_heldout_check"])
-        lines.append(f"Dropped (no held-out gain beside the kept terms; swapped for a named term: the evidence above): {dropped}")
-    lines += _family_section(report)
-    if report["locate"]["sentence_after"]:
-        lines += ["", f"After the fix: {report['locate']['sentence_after']}."]
-    return lines + [""]
-
-
-def _evidence_section(report: dict[str, Any]) -> list[str]:
-    """Each kept term against its alternatives on the validation measurements, and the ambiguous ones."""
-    if not report["evidence"]:
-        return []
-    lines = [
-        "",
-        "### Evidence: each named term against its alternatives (validation measurements, which no fit saw)",
-        "",
-        "| named | swapped for | its coefficient | held-out energy, swapped minus named | standard errors |",
-        "|---|---|---|---|---|",
-    ]
-    for e in report["evidence"]:
-        if math.isfinite(e["difference"]):
-            difference, errors = f"{e['difference']:+.3g} ± {e['standard_error']:.2g}", f"{e['standard_errors']:+.1f}"
-        else:
-            difference, errors = "the swapped model diverges", "-"
-        lines.append(
-            f"| {code(e['feature'])} | {e['alternative_name']} ({code(e['alternative'])}) | {e['alternative_coefficient']:.4g} "
-            f"| {difference} | {errors} |"
-        )
-    lines.append(
-        "\nEach named term is weighed against the strong candidates on its component that closed most of the gap alone, "
-        "the terms it moves with along the grey-box's solves (the confusable pairs above) and, for a friction, Coulomb "
-        "friction. "
-        "Positive: the named term fits better. Within ±2 standard errors the measurements cannot tell the two apart."
-    )
-    for a in report["added_by_evidence"]:
-        errors = a["difference"] / a["standard_error"] if a["standard_error"] > 0 else float("inf")
-        lines.append(
-            f"\nAdded by the evidence: {code(a['feature'])} on d{a['component']}/dt lowers the held-out energy by "
-            f"{a['difference']:.3g} ± {a['standard_error']:.2g} ({errors:.1f} standard errors); its coefficient "
-            f"{a['coefficient']:.4g}, 95 % interval [{a['interval'][0]:.4g}, {a['interval'][1]:.4g}] (training part)."
-        )
-    for a in report["ambiguous"]:
-        others = ", ".join(f"{code(x['alternative'])} ({x['standard_errors']:+.1f} SE)" for x in a["alternatives"])
-        lines.append(f"\n**Ambiguous:** the measurements cannot tell {code(a['feature'])} from {others}.")
-    return lines
-
-
-def _family_section(report: dict[str, Any]) -> list[str]:
-    """The prior family: each family's score and difference to the chosen one, and the spread the data allow."""
-    if not report["family"]:
-        return []
-    differences = report["family_difference"]
-    scores = ", ".join(
-        f"{k} {v:.4g} ({differences[k]['difference']:+.2g} ± {differences[k]['standard_error']:.2g})"
-        for k, v in report["family_training_discrepancy"].items()
-        if k != report["family"]
-    )
-    lines = [
-        "",
-        f"Prior family of the coefficients: **{report['family']}** (energy discrepancy to the training measurements "
-        f"{report['family_training_discrepancy'][report['family']]:.4g}; the others, and their difference to it: {scores}; "
-        "a richer family is chosen only if lower by more than two standard errors).",
-    ]
-    alike = [
-        k
-        for k, d in differences.items()
-        if k not in ("constant", report["family"]) and d["difference"] <= 2 * d["standard_error"]
-    ]
-    noise = report.get("run", {}).get("measurement_noise") or 0.0
-    if noise > 0:
-        lines.append(f"Every simulation compared with the measurements carried white noise of sd {noise:.4g} (theirs).")
-    elif report["family"] != "constant":
-        lines.append(
-            "The simulations carried no measurement noise (data.measurement_noise 0): noise in the measurements "
-            "widens their spread at every time, as a coefficient that varies between trajectories would. Where the "
-            "measurements are noisy, read this family as a varying coefficient or measurement noise, or give their "
-            "noise's sd as data.measurement_noise (docs/discovery.md, measurement noise)."
-        )
-    if report["family"] != "constant" and alike:
-        lines.append(
-            f"The training measurements cannot tell the {report['family']} family from {' or '.join(alike)} (within two "
-            "standard errors): that the coefficient varies is shown, the shape of its distribution is not."
-        )
-    for family in report["family_stopped_short"]:
-        lines.append(
-            f"The {family} fit scored no better than the constant, which its family contains (zero width): "
-            "it was taken at zero width."
-        )
-    for t in report["terms"]:
-        if t["spread_interval"]:
-            low, high = t["spread_interval"]
-            spread = f"95 % interval [{low:.4g}, {high:.4g}]"
-            lines.append(f"Spread of {code(t['feature'])} (half-width or standard deviation): {spread}.")
-        elif report["family"] == "constant":
-            lines.append(f"{code(t['feature'])} is constant; " + _spread_bound(t["excluded_spread"]))
-    return lines
-
-
-def _spread_bound(bound: float | None) -> str:
-    if bound is None:
-        return f"the data cannot exclude a spread up to {FIRST_SPREAD * 2**SPREAD_DOUBLINGS:.3g} times its size."
-    return (
-        f"a spread wider than {bound:.3g} (half-width; standard deviation if only the normal family is tried) "
-        "is excluded by the data (two standard errors)."
-    )
-
-
-def _search_section(report: dict) -> list[str]:
-    """The library search's path (when f_phi's route left the gap open), and which route named the terms."""
-    if not report["search"]:
-        return []
-    lines = ["", "### Library search: every local candidate fitted together, then the best subset of each size", ""]
-    if report.get("search_reason"):
-        lines += [f"It ran because {report['search_reason']}.", ""]
-    first = report["search"][0]
-    lines += [
-        f"Held-out energy: on the {first['validation_trajectories']} validation trajectories, lower is better; a model is "
-        "kept only where it is below f_p alone's by more than two standard errors of the difference.",
-        "",
-        "| terms | residual of g (relative RMS) | held-out energy | below f_p alone's (± standard error) |",
-        "|---|---|---|---|",
-        f"| f_p alone | - | {first['heldout_energy'] + first['below_f_p']:.4g} | - |",
-    ]
-    for step in report["search"]:
-        terms = ", ".join(f"{code(t['feature'])} on d{t['component']}/dt" for t in step["terms"])
-        below = f"{step['below_f_p']:.3g} ± {step['standard_error']:.2g}"
-        lines.append(f"| {terms} | {step['g_residual']:.3f} | {step['heldout_energy']:.4g} | {below} |")
-    if unsupported := report.get("search_unsupported"):
-        dropped = "; ".join(
-            f"{code(u['feature'])} on d{u['component']}/dt (coefficient {u['coefficient']:.3g}, interval "
-            f"[{u['interval'][0]:.3g}, {u['interval'][1]:.3g}])"
-            for u in unsupported
-        )
-        lines += ["", f"Dropped from the search's model, their coefficients' 95 % intervals holding zero: {dropped}."]
-    return lines + ["", f"Terms named by: **{report['route']}**." if report["route"] else "Nothing kept."]
-
-
-def _pointwise_section(pointwise: dict) -> list[str]:
-    """ABS ERR / N-RMSE against a known DGP, over the training horizon and the next one (extrapolation)."""
-    if not pointwise:
-        return []
-    lines = ["", "Against the known DGP, on the test inputs (the second horizon is extrapolation):", ""]
-    lines += ["| model | ABS ERR | N-RMSE | ABS ERR, 2nd horizon | N-RMSE, 2nd horizon |", "|---|---|---|---|---|"]
-    for key, label in GAP_ROWS.items():
-        if key in pointwise:
-            e = pointwise[key]
-            lines.append(
-                f"| {label} | {e['abs_err_horizon']:.4g} | {e['nrmse_horizon']:.4g} | {e['abs_err_twice_horizon']:.4g} "
-                f"| {e['nrmse_twice_horizon']:.4g} |"
-            )
-    return lines
-
-
-def code(text: str) -> str:
-    """Inline code that survives a Markdown table cell (its pipes escaped)."""
-    return "`" + text.replace("|", "\\|") + "`"
-
-
-def _confusable(pairs: list[dict]) -> str:
-    if not pairs:
-        return ""
-    return "; confusable pairs: " + ", ".join(f"{p['a']} ~ {p['b']} ({p['correlation']:.3f})" for p in pairs)

@@ -23,11 +23,58 @@ from otgb.physics.base import PhysicsModel
 
 def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any]) -> dict[str, Any]:
     """``report.json``: found, verdict, terms, ambiguous, explained_r2, gap, and the details."""
+    parts = verdict(result, physics)
+    return {
+        "outcome": outcome(result),
+        "found": result.found,
+        "confirmed": confirmed(result),
+        "verdict": "; ".join(parts),
+        "verdict_parts": parts,
+        "terms": _term_dicts(result, physics),
+        "ambiguous": _ambiguous(result, physics),
+        "evidence": [_comparison_dict(c, physics) for c in result.evidence],
+        "added_by_evidence": result.added,
+        "explained_r2": {s.component: s.explained_r2 for s in result.selections},
+        "gap": result.gap,
+        "closer": result.closer.to_dict() if result.closer else None,
+        "locate": {
+            "before": result.before.to_dict(),
+            "sentence_before": result.sentence_before,
+            "after": result.after.to_dict() if result.after else None,
+            "sentence_after": result.sentence_after,
+            "paired_after": result.paired_after.to_dict() if result.paired_after else None,
+        },  # fmt: skip
+        "regression": [_selection_dict(s) for s in result.selections],
+        "cross_check": result.cross_check,
+        "route": result.route if result.found else None,
+        "search_reason": result.search_reason,
+        "search": [_search_step_dict(step) for step in result.search],
+        "search_unsupported": [
+            {
+                "feature": u.candidate.feature,
+                "component": u.candidate.component,
+                "coefficient": u.coefficient,
+                "interval": list(u.interval),
+            }
+            for u in result.unsupported
+        ],  # fmt: skip
+        **_family_dict(result),
+        "dropped_by_heldout_check": result.dropped,
+        "interval_method": result.intervals.method if result.intervals else None,
+        "diverged": [d | {"named": d in named_divergences(result)} for d in result.diverged],
+        "undertrained": result.undertrained,
+        "correction_share": result.correction_share,
+        "pointwise": result.pointwise,
+        "run": facts,
+    }
+
+
+def _term_dicts(result: Discovery, physics: PhysicsModel) -> list[dict[str, Any]]:
+    """Each named term: its physical name, coefficient with interval, distribution, and f_phi's regression figures."""
     regression = {(t.candidate.feature, t.candidate.component): t for t in result.final_terms}
-    terms = []
     intervals = result.intervals
     excluded = result.family.excluded_spread if result.family else None
-    parts = verdict(result, physics)
+    terms = []
     for i, (candidate, prior) in enumerate(kept_terms(result)):
         middle = centre(prior)
         found = regression.get((candidate.feature, candidate.component))
@@ -49,64 +96,32 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
                 "flag": implausible(candidate.feature, candidate.component, middle, physics),
             }
         )
+    return terms
+
+
+def _search_step_dict(step: Any) -> dict[str, Any]:
+    """One size of the library search: its terms, how well they fit g, its held-out score against f_p alone."""
     return {
-        "outcome": outcome(result),
-        "found": result.found,
-        "confirmed": confirmed(result),
-        "verdict": "; ".join(parts),
-        "verdict_parts": parts,
-        "terms": terms,
-        "ambiguous": _ambiguous(result, physics),
-        "evidence": [_comparison_dict(c, physics) for c in result.evidence],
-        "added_by_evidence": result.added,
-        "explained_r2": {s.component: s.explained_r2 for s in result.selections},
-        "gap": result.gap,
-        "closer": result.closer.to_dict() if result.closer else None,
-        "locate": {
-            "before": result.before.to_dict(),
-            "sentence_before": result.sentence_before,
-            "after": result.after.to_dict() if result.after else None,
-            "sentence_after": result.sentence_after,
-            "paired_after": result.paired_after.to_dict() if result.paired_after else None,
-        },  # fmt: skip
-        "regression": [_selection_dict(s) for s in result.selections],
-        "cross_check": result.cross_check,
-        "route": result.route if result.found else None,
-        "search_reason": result.search_reason,
-        "search": [
-            {
-                "terms": [{"feature": c.feature, "component": c.component} for c in step.candidates],
-                "g_residual": step.g_residual,
-                "heldout_energy": step.fitted.heldout_energy,
-                "below_f_p": step.versus_f_p[0],
-                "standard_error": step.versus_f_p[1],
-                "validation_trajectories": len(step.fitted.heldout.rows),
-                "alternatives": [[{"feature": c.feature, "component": c.component} for c in a] for a in step.alternatives],
-            }
-            for step in result.search
-        ],
-        "search_unsupported": [
-            {
-                "feature": u.candidate.feature,
-                "component": u.candidate.component,
-                "coefficient": u.coefficient,
-                "interval": list(u.interval),
-            }
-            for u in result.unsupported
-        ],
+        "terms": [{"feature": c.feature, "component": c.component} for c in step.candidates],
+        "g_residual": step.g_residual,
+        "heldout_energy": step.fitted.heldout_energy,
+        "below_f_p": step.versus_f_p[0],
+        "standard_error": step.versus_f_p[1],
+        "validation_trajectories": len(step.fitted.heldout.rows),
+        "alternatives": [[{"feature": c.feature, "component": c.component} for c in a] for a in step.alternatives],
+    }
+
+
+def _family_dict(result: Discovery) -> dict[str, Any]:
+    """The prior family chosen, each family's training discrepancy and difference to it, and those stopped short."""
+    family = result.family
+    return {
         "family": result.fitted.family if result.fitted else None,
-        "family_training_discrepancy": result.family.scores if result.family else {},
-        "family_difference": {f: {"difference": d, "standard_error": e} for f, (d, e) in result.family.differences.items()}
-        if result.family
+        "family_training_discrepancy": family.scores if family else {},
+        "family_difference": {f: {"difference": d, "standard_error": e} for f, (d, e) in family.differences.items()}
+        if family
         else {},
-        "family_stopped_short": result.family.stopped_short if result.family else [],
-        "dropped_by_heldout_check": result.dropped,
-        "interval_method": intervals.method if intervals else None,
-        "diverged": [d | {"named": d in named_divergences(result)} for d in result.diverged],
-        "undertrained": result.undertrained,
-        "correction_share": result.correction_share,
-        "pointwise": result.pointwise,
-        "run": facts,
+        "family_stopped_short": family.stopped_short if family else [],
     }
 
 

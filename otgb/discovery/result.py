@@ -16,7 +16,7 @@ from torch import Tensor
 
 from otgb.analysis.components import to_json
 from otgb.data.sources import MeasurementSource
-from otgb.discovery.markdown import GAP_ROWS
+from otgb.discovery.details import GAP_ROWS
 from otgb.discovery.prior_text import distribution_text
 from otgb.discovery.report import augmented_config, report_dict, write_augmented, write_report
 from otgb.discovery.workflow import Discovery

@@ -51,68 +51,9 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
     if kind == "nothing detected":
         return ["no missing effect detected: " + result.sentence_before]
     if kind == "nothing found":
-        why = unscored_search(result) or "no candidate term fits the validation part better than f_p alone by two standard errors"
-        return [
-            f"no missing effect found in the library: the measurements differ from f_p ({result.sentence_before}), but {why}",
-            *closest_unkept(result),
-            outside_the_library(result, physics),
-            *undertrained_note(result, "and the library search named nothing"),
-            *low_power(result),
-        ]
-    ambiguous: dict[tuple[str, str], list] = {}
-    for c in sorted(result.evidence, key=lambda c: c.standard_errors):  # those that fit better than the named term first
-        if c.ambiguous and math.isfinite(c.difference):
-            ambiguous.setdefault((c.replaced.feature, c.replaced.component), []).append(c)
-    names = ", ".join(
-        f"{term_name(c, centre(p), physics)} ({c.feature} on d{c.component}/dt)"
-        + _or_alike(ambiguous.get((c.feature, c.component)), physics)
-        for c, p in kept_terms(result)
-    )
-    removes, closes = ("removes", "closes") if len(kept_terms(result)) == 1 else ("remove", "close")
+        return nothing_found(result, physics)
     blind = test_part_blind(result) if kind == "named, not confirmed" and closed_on_test(result) else None
-    if blind:
-        answer = [
-            f"missing effect named, not confirmed: {names}, but the {len(result.draws['f_p'])} test trajectories cannot "
-            f"tell even f_p from the measurements ({blind}), nor the augmented physics as nearer to them than f_p "
-            f"({closer_clause(result)}), so their agreeing with the augmented physics confirms nothing: more "
-            "measurements are needed to confirm it"
-        ]
-    elif kind == "named, not confirmed":
-        test = result.closer
-        versus = (
-            f"energy distance {test.augmented:.3g} against f_p's {test.f_p:.3g}, from {test.augmented_draws} and "
-            f"{test.f_p_draws} draws; half the test measurements against the other half: {test.floor:.3g}; "
-            if test
-            else ""
-        )
-        answer = [
-            f"missing effect named, not confirmed: {names} fit the validation part better than f_p alone, but on the "
-            f"{tested(result)} test trajectories, which no fit saw, the augmented physics is not significantly nearer "
-            f"to the measurements than f_p alone ({versus}{closer_clause(result)})",
-            result.sentence_after,
-            outside_the_library(result, physics),
-        ]
-    elif kind == "gap closed":
-        answer = [
-            f"missing effect found, the gap is closed as far as the test part can tell: {names} {removes} "
-            f"{share_removed(result)}, and no test tells the augmented physics from them",
-            result.sentence_after,
-        ]
-    elif kind == "found, not exactly":  # the distributions agree, the recorded inputs do not
-        answer = [
-            f"missing effect found, not exactly: {names} {removes} {share_removed(result)} and the distribution tests "
-            "see no difference on the test part, but solved on its recorded inputs the augmented physics misses the "
-            "measurements by more than their noise: the coefficients (fitted to distributions) or the terms' form are "
-            "off",
-            result.sentence_after,
-        ]
-    else:
-        answer = [
-            f"missing effect partly found: {names} {closes} {share_removed(result)}",
-            result.sentence_after,
-            "no library term fits exactly, these are the best approximation",
-            outside_the_library(result, physics),
-        ]
+    answer = answer_named(result, physics, kind, blind)
     parts = [*answer, *preferences(result, physics), *flags(result, physics), *([] if blind else low_power(result))]
     if named := named_divergences(result):
         worst = max(named, key=lambda d: d["diverged"] / d["of"])
@@ -121,6 +62,80 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
             f"simulated trajectories ({worst['what']}): some inputs blow up with these coefficients"
         )
     return parts + undertrained_note(result, "the terms come from the library search")
+
+
+def nothing_found(result: Discovery, physics: PhysicsModel) -> list[str]:
+    """The verdict where the measurements differ from f_p but no library term was kept."""
+    why = unscored_search(result) or "no candidate term fits the validation part better than f_p alone by two standard errors"
+    return [
+        f"no missing effect found in the library: the measurements differ from f_p ({result.sentence_before}), but {why}",
+        *closest_unkept(result),
+        outside_the_library(result, physics),
+        *undertrained_note(result, "and the library search named nothing"),
+        *low_power(result),
+    ]
+
+
+def named_terms_text(result: Discovery, physics: PhysicsModel) -> str:
+    """The kept terms by physical name and form, each with the alternatives the measurements cannot tell it from."""
+    ambiguous: dict[tuple[str, str], list] = {}
+    for c in sorted(result.evidence, key=lambda c: c.standard_errors):  # those that fit better than the named term first
+        if c.ambiguous and math.isfinite(c.difference):
+            ambiguous.setdefault((c.replaced.feature, c.replaced.component), []).append(c)
+    return ", ".join(
+        f"{term_name(c, centre(p), physics)} ({c.feature} on d{c.component}/dt)"
+        + _or_alike(ambiguous.get((c.feature, c.component)), physics)
+        for c, p in kept_terms(result)
+    )
+
+
+def answer_named(result: Discovery, physics: PhysicsModel, kind: str, blind: str | None) -> list[str]:
+    """The answer's parts where terms were named: the outcome ``kind`` with its numbers and the sentence after the fix
+    (``blind``: why the test part cannot confirm anything, where it cannot tell even f_p from the measurements)."""
+    names = named_terms_text(result, physics)
+    removes, closes = ("removes", "closes") if len(kept_terms(result)) == 1 else ("remove", "close")
+    if blind:
+        return [
+            f"missing effect named, not confirmed: {names}, but the {len(result.draws['f_p'])} test trajectories cannot "
+            f"tell even f_p from the measurements ({blind}), nor the augmented physics as nearer to them than f_p "
+            f"({closer_clause(result)}), so their agreeing with the augmented physics confirms nothing: more "
+            "measurements are needed to confirm it"
+        ]
+    if kind == "named, not confirmed":
+        test = result.closer
+        versus = (
+            f"energy distance {test.augmented:.3g} against f_p's {test.f_p:.3g}, from {test.augmented_draws} and "
+            f"{test.f_p_draws} draws; half the test measurements against the other half: {test.floor:.3g}; "
+            if test
+            else ""
+        )
+        return [
+            f"missing effect named, not confirmed: {names} fit the validation part better than f_p alone, but on the "
+            f"{tested(result)} test trajectories, which no fit saw, the augmented physics is not significantly nearer "
+            f"to the measurements than f_p alone ({versus}{closer_clause(result)})",
+            result.sentence_after,
+            outside_the_library(result, physics),
+        ]
+    if kind == "gap closed":
+        return [
+            f"missing effect found, the gap is closed as far as the test part can tell: {names} {removes} "
+            f"{share_removed(result)}, and no test tells the augmented physics from them",
+            result.sentence_after,
+        ]
+    if kind == "found, not exactly":  # the distributions agree, the recorded inputs do not
+        return [
+            f"missing effect found, not exactly: {names} {removes} {share_removed(result)} and the distribution tests "
+            "see no difference on the test part, but solved on its recorded inputs the augmented physics misses the "
+            "measurements by more than their noise: the coefficients (fitted to distributions) or the terms' form are "
+            "off",
+            result.sentence_after,
+        ]
+    return [
+        f"missing effect partly found: {names} {closes} {share_removed(result)}",
+        result.sentence_after,
+        "no library term fits exactly, these are the best approximation",
+        outside_the_library(result, physics),
+    ]
 
 
 def closest_unkept(result: Discovery) -> list[str]:
