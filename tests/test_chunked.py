@@ -7,9 +7,10 @@ import torch
 import otgb.discovery.chunked as chunked
 from otgb.data import generate_measured
 from otgb.discovery.chunked import backward_in_chunks, chunk_size, saved_bytes
+from otgb.discovery.discrepancy import Target, discrepancy_and_rows
 from otgb.discovery.intervals import sandwich_intervals
 from otgb.discovery.library import build_library
-from otgb.discovery.refine import Target, discrepancy_and_rows, fit
+from otgb.discovery.refine import fit
 from otgb.physics import Pendulum, ReactionDiffusion, ViscousFriction
 from otgb.physics.augmented import Augmented
 from otgb.physics.priors import Constant

@@ -27,6 +27,8 @@ from otgb.data.measured import CHUNK, simulate_in_chunks
 from otgb.discovery import refine
 from otgb.discovery.closer import Closeness, closer
 from otgb.discovery.details import cross_check_row, family_section, search_section
+from otgb.discovery.discrepancy import discrepancy, row_terms
+from otgb.discovery.draws import at_most, simulate_candidate
 from otgb.discovery.evidence import Comparison, alternatives, choose_swap, moves_with, weigh
 from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.intervals import Intervals, fitted_intervals, sandwich_intervals
@@ -34,56 +36,35 @@ from otgb.discovery.library import Candidate, build_library, feature_names, phys
 from otgb.discovery.locate import describe, locate, permutation_energy, z_scored
 from otgb.discovery.log import DivergenceLog, OncePerModel, diverged, rounded, short
 from otgb.discovery.markdown import grey_box_elsewhere
+from otgb.discovery.naming import family_step, fitting_for
 from otgb.discovery.paired import paired_check
 from otgb.discovery.prior_text import distribution, distribution_text
-from otgb.discovery.refine import (
-    FAMILIES,
-    FAMILY_REPEATS,
-    CoefficientPrior,
-    FittedTerms,
-    Fitting,
-    Scores,
-    beats,
-    centre,
-    discrepancies,
-    discrepancy,
-    fit,
-    row_terms,
-)
+from otgb.discovery.record import Discovery
+from otgb.discovery.refine import FAMILIES, FAMILY_REPEATS, CoefficientPrior, FittedTerms, Fitting, centre, fit
 from otgb.discovery.regression import SelectedTerm, Selection, design_matrix, regress
 from otgb.discovery.report import augmented_config, write_report
+from otgb.discovery.scores import Scores, beats, discrepancies
 from otgb.discovery.search import SearchStep, best_subsets, search, sparsest_kept, subset_values, supported
+from otgb.discovery.settings import DiscoverySettings, Measurements
 from otgb.discovery.variation import choose_family
 from otgb.discovery.verdict import (
     OUTCOMES,
     OUTSIDE_THE_LIBRARY,
+    beside_f_p,
+    c2st_tells_apart,
     confirmed,
     flags,
     low_power,
     named_divergences,
     outcome,
     outside_the_library,
+    sentence_after,
     share_removed,
+    undertrained_text,
     verdict,
 )
-from otgb.discovery.workflow import (
-    Discovery,
-    DiscoverySettings,
-    Measurements,
-    at_most,
-    beside_f_p,
-    c2st_tells_apart,
-    family_step,
-    fitting_for,
-    locate_step,
-    paired_after,
-    replaces,
-    run,
-    sentence_after,
-    simulate_candidate,
-    undertrained,
-    undertrained_text,
-)
+from otgb.discovery.verify import paired_after
+from otgb.discovery.workflow import locate_step, replaces, run, undertrained
 from otgb.errors import InputError
 from otgb.metrics.energy import batched_energy
 from otgb.models import GreyBoxODE, MLPCritic
@@ -1215,6 +1196,7 @@ def test_search_names_the_effect_a_mean_only_correction_missed(tmp_path):
 
 
 def test_a_forward_route_still_improving_at_six_terms_is_cut_short_and_hands_over_to_the_search(monkeypatch):
+    import otgb.discovery.naming as naming
     import otgb.discovery.workflow as workflow
 
     features = ["1", "angle", "velocity", "angle^2", "angle*velocity", "velocity^2", "angle^3", "velocity^3"]
@@ -1227,10 +1209,10 @@ def test_a_forward_route_still_improving_at_six_terms_is_cut_short_and_hands_ove
         draws = [1.0 / len(candidates) + 0.001 * r for r in range(4)]
         return FittedTerms("constant", candidates, [Constant(0.0)] * len(candidates), Scores(draws), [])
 
-    monkeypatch.setattr(workflow, "_initial", lambda candidates, designs: [0.0] * len(candidates))
-    monkeypatch.setattr(workflow, "prune", lambda current, fitting: current)
-    kept, dropped, truncated = workflow.add_step([selection], {}, fitting)
-    assert tried == [1, 2, 3, 4, 5, 6] and truncated and len(kept.candidates) == workflow.MAX_FORWARD_TERMS
+    monkeypatch.setattr(naming, "_initial", lambda candidates, designs: [0.0] * len(candidates))
+    monkeypatch.setattr(naming, "prune", lambda current, fitting: current)
+    kept, dropped, truncated = naming.add_step([selection], {}, fitting)
+    assert tried == [1, 2, 3, 4, 5, 6] and truncated and len(kept.candidates) == naming.MAX_FORWARD_TERMS
     assert [d["feature"] for d in dropped] == ["angle^3", "velocity^3"]
     assert "cut short" in workflow.search_reason(Pendulum(), kept, truncated, torch.zeros(0), DiscoverySettings(**FAST), False)
     reason = partial(workflow.search_reason, Pendulum(), None, False, torch.zeros(0), DiscoverySettings(**FAST))

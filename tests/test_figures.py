@@ -19,8 +19,8 @@ from otgb.analysis.figures import (
 )
 from otgb.data import generate_measured
 from otgb.discovery.locate import locate
+from otgb.discovery.record import Discovery
 from otgb.discovery.report import disagreement_panels
-from otgb.discovery.workflow import Discovery
 from otgb.physics import AdvectionDiffusion, Constant, Pendulum, ReactionDiffusion, ViscousFriction
 
 STEP = 1234

@@ -32,7 +32,7 @@ from otgb.data.sources import FileMeasurements
 from otgb.discovery.pipeline import discover
 from otgb.discovery.result import DiscoveryResult
 from otgb.discovery.session import build
-from otgb.discovery.workflow import DiscoverySettings
+from otgb.discovery.settings import DiscoverySettings
 from otgb.errors import InputError
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
@@ -48,7 +48,7 @@ class MissingEffect:
     ``MissingEffect(physics, **settings)`` takes a :class:`~otgb.physics.PhysicsModel` built in Python (a pendulum,
     advection-diffusion or reaction-diffusion model, or one of them augmented), with the grey-box, critic and budget of
     the matching config in ``configs/``, and ``discover:`` settings as keywords
-    (:class:`~otgb.discovery.workflow.DiscoverySettings`: ``seed=1``, ``alpha=0.01``, ...). Any other physics:
+    (:class:`~otgb.discovery.settings.DiscoverySettings`: ``seed=1``, ``alpha=0.01``, ...). Any other physics:
     :meth:`from_config` with a config of your own.
     """
 

@@ -10,7 +10,7 @@ coefficient fit), ``--discover.n_permutations`` (the disagreement maps' p-values
 It takes the options of ``otgb fit`` (the same config files work; with a config's hidden
 effect and no file, the measurements are generated from that DGP, which the workflow does not
 see, and the report adds pointwise errors against it), a ``discover:`` section
-(:class:`otgb.discovery.workflow.DiscoverySettings`) and ``--ckpt_path``, a grey-box trained on
+(:class:`otgb.discovery.settings.DiscoverySettings`) and ``--ckpt_path``, a grey-box trained on
 the same measurements, to skip training. It writes ``report.md``, ``report.json``,
 ``figures/`` and ``augmented.yaml`` into the run directory (``runs/<config stem>/version_N``,
 where the fit's logs and checkpoints also go) and prints that directory. Progress goes to stderr.

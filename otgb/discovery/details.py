@@ -8,7 +8,7 @@ from typing import Any
 
 from otgb.discovery.prior_text import distribution_text
 from otgb.discovery.variation import FIRST_SPREAD, SPREAD_DOUBLINGS
-from otgb.discovery.workflow import undertrained_text
+from otgb.discovery.verdict import undertrained_text
 
 GAP_ROWS = {"f_p": "f_p alone", "greybox": "OT grey-box", "augmented": "augmented physics", "reference": "Reference"}
 

@@ -2,14 +2,14 @@
 
 For each term of the kept model, each close alternative is swapped in for it alone: the strong
 candidates on the same component that closed part of the gap when added to f_p alone
-(:func:`otgb.discovery.workflow.cross_check_step`), the library terms it moves with along the
+(:func:`otgb.discovery.naming.cross_check_step`), the library terms it moves with along the
 grey-box's solves (the regression's confusable pairs, :data:`otgb.discovery.regression.CONFUSABLE`:
 a term that never became a strong candidate may still fit the measurements alike, u^3 for u^2)
 and, where the term is a friction of a velocity (``v``, ``v*|v|``, ``v^3``), Coulomb friction
 ``sign(v)``. The swapped model's coefficients are fitted by distribution matching on the training
 measurements and scored on the validation measurements with the same simulation draws as the kept
 model (common random numbers), so the difference of their held-out discrepancies and its standard
-error (:func:`otgb.discovery.refine.difference`) come from data that no fit saw.
+error (:func:`otgb.discovery.scores.difference`) come from data that no fit saw.
 
 An alternative within two standard errors is *ambiguous*: the measurements cannot tell it from
 the named term. Of those that fit better by more than two standard errors, the one that lowers the
@@ -41,8 +41,9 @@ from dataclasses import dataclass
 
 from otgb.discovery.library import Candidate, implausible, signed_kind
 from otgb.discovery.log import progress
-from otgb.discovery.refine import FittedTerms, beats, difference
+from otgb.discovery.refine import FittedTerms
 from otgb.discovery.regression import Selection
+from otgb.discovery.scores import beats, difference
 from otgb.physics.base import PhysicsModel
 
 AMBIGUOUS_WITHIN = 2.0  # standard errors

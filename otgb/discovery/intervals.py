@@ -31,8 +31,10 @@ import torch
 from torch import Tensor
 
 from otgb.discovery.chunked import Simulate, backward_in_chunks, chunk_size
+from otgb.discovery.discrepancy import batched_discrepancy, row_terms
 from otgb.discovery.log import diverged
-from otgb.discovery.refine import FitSample, FittedTerms, Fitting, batched_discrepancy, centre, row_terms, term_names
+from otgb.discovery.refine import FitSample, FittedTerms, Fitting, centre
+from otgb.discovery.scores import term_names
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 from otgb.physics.priors import Choice, Constant, Prior, Uniform

@@ -175,3 +175,7 @@ def _field_name(feature: str, own: str, coefficient: float) -> str | None:
     if "d_" in feature:
         return f"advection by another channel {feature}"
     return f"coupling {feature}"
+
+
+def term_name(candidate: Candidate, coefficient: float, physics: PhysicsModel) -> str:
+    return physical_name(candidate.feature, candidate.component, coefficient, physics)

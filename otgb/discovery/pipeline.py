@@ -13,13 +13,17 @@ from typing import Any
 import torch
 
 from otgb.analysis.components import component_analysis
+from otgb.discovery.draws import simulate_from_priors
 from otgb.discovery.known import pointwise_errors
 from otgb.discovery.locate import DisagreementMap, describe
 from otgb.discovery.log import DivergenceLog, progress, show_on_stderr
 from otgb.discovery.paired import paired_check
+from otgb.discovery.record import Discovery
 from otgb.discovery.result import DiscoveryResult
 from otgb.discovery.session import Session, stopped_by_signals
-from otgb.discovery.workflow import Discovery, Measurements, gap_step, locate_step, run, simulate_from_priors
+from otgb.discovery.settings import Measurements
+from otgb.discovery.verify import gap_step
+from otgb.discovery.workflow import locate_step, run
 from otgb.runs import load_weights
 
 NOISE_STREAM = 7919  # the seed offset of the noise that simulations compared with the measurements carry

@@ -22,8 +22,6 @@ held-out parts, which a spread that varies over time needs to be seen.
 
 from __future__ import annotations
 
-import copy
-import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -32,16 +30,11 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from otgb.discovery.chunked import backward_in_chunks, chunk_size
+from otgb.discovery.discrepancy import Target, discrepancy_and_rows
 from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.library import Candidate
 from otgb.discovery.log import diverged, held_divergences, logger, say_again
-from otgb.metrics.energy import (
-    batched_energy,
-    cell_and_whole_row_means,
-    cell_and_whole_within_means,
-    cross_row_means,
-    within_means,
-)
+from otgb.discovery.scores import CPU, HELDOUT_REPEATS, Scores, discrepancies, on_device, term_names
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 from otgb.physics.priors import Choice, Constant, Normal, Prior, Uniform
@@ -49,41 +42,11 @@ from otgb.physics.solvers import current_solver
 from otgb.physics.terms import LibraryTerm
 
 FAMILIES = ("constant", "uniform", "normal", "two_point")  # simplest first
-CPU = torch.device("cpu")
-HELDOUT_REPEATS = 10  # simulation draws per held-out score
 FAMILY_REPEATS = 20  # simulation draws per score of a prior family on the training measurements
 # The loss a fit's L-BFGS sees where the model diverges: finite, so that its strong-Wolfe line search
 # backtracks (from an infinite value its cubic interpolation gives NaN, and every parameter becomes NaN).
 DIVERGED_LOSS = 1e10
 MIN_WIDTH = 1e-6  # a prior's smallest width, in units of its coefficient's scale
-
-
-@dataclass
-class Scores:
-    """A model's :func:`discrepancy` to a measured set: one value per simulation draw (``draws``), and
-    per measured trajectory its cross term averaged over the draws (``rows``: twice its mean
-    distance to the simulated trajectories, summed over the discrepancy's parts).
-
-    Two models scored against the same measured set differ by the mean of their ``rows``
-    differences (the measured set's own within-sample term cancels) and by their simulated
-    samples; the first is how the measured sample's own randomness enters a comparison.
-    """
-
-    draws: list[float]
-    rows: Tensor = field(default_factory=lambda: torch.zeros(0))
-
-    @property
-    def mean(self) -> float:
-        return float(torch.tensor(self.draws).mean())
-
-    @property
-    def finite(self) -> bool:
-        return bool(torch.isfinite(torch.tensor(self.draws)).all())
-
-    @classmethod
-    def diverged(cls, repeats: int) -> Scores:
-        """The scores of a model that diverges for some inputs: it does not describe the data."""
-        return cls([float("inf")] * repeats)
 
 
 @dataclass
@@ -217,96 +180,6 @@ class FitSample:
         return FitSample(*(t.to(device) for t in (self.targets, self.x0, self.theta, self.noise)))
 
 
-def simulate_finite(model: Augmented, x0: Tensor, theta: Tensor) -> tuple[Tensor, Tensor]:
-    """Observed trajectories (n', T, *obs) of the augmented model without those that diverged (a coefficient
-    that makes the model blow up, e.g. a growing cubic), and which of the n inputs diverged (n,)."""
-    trajectories = model.observe(model.solve(model.vector_field, x0, theta))
-    finite = torch.isfinite(trajectories.flatten(1)).all(1)
-    return trajectories[finite], ~finite
-
-
-def term_names(candidates: list[Candidate]) -> list[str]:
-    return [f"{c.feature} on d{c.component}/dt" for c in candidates]
-
-
-def discrepancy(a: Tensor, b: Tensor) -> Tensor:
-    """Energy distance between trajectories a (n, T, *obs) and b (m, T, *obs): over whole trajectories
-    plus the sum over time steps and components of the distances between their values there.
-
-    The second part compares the marginal distributions at each time (a spread that grows or
-    shrinks over time, as an effect that varies between trajectories makes it), which the
-    distance between whole trajectories detects with far less power.
-    """
-    return discrepancy_and_rows(a, Target.of(b))[0]
-
-
-def batched_discrepancy(a: Tensor, b: Tensor) -> Tensor:
-    """:func:`discrepancy` of each pair a[g] (n, T, *obs), b[g] (m, T, *obs): (G,)."""
-    whole = batched_energy(a.flatten(2), b.flatten(2))
-    cells = lambda y: _cells(y.flatten(0, 1)).unflatten(1, y.shape[:2]).transpose(0, 1).flatten(0, 1)  # noqa: E731
-    per_cell = batched_energy(cells(a), cells(b)).reshape(len(a), -1)
-    return whole + per_cell.sum(1)
-
-
-def _cells(y: Tensor) -> Tensor:
-    """Trajectories (n, T, C, *space) as (T * C, n, space): one sample per time step and component."""
-    return y.reshape(len(y), y.shape[1] * y.shape[2], -1).transpose(0, 1)
-
-
-@dataclass
-class Target:
-    """Measured trajectories y (m, T, *obs) and their within-sample mean distances, whole (a number) and per cell
-    (T * C,): every :func:`discrepancy` to them shares these, so they are computed once."""
-
-    y: Tensor
-    whole: Tensor
-    cells: Tensor
-
-    @classmethod
-    def of(cls, y: Tensor) -> Target:
-        whole, cells = _within(y)
-        return cls(y, whole, cells)
-
-
-def discrepancy_and_rows(a: Tensor, target: Target) -> tuple[Tensor, Tensor]:
-    """:func:`discrepancy` of a to the target and, per target trajectory, its share of the cross terms
-    (:func:`row_terms`), from one set of distances."""
-    whole, cells = _cross(a, target.y)  # (m,), (T * C, m)
-    within_whole, within_cells = _within(a)
-    value = 2 * whole.mean() - within_whole - target.whole
-    value = value + (2 * cells.mean(-1) - within_cells - target.cells).sum()
-    return value, 2 * (whole + cells.sum(0))
-
-
-def _cross(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
-    """Each trajectory of b's mean distance to a's, whole (m,) and per cell (T * C, m). On fields, both from one
-    product per cell (:func:`otgb.metrics.energy.cell_and_whole_row_means`); a cell of one number is sorted."""
-    if _on_fields(a):
-        cells, whole = cell_and_whole_row_means(_cells(a), _cells(b))
-        return whole, cells
-    return cross_row_means(a.flatten(1)[None], b.flatten(1)[None])[0], cross_row_means(_cells(a), _cells(b))
-
-
-def _within(y: Tensor) -> tuple[Tensor, Tensor]:
-    """Mean distance between y's distinct trajectories, whole (a number) and per cell (T * C,), as :func:`_cross`."""
-    if _on_fields(y):
-        cells, whole = cell_and_whole_within_means(_cells(y))
-        return whole, cells
-    return within_means(y.flatten(1)[None])[0], within_means(_cells(y))
-
-
-def _on_fields(y: Tensor) -> bool:
-    """Whether a cell of y (n, T, C, *space) (one time step and component) holds more than one number."""
-    return math.prod(y.shape[3:]) > 1
-
-
-def row_terms(a: Tensor, b: Tensor) -> Tensor:
-    """Per trajectory of b, its share of :func:`discrepancy`'s cross terms: twice its mean distance to
-    a's trajectories, whole and per cell, summed: (m,)."""
-    whole = cross_row_means(a.flatten(1)[None], b.flatten(1)[None])[0]
-    return 2 * (whole + cross_row_means(_cells(a), _cells(b)).sum(0))
-
-
 def fit(
     base: PhysicsModel,
     candidates: list[Candidate],
@@ -333,8 +206,7 @@ def fit(
     """
     prior = CoefficientPrior(family, init, scales).to(device)
     terms = [LibraryTerm(c.feature, c.component, Constant(v)) for c, v in zip(candidates, init)]
-    model = Augmented(on_device(base, device), terms).to(device)
-    n = batch
+    model, n = Augmented(on_device(base, device), terms).to(device), batch
     sample = FitSample.draw(base, measured, family, len(candidates), batch, seed).to(device)
     target, x0, theta, noise = Target.of(sample.targets), sample.x0, sample.theta, sample.noise
     optimiser = torch.optim.LBFGS(prior.parameters(), lr=1, max_iter=steps, max_eval=2 * steps, line_search_fn="strong_wolfe")
@@ -359,9 +231,7 @@ def fit(
 
     optimiser.step(closure)
     if losses and not prior_is_finite(prior):
-        with torch.no_grad():
-            for parameter, value in zip(prior.parameters(), best):
-                parameter.copy_(value)
+        restore(prior, best)
     if not losses or not prior_is_finite(prior):
         diverged(f"fit ({family})", term_names(candidates), n, n)
         priors = [Constant(v) for v in init]
@@ -371,10 +241,11 @@ def fit(
     return FittedTerms(family, list(candidates), priors, scored, losses, list(init), scales)
 
 
-def on_device(physics: PhysicsModel, device: torch.device) -> PhysicsModel:
-    """``physics`` itself on the CPU; elsewhere a copy moved to ``device`` (moving a module moves it in place, and the rest
-    of discovery uses it on the CPU), in its current state (the measurement noise in force)."""
-    return physics if device.type == "cpu" else copy.deepcopy(physics).to(device)
+@torch.no_grad()
+def restore(prior: CoefficientPrior, parameters: list[Tensor]) -> None:
+    """Set ``prior``'s parameters to ``parameters`` (a fit's best iterate)."""
+    for parameter, value in zip(prior.parameters(), parameters):
+        parameter.copy_(value)
 
 
 def prior_is_finite(prior: CoefficientPrior) -> bool:
@@ -446,79 +317,3 @@ class Fitting:
 def device_name(device: torch.device) -> str:
     """``cpu``, or the type and model of a CUDA device (another model rounds differently)."""
     return f"{device.type}:{torch.cuda.get_device_name(device)}" if device.type == "cuda" else device.type
-
-
-@torch.no_grad()
-def discrepancies(
-    base: PhysicsModel,
-    candidates: list[Candidate],
-    priors: list[Prior],
-    measured: Tensor,
-    seed: int,
-    repeats: int = HELDOUT_REPEATS,
-    device: torch.device = CPU,
-) -> Scores:
-    """:class:`Scores` to ``measured`` of ``repeats`` fresh simulation draws as large as it, coefficients from ``priors``.
-
-    The inputs and the coefficients' noise come from two generators seeded alike for every
-    model, so that two models' scores differ by their coefficients, not by the luck of the
-    draws (common random numbers): their difference is then measured far more precisely.
-    """
-    terms = [LibraryTerm(c.feature, c.component, Constant(0.0)) for c in candidates]
-    model = Augmented(on_device(base, device), terms).to(device)
-    inputs, noise = torch.Generator().manual_seed(seed + 1), torch.Generator().manual_seed(seed + 2)
-    n, values, rows = len(measured), [], torch.zeros(len(measured), dtype=torch.float64, device=device)
-    target = Target.of(measured.double().to(device))
-    for _ in range(repeats):
-        x0, theta = base.sample_initial_state(n, inputs), base.sample_theta(n, inputs)
-        coefficients = (
-            torch.stack([p.quantile(torch.rand(n, generator=noise)) for p in priors], 1) if priors else torch.zeros(n, 0)
-        )
-        simulated, bad = simulate_finite(model, x0.to(device), torch.cat([theta, coefficients.float()], dim=1).to(device))
-        if bad.any():
-            first = int(bad.nonzero()[0])
-            diverged("score", term_names(candidates), int(bad.sum()), n, theta[first].tolist(), list(map(repr, priors)))
-            return Scores.diverged(repeats)
-        value, row = discrepancy_and_rows(simulated.double(), target)
-        values.append(float(value))
-        rows += row / repeats
-    return Scores(values, rows.cpu())
-
-
-@torch.no_grad()
-def sample_scores(draw: Callable[[int], Tensor], measured: Tensor, repeats: int) -> Scores:
-    """:class:`Scores` to ``measured`` of ``repeats`` samples ``draw(r)`` of any model (a grey-box, f_p)."""
-    values, rows, target = [], torch.zeros(len(measured), dtype=torch.float64), Target.of(measured.double())
-    for r in range(repeats):
-        value, row = discrepancy_and_rows(draw(r).double(), target)
-        values.append(float(value))
-        rows += row / repeats
-    return Scores(values, rows)
-
-
-def difference(a: Scores, b: Scores) -> tuple[float, float]:
-    """b's discrepancy minus a's (positive: a fits better), and the standard error of that difference.
-
-    Two sources of error, independent: the simulation draws (the paired differences' spread over
-    the draws, common random numbers) and the measured sample, which is finite, and the same for
-    both (the spread over measured trajectories of the differences of their ``rows``): a model may
-    fit these measured trajectories better than another without describing the process better.
-    A model that diverged is infinitely worse.
-    """
-    if not (a.finite and b.finite):
-        return (float("inf") if a.finite else float("-inf") if b.finite else float("nan")), float("nan")
-    differences = torch.tensor(b.draws) - torch.tensor(a.draws)
-    variance = differences.var() / len(differences)
-    if len(a.rows) > 1 and len(a.rows) == len(b.rows):
-        variance = variance + (b.rows - a.rows).var() / len(a.rows)
-    return float(differences.mean()), float(variance) ** 0.5
-
-
-def beats(a: Scores, b: Scores) -> bool:
-    """Whether model a's discrepancy is lower than b's by more than two standard errors of the difference
-    (:func:`difference`)."""
-    gap, error = difference(a, b)
-    if not math.isfinite(gap):
-        return gap == float("inf")
-    resolution = 1e-9 * abs(b.mean)  # below float rounding: a tie, e.g. a term fitted to zero
-    return gap > 2 * error + resolution

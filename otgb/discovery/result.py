@@ -18,8 +18,8 @@ from otgb.analysis.components import to_json
 from otgb.data.sources import MeasurementSource
 from otgb.discovery.details import GAP_ROWS
 from otgb.discovery.prior_text import distribution_text
+from otgb.discovery.record import Discovery
 from otgb.discovery.report import augmented_config, report_dict, write_augmented, write_report
-from otgb.discovery.workflow import Discovery
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 
@@ -55,7 +55,7 @@ class DiscoveryResult:
     """What :func:`otgb.discovery.pipeline.discover` found, with what its files need.
 
     Args:
-        discovery: The workflow's record of every step (:class:`otgb.discovery.workflow.Discovery`).
+        discovery: The workflow's record of every step (:class:`otgb.discovery.record.Discovery`).
         physics: f_p, the model discovery started from.
         facts: What the report says of the run besides the result (the measurements, the config files, ...).
         samples: The gap table's draws by source, for the distribution figure.

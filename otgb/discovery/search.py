@@ -25,7 +25,7 @@ measurements, this route:
    leader before it) by two standard errors, as f_phi's route does (a size that lowers the
    held-out score by less than its noise does not keep the search going); the sparsest model that
    beats f_p alone and that the best does not beat, each by two standard errors
-   (:func:`otgb.discovery.refine.beats`), is kept, and nothing when the best does not beat f_p
+   (:func:`otgb.discovery.scores.beats`), is kept, and nothing when the best does not beat f_p
    alone: an effect outside the library is then not given the name of the library term that
    happens to fit the validation part's noise best;
 4. drops from the kept model, one at a time, a term whose coefficient's 95 % interval (fitted on the
@@ -50,8 +50,9 @@ from torch import Tensor
 
 from otgb.discovery.intervals import fitted_intervals
 from otgb.discovery.library import Candidate
-from otgb.discovery.refine import FittedTerms, Fitting, Scores, beats, centre, difference, discrepancies
+from otgb.discovery.refine import FittedTerms, Fitting, centre
 from otgb.discovery.regression import design_matrix
+from otgb.discovery.scores import Scores, beats, difference, discrepancies
 from otgb.physics.base import PhysicsModel
 from otgb.physics.features import is_local
 from otgb.physics.priors import Constant

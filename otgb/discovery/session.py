@@ -21,7 +21,7 @@ from lightning import Trainer
 from otgb.command import OTGBCLI, check_validation_in_budget, refuse_written_log_dirs
 from otgb.data import SimulationDataModule
 from otgb.discovery.fit_cache import FitCache
-from otgb.discovery.workflow import DiscoverySettings
+from otgb.discovery.settings import DiscoverySettings
 from otgb.errors import InputError
 from otgb.parser_errors import ConciseParser
 from otgb.physics.base import PhysicsModel

@@ -7,7 +7,7 @@ simulation draws as the constant (common random numbers, ``FAMILY_REPEATS`` draw
 fit that scores worse than the constant stopped short of the optimum its family contains (it
 cannot be worse at zero width); it is then taken at zero width, where it ties the constant, and
 the report says so. The simplest family that no richer family beats by two standard errors
-(:func:`otgb.discovery.refine.beats`) is chosen, and every family's difference to it is
+(:func:`otgb.discovery.scores.beats`) is chosen, and every family's difference to it is
 reported with its standard error.
 
 When the constant is chosen, :func:`excluded_spread` says how wide a spread the data still
@@ -24,7 +24,8 @@ from dataclasses import dataclass, field
 
 from torch import Tensor
 
-from otgb.discovery.refine import FAMILIES, FAMILY_REPEATS, MIN_WIDTH, FittedTerms, Scores, beats, difference, discrepancies
+from otgb.discovery.refine import FAMILIES, FAMILY_REPEATS, MIN_WIDTH, FittedTerms
+from otgb.discovery.scores import Scores, beats, difference, discrepancies
 from otgb.physics.base import PhysicsModel
 from otgb.physics.priors import Choice, Constant, Normal, Prior, Uniform
 

@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import math
 
-from otgb.discovery.library import fixed_in_space, implausible
-from otgb.discovery.refine import centre, term_names
-from otgb.discovery.workflow import Discovery, c2st_tells_apart, term_name
+from otgb.discovery.library import fixed_in_space, implausible, term_name
+from otgb.discovery.locate import DisagreementMap, describe
+from otgb.discovery.record import Discovery
+from otgb.discovery.refine import centre
+from otgb.discovery.scores import term_names
 from otgb.physics.base import PhysicsModel
 
 OUTSIDE_THE_LIBRARY = (
@@ -338,3 +340,57 @@ def _holding_zero(result: Discovery) -> list[tuple[float, float]]:
 
 def kept_terms(result: Discovery) -> list[tuple]:
     return list(zip(result.fitted.candidates, result.fitted.priors)) if result.found else []
+
+
+def sentence_after(result: Discovery) -> str:
+    """The sentence on the augmented physics against the test part: its disagreement map; where the map sees no
+    difference but the gap table's C2ST does, that; the same map of f_p alone (:func:`beside_f_p`); the paired check."""
+    sentence = describe(result.after, b_name="augmented-physics") + " (on the test part, which no fit saw)"
+    if not result.after.any_significant and (told := c2st_tells_apart(result.gap, "augmented")):
+        sentence += (
+            f"; but the gap table's C2ST tells the augmented physics from the measurements ({told}): a difference "
+            "remains that the map does not see"
+        )
+    sentence += beside_f_p(result.before_on_test)
+    return sentence + (f"; {result.paired_after.sentence()}" if result.paired_after is not None else "")
+
+
+def beside_f_p(before_on_test: DisagreementMap) -> str:
+    """The same tests of f_p alone on the same test part, for the sentence on the augmented physics: an agreement
+    after the fix means something only where f_p alone disagrees with these trajectories."""
+    if not before_on_test.any_significant:
+        return "; nor between f_p alone and them, so this agreement alone does not show what the fix changed"
+    cells = int(before_on_test.significant.sum())
+    if cells:
+        where = f"in {cells} of {before_on_test.significant.numel()} cells"
+    else:
+        where = "as whole trajectories" if before_on_test.whole_significant else "on their recorded inputs"
+    return f"; f_p alone, tested the same way, differs from them {where}"
+
+
+def undertrained_text(gain: float, error: float, n: int, greybox: float, alone: float) -> str:
+    """Why the grey-box's correction is not used, with the numbers: no better than f_p, or better by less than two
+    standard errors of the difference on these ``n`` validation trajectories (too few to tell, or undertrained)."""
+    numbers = f"energy {greybox:.4g} against {alone:.4g}, difference {gain:.3g} ± {error:.2g}"
+    if gain > 0:
+        judged = (
+            f"fits the {n} validation measurements better than f_p alone, but not by two standard errors ({numbers}): "
+            "they are too few to tell, or the grey-box is undertrained; more measurements, or a larger "
+            "data.simulation_budget"
+        )
+    else:
+        judged = (
+            f"fits the {n} validation measurements no better than f_p alone ({numbers}): it is undertrained; raise "
+            "data.simulation_budget (or give a longer-trained --ckpt_path)"
+        )
+    return f"{judged}. Its correction is not used to name terms: the naming relies on the library search"
+
+
+def c2st_tells_apart(gap: dict[str, dict[str, float]], source: str) -> str | None:
+    """Where the gap table's C2ST tells ``source``'s draws from the test measurements, its accuracy above 0.5 by more
+    than two of the Reference's standard deviations (half the test measurements against the other half, repeated),
+    the numbers that say so; else None (also where either figure is missing or not finite)."""
+    judged, reference = gap.get(source, {}), gap.get("reference", {})
+    if "c2st" not in judged or "c2st_std" not in reference or not judged["c2st"] - 0.5 > 2 * reference["c2st_std"]:
+        return None
+    return f"C2ST {judged['c2st']:.2f}, the Reference's {reference['c2st']:.2f} +- {reference['c2st_std']:.2f}"

@@ -1,0 +1,237 @@
+"""The steps that name and add terms: f_phi's regression on the library, the cross-check of strong candidates, the
+forward route with its pruning, the evidence against alternatives and the prior family."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from torch import Tensor
+
+from otgb.discovery.draws import acting_components, at_most, greybox_draws
+from otgb.discovery.evidence import Comparison, moves_with, weigh
+from otgb.discovery.intervals import fitted_intervals
+from otgb.discovery.library import Candidate, build_library
+from otgb.discovery.log import progress
+from otgb.discovery.record import Discovery
+from otgb.discovery.refine import FittedTerms, Fitting, centre
+from otgb.discovery.regression import Selection, describe_terms, design_matrix, regress, subset_coefficients
+from otgb.discovery.scores import beats, difference, discrepancies
+from otgb.discovery.settings import DiscoverySettings, Measurements
+from otgb.discovery.variation import FamilyChoice
+from otgb.discovery.variation import choose_prior as choose_family_of
+from otgb.physics.base import PhysicsModel
+
+
+def name_step(module: Any, settings: DiscoverySettings) -> tuple[list[Selection], dict, dict[str, Tensor], float]:
+    """Regress f_phi on the library, per component; also returns the designs, the draws and |f_phi| / |f_p| (RMS)."""
+    physics = module.physics
+    draws = greybox_draws(module, settings.n_trajectories, settings.seed)
+    selections, designs = [], {}
+    for component in acting_components(physics):
+        index = physics.state_names.index(component)
+        candidates = build_library(physics, [component], settings.theta_products, settings.position_degree)
+        design = design_matrix(
+            physics, candidates, draws["states"], draws["theta"], draws["correction"][:, :, index], settings.seed
+        )
+        selections.append(regress(design, component, settings.n_bootstrap, settings.seed))
+        designs[component] = design
+    share = float(draws["correction"].pow(2).mean().sqrt() / draws["physics"].pow(2).mean().sqrt().clamp_min(1e-12))
+    return selections, designs, draws, share
+
+
+def strong_candidates(selections: list[Selection], designs: dict, k: int) -> list[tuple]:
+    """(candidate, its slope alone) to cross-check: the k largest selected terms and their alternatives,
+    and per component the k candidates that alone explain most of f_phi."""
+    chosen: list[Candidate] = []
+    for term in sorted((t for s in selections for t in s.terms), key=lambda t: -t.size)[:k]:
+        chosen += [term.candidate, *term.alternatives]
+    slopes = {}
+    for design in designs.values():
+        X, y = design.X, design.y
+        slope = (X * y[:, None]).sum(0) / (X**2).sum(0).clip(1e-300)
+        r2 = 1 - ((y[:, None] - X * slope) ** 2).sum(0) / max((y**2).sum(), 1e-300)
+        slopes.update({c: float(b) for c, b in zip(design.candidates, slope)})
+        chosen += [design.candidates[j] for j in r2.argsort()[::-1][:k]]
+    return [(c, slopes[c]) for c in dict.fromkeys(chosen)]
+
+
+def cross_check_step(strong: list[tuple], fitting: Fitting) -> list[dict]:
+    """Each strong candidate alone added to f_p, its coefficient fitted: the share of f_p's held-out gap it closes,
+    and how far below f_p alone's its held-out energy lies, with that difference's standard error."""
+    baseline = discrepancies(fitting.physics, [], [], fitting.val, fitting.seed)
+    gap = baseline.mean
+    rows = []
+    for candidate, init in strong:
+        fitted = fitting([candidate], [init])
+        below, error = difference(fitted.heldout, baseline)
+        rows.append(
+            {
+                "feature": candidate.feature,
+                "component": candidate.component,
+                "coefficient": fitted.priors[0].value,
+                "heldout_energy": fitted.heldout_energy,
+                "gap_closed": 1 - fitted.heldout_energy / gap if gap > 0 else 0.0,
+                "below_f_p": below,
+                "standard_error": error,
+            }
+        )
+    return sorted(rows, key=lambda r: -r["gap_closed"])
+
+
+def fitting_for(physics: PhysicsModel, data: Measurements, settings: DiscoverySettings, designs: dict) -> Fitting:
+    """The run's :class:`otgb.discovery.refine.Fitting`: the settings' steps, batch and seed, and each library
+    candidate's natural scale, the slope at which its term alone would be as large as f_phi on its component."""
+    natural = {c: _natural_scale(c, design) for design in designs.values() for c in design.candidates}
+    train, val = (at_most(part, settings.score_rows, settings.seed) for part in (data.train, data.val))
+    steps = (settings.fit_steps, settings.fit_batch, settings.seed)
+    return Fitting(physics, train, val, *steps, natural, settings.cache, settings.device)
+
+
+def _natural_scale(candidate: Candidate, design: Any) -> float:
+    index = design.candidates.index(candidate)
+    return float(np.sqrt((design.y**2).mean()) / max(design.scale[index], 1e-12))
+
+
+MAX_FORWARD_TERMS = 6  # models on f_phi's route at most (its prune refits O(k^2) models)
+
+
+def _on(candidate: Candidate) -> str:
+    return f"{candidate.feature} on d{candidate.component}/dt"
+
+
+def add_step(selections: list[Selection], designs: dict, fitting: Fitting):
+    """Forward selection on held-out measurements, then the prior family.
+
+    The selected terms are ordered by the size of their contribution to f_phi; the models made
+    of the first 1, 2, ... of them (coefficients started at their least-squares values and
+    fitted by distribution matching) are scored on the validation measurements. The path
+    stops after two models in a row that do not beat the leader (the last model that beat the
+    leader before it) by two standard errors: f_phi's regression may select many small terms, each
+    lowering the held-out score a little (reaction-diffusion). It stops at ``MAX_FORWARD_TERMS``
+    terms: a correction whose named terms need more to match the measurements learned an average
+    rather than a shape; the route is then *truncated* and the library search (which tries every
+    subset) runs. The sparsest model that the best
+    does not beat by more than two standard errors is kept, then pruned backwards (:func:`prune`);
+    the terms left out are reported as dropped. Returns the kept terms' constant fit, the dropped
+    terms, and whether the route was truncated.
+    """
+    ordered = sorted(((t.size, t.candidate) for s in selections for t in s.terms), key=lambda pair: -pair[0])
+    path = [c for _, c in ordered]
+    fits: list[FittedTerms] = []
+    leader, truncated = 0, False  # leader: the last model that beat the leader before it
+    for k in range(1, len(path) + 1):
+        if k > MAX_FORWARD_TERMS:
+            truncated = True
+            break
+        init = _initial(path[:k], designs)
+        fits.append(fitting(path[:k], init))
+        progress(f"{k} term(s) {[_on(c) for c in path[:k]]}: held-out energy {fits[-1].heldout_energy:.4g}")
+        if beats(fits[-1].heldout, fits[leader].heldout):
+            leader = k - 1
+        elif k - 1 - leader >= 2:
+            break
+    best = min(fits, key=lambda f: f.heldout_energy)
+    current = prune(next(f for f in fits if not beats(best.heldout, f.heldout)), fitting)
+    dropped = [{"feature": c.feature, "component": c.component} for c in path if c not in current.candidates]
+    return current, dropped, truncated
+
+
+def evidence_step(
+    kept: FittedTerms, result: Discovery, designs: dict, fitting: Fitting, per_term: int
+) -> tuple[FittedTerms, list[Comparison], list[dict]]:  # fmt: skip
+    """The kept terms against every single-term swap among ``result``'s strong candidates, the terms each moves with in
+    its regression and Coulomb friction, on the validation measurements (:mod:`otgb.discovery.evidence`); a swap that
+    fits better by two standard errors is taken, and an added strong candidate that does so with a coefficient whose
+    95 % interval excludes zero. Returns the kept fit, its comparisons and the additions."""
+
+    def start(candidate: Candidate) -> float:
+        return _initial([candidate], designs)[0]
+
+    def interval(fitted: FittedTerms) -> tuple[float, float] | None:
+        intervals = fitted_intervals(fitting, fitted)
+        return None if intervals is None else intervals.centre[-1]
+
+    partners = moves_with(result.selections)
+    kept, comparisons, added = weigh(fitting.physics, kept, result.cross_check, per_term, fitting, start, interval, partners)
+    for c in comparisons:
+        margin = f"{c.standard_errors:+.1f} standard errors" if math.isfinite(c.difference) else "the swapped model diverges"
+        progress(f"evidence: {c.replaced.feature} against {c.by.feature}: {margin}")
+    return kept, comparisons, added
+
+
+def choose_prior(constant: FittedTerms, fitting: Fitting, families: tuple[str, ...]) -> FamilyChoice:
+    """Each prior family of ``families`` for the constant fit's terms, fitted from its optimum; the choice on the
+    training measurements (:mod:`otgb.discovery.variation`)."""
+    start = [p.value for p in constant.priors]
+
+    def refit(family: str) -> FittedTerms:
+        return fitting(constant.candidates, start, family, natural_scales=False)
+
+    return choose_family_of(fitting.physics, constant, fitting.train, families, refit, fitting.seed)
+
+
+def prune(current: FittedTerms, fitting: Fitting) -> FittedTerms:
+    """Backward elimination: drop a kept term while the model without it is not beaten on held-out data.
+
+    The forward order comes from f_phi; the measurements may need a later term instead of an
+    earlier one (a network that learned drag as a mostly linear friction ranks velocity first):
+    the model without the earlier term then fits as well and the term goes. The reduced models are
+    fitted in ``current``'s prior family, started at its centres.
+    """
+    while len(current.candidates) > 1:
+        trials = []
+        for k in range(len(current.candidates)):
+            keep = [i for i in range(len(current.candidates)) if i != k]
+            init = [centre(current.priors[i]) for i in keep]
+            trials.append(fitting([current.candidates[i] for i in keep], init, current.family, natural_scales=False))
+        reduced = min(trials, key=lambda f: f.heldout_energy)
+        if beats(current.heldout, reduced.heldout):
+            return current
+        progress(
+            f"dropped {[_on(c) for c in current.candidates if c not in reduced.candidates]}: not needed by the held-out data"
+        )
+        current = reduced
+    return current
+
+
+def family_step(kept: FittedTerms, fitting: Fitting, families: tuple[str, ...]) -> tuple[FamilyChoice, list[dict]]:
+    """The prior family of ``kept``'s terms (:func:`choose_prior`); when it varies, the terms are pruned again in it.
+
+    Every earlier step fits constant coefficients. When the effect varies between trajectories, a
+    constant one misfits the measurements, and a further term can lower the held-out discrepancy by
+    taking up part of the variation (on the one-to-many pendulum, whose friction is one of two values,
+    Coulomb friction was added beside viscous friction). Fitted with the chosen family, such a term is
+    no longer needed: it is dropped (:func:`prune`) and the family is chosen again for the terms left.
+    Returns the choice and the dropped terms.
+    """
+    choice = choose_prior(kept, fitting, families)
+    if choice.fitted.family == "constant" or len(kept.candidates) == 1:
+        return choice, []
+    pruned = prune(choice.fitted, fitting)
+    if len(pruned.candidates) == len(kept.candidates):
+        return choice, []
+    dropped = [{"feature": c.feature, "component": c.component} for c in kept.candidates if c not in pruned.candidates]
+    constant = fitting(pruned.candidates, [centre(p) for p in pruned.priors], natural_scales=False)
+    return choose_prior(constant, fitting, families), dropped
+
+
+def final_regression(selections: list[Selection], designs: dict, kept: list[Candidate], settings: DiscoverySettings) -> list:
+    """The regression of f_phi on the kept terms alone, per component (intervals, shares, ambiguity)."""
+    terms = []
+    for selection in selections:
+        mine = [c for c in kept if c.component == selection.component]
+        if mine:
+            inclusion = {Candidate(f, selection.component): p for f, p in selection.inclusion.items()}
+            terms += describe_terms(designs[selection.component], mine, inclusion, settings.n_bootstrap, settings.seed)
+    return terms
+
+
+def _initial(candidates: list[Candidate], designs: dict) -> list[float]:
+    """Least-squares starting values per component for ``candidates``."""
+    values = {}
+    for component in dict.fromkeys(c.component for c in candidates):
+        mine = [c for c in candidates if c.component == component]
+        values.update(zip(mine, subset_coefficients(designs[component], mine)))
+    return [values[c] for c in candidates]

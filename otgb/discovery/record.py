@@ -1,0 +1,54 @@
+"""The record of a discovery run's steps, from which the verdict (:mod:`otgb.discovery.verdict`) and the report's
+files are made."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from torch import Tensor
+
+from otgb.discovery.closer import Closeness
+from otgb.discovery.evidence import Comparison
+from otgb.discovery.intervals import Intervals
+from otgb.discovery.locate import DisagreementMap
+from otgb.discovery.paired import PairedCheck
+from otgb.discovery.refine import FittedTerms
+from otgb.discovery.regression import SelectedTerm, Selection
+from otgb.discovery.search import SearchStep, Unsupported
+from otgb.discovery.variation import FamilyChoice
+
+
+@dataclass
+class Discovery:
+    """Everything the report shows."""
+
+    before: DisagreementMap
+    sentence_before: str
+    selections: list[Selection] = field(default_factory=list)
+    cross_check: list[dict] = field(default_factory=list)
+    fitted: FittedTerms | None = None
+    final_terms: list[SelectedTerm] = field(default_factory=list)  # the regression on f_phi of the kept terms
+    intervals: Intervals | None = None  # of the fitted coefficients (and spreads), :mod:`otgb.discovery.intervals`
+    family: FamilyChoice | None = None  # the prior family's choice and its evidence (otgb.discovery.variation)
+    evidence: list[Comparison] = field(default_factory=list)  # the kept terms against their alternatives (.evidence)
+    added: list[dict] = field(default_factory=list)  # strong candidates the evidence step added (.evidence)
+    dropped: list[dict] = field(default_factory=list)
+    before_on_test: DisagreementMap | None = None  # f_p on the test part: what ``after`` is compared with
+    after: DisagreementMap | None = None
+    sentence_after: str | None = None
+    paired_after: PairedCheck | None = None  # constant named terms on the test part's recorded inputs (.paired)
+    gap: dict[str, dict[str, float]] = field(default_factory=dict)
+    closer: Closeness | None = None  # whether the augmented physics is nearer to the test part than f_p (.closer)
+    correction_share: float | None = None
+    pointwise: dict[str, dict[str, float]] = field(default_factory=dict)  # against a known DGP (otgb.discovery.known)
+    draws: dict[str, Tensor] = field(default_factory=dict)  # the gap table's samples, as many as the test part
+    search: list[SearchStep] = field(default_factory=list)  # the library search's path, when it ran
+    unsupported: list[Unsupported] = field(default_factory=list)  # terms dropped from its model: intervals hold zero
+    route: str = "f_phi regression"  # which route named the kept terms
+    search_reason: str | None = None  # why the library search ran (None: it did not)
+    diverged: list[dict] = field(default_factory=list)  # solves that diverged, per step and model (otgb.discovery.log)
+    undertrained: dict[str, float] | None = None  # the grey-box's and f_p's held-out energy when it is no better
+
+    @property
+    def found(self) -> bool:
+        return self.fitted is not None and len(self.fitted.candidates) > 0

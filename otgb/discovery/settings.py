@@ -1,0 +1,121 @@
+"""The settings of a discovery run (the ``discover:`` section of ``otgb discover``'s config) and the measured
+trajectories it works on, split into training, validation and test parts."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from otgb.discovery.fit_cache import FitCache
+from otgb.discovery.library import MAX_DEGREE
+from otgb.discovery.refine import FAMILIES
+from otgb.errors import InputError
+
+
+class DiscoverySettings:
+    """Settings of ``otgb discover`` (the ``discover:`` section of its config).
+
+    Args:
+        n_permutations: Label permutations per p-value of the disagreement map and of the test of which model is nearer.
+        alpha: False discovery rate of the disagreement map (Benjamini-Hochberg), and the level of the paired check and of
+            the test of whether the augmented physics is nearer to the test part than f_p alone.
+        regions_per_axis: Blocks per spatial axis in which a field's cells are compared.
+        locate_rows: Most measured trajectories in a disagreement map (a random subset beyond, drawn with ``seed``),
+            and as many simulated: the permutation tests' time and memory grow with the square of the rows.
+        score_rows: Most measured trajectories of the training and validation parts that the coefficient fits and the
+            scores of fits, prior families and spreads use (a random subset beyond): each score grows with the square.
+        n_trajectories: Generated trajectories along which the correction f_phi is evaluated.
+        n_bootstrap: Bootstrap resamples (of f_phi's trajectories) for inclusion probabilities and f_phi's slope intervals.
+        theta_products: Whether the library also offers each feature times each physics parameter.
+        position_degree: On a field, the library also offers the grid's coordinates (``s``; ``x``, ``y``) and their
+            products and powers up to this degree, as terms fixed in space (a heater, a sink); 0: none.
+        strong_candidates: Candidates per component cross-checked alone (besides the selected ones), by univariate R^2.
+        fit_steps: L-BFGS iterations of each distribution-matching fit of coefficients.
+        fit_batch: Simulated (and at most as many measured) trajectories of each distribution-matching fit; its
+            memory stays bounded at any size (the gradient is taken a chunk of trajectories at a time).
+        families: Prior families tried for the coefficients, simplest first.
+        c2st_classifier: The C2ST judge of the gap table ("auto", "mlp" or "conv").
+        seed: Seed of every draw of the workflow.
+        fit_cache: A folder where each finished coefficient fit is stored and from which a run that asks for the same
+            fit reads it (:mod:`otgb.discovery.fit_cache`): a stopped run started again with the same folder resumes.
+            ``auto``: ``fit_cache`` beside the run directories (``runs/<config stem>/fit_cache``) under ``otgb discover``,
+            none where the workflow is called directly; ``null``: no fit is stored.
+    """
+
+    def __init__(
+        self,
+        n_permutations: int = 999,
+        alpha: float = 0.05,
+        regions_per_axis: int = 4,
+        locate_rows: int = 1000,
+        score_rows: int = 2000,
+        n_trajectories: int = 256,
+        n_bootstrap: int = 30,
+        theta_products: bool = False,
+        position_degree: int = 0,
+        strong_candidates: int = 3,
+        fit_steps: int = 50,
+        fit_batch: int = 1024,
+        families: tuple[str, ...] = FAMILIES,
+        c2st_classifier: str = "auto",
+        seed: int = 0,
+        fit_cache: str | None = "auto",
+    ) -> None:
+        if n_permutations < 19 or not 0 < alpha < 1 or regions_per_axis < 1 or min(locate_rows, score_rows) < 10:
+            raise InputError(
+                f"discover: need n_permutations >= 19, 0 < alpha < 1, regions_per_axis >= 1, locate_rows >= 10, "
+                f"score_rows >= 10; got {n_permutations}, {alpha}, {regions_per_axis}, {locate_rows}, {score_rows}"
+            )
+        if n_trajectories < 10 or n_bootstrap < 1 or fit_steps < 1 or fit_batch < 2 or strong_candidates < 0:
+            raise InputError(
+                "discover: need n_trajectories >= 10, n_bootstrap >= 1, fit_steps >= 1, fit_batch >= 2, strong_candidates >= 0"
+            )
+        if isinstance(position_degree, bool) or not (isinstance(position_degree, int) and 0 <= position_degree <= MAX_DEGREE):
+            raise InputError(f"discover.position_degree={position_degree!r} is invalid; expected a whole number 0..{MAX_DEGREE}")
+        unknown = [f for f in families if f not in FAMILIES]
+        if unknown or not families:
+            raise InputError(f"discover.families={list(families)}: expected a non-empty list among {list(FAMILIES)}")
+        self.n_permutations, self.alpha, self.regions_per_axis = n_permutations, alpha, regions_per_axis
+        self.locate_rows, self.score_rows = locate_rows, score_rows
+        self.n_trajectories, self.n_bootstrap, self.theta_products = n_trajectories, n_bootstrap, theta_products
+        self.position_degree = position_degree
+        self.strong_candidates, self.fit_steps, self.fit_batch = strong_candidates, fit_steps, fit_batch
+        self.families, self.c2st_classifier, self.seed = tuple(families), c2st_classifier, seed
+        self.fit_cache = fit_cache
+        self.cache = None if fit_cache in (None, "auto") else FitCache(fit_cache)  # refuses a file before any work
+        self.device = torch.device("cpu")  # of the coefficient fits: otgb discover's is the trainer's
+
+    def cache_beside(self, runs: Path) -> None:
+        """Resolve ``fit_cache: auto`` to the folder ``runs/fit_cache`` (``runs``: where the run directories are)."""
+        if self.fit_cache == "auto":
+            self.cache = FitCache(runs / "fit_cache")
+
+
+@dataclass
+class Measurements:
+    """The measured trajectories (n, T, *obs) of each part of the split, the training and test parts' x0 and theta
+    where the measurements recorded both, and the sd of their noise (0: noise-free or not given)."""
+
+    train: Tensor
+    val: Tensor
+    test: Tensor
+    train_inputs: tuple[Tensor, Tensor] | None = None
+    test_inputs: tuple[Tensor, Tensor] | None = None
+    noise: float = 0.0
+
+    @classmethod
+    def from_datamodule(cls, datamodule: Any) -> Measurements:
+        datamodule.setup("fit")
+        datamodule.setup("test")
+        val, test = datamodule.val_set["y"].flatten(0, 1), datamodule.test_set["y"].flatten(0, 1)
+        train_inputs = datamodule.source.training_inputs()
+        test_inputs = None if train_inputs is None else (datamodule.test_set["x0"], datamodule.test_set["theta"])
+        return cls(datamodule.measured, val, test, train_inputs, test_inputs, datamodule.measurement_noise)
+
+    def pairable(self) -> bool:
+        """Whether the paired check (:mod:`otgb.discovery.paired`) applies: inputs recorded and the noise given."""
+        return self.train_inputs is not None and self.noise > 0

@@ -1,0 +1,71 @@
+"""The verification on the test part, which no fit saw: the gap table, the test of which model is nearer, and the
+paired check on recorded inputs."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from otgb.discovery.closer import Closeness, closer
+from otgb.discovery.draws import at_most, simulate_candidate, simulate_from_priors
+from otgb.discovery.paired import PairedCheck, paired_check
+from otgb.discovery.refine import FittedTerms
+from otgb.discovery.settings import DiscoverySettings, Measurements
+from otgb.metrics.c2st import c2st
+from otgb.metrics.energy import energy_distance
+from otgb.metrics.mmd import mmd_multiscale
+from otgb.physics.augmented import Augmented
+from otgb.physics.base import PhysicsModel
+
+
+def gap_step(sources: dict[str, Tensor], test: Tensor, settings: DiscoverySettings) -> dict[str, dict[str, float]]:
+    """MMD, C2ST and energy distance of each source's draws against the test measurements, and the Reference."""
+    gap = {name: scores(draws, test, settings) for name, draws in sources.items()}
+    g = torch.Generator().manual_seed(settings.seed)
+    order = torch.randperm(len(test), generator=g)
+    half = len(test) // 2
+    gap["reference"] = scores(test[order[:half]], test[order[half : 2 * half]], settings)
+    return gap
+
+
+def scores(p: Tensor, q: Tensor, settings: DiscoverySettings) -> dict[str, float]:
+    shape = tuple(p.shape[1:])
+    p, q = p.flatten(1).double(), q.flatten(1).double()
+    judge = c2st(p.float(), q.float(), folds=5, seed=settings.seed, classifier=settings.c2st_classifier, trajectory_shape=shape)
+    return {
+        "mmd": float(mmd_multiscale(p, q)),
+        "c2st": float(judge["c2st"]),
+        "c2st_std": float(judge["c2st_std"]),
+        "energy": float(energy_distance(p, q)),
+    }
+
+
+CLOSER_DRAWS = 4  # trajectories of each model per test trajectory in the test of which is nearer: more draws, more power
+
+
+def closer_step(model: Augmented, physics: PhysicsModel, test: Tensor, settings: DiscoverySettings) -> Closeness | None:
+    """Whether the augmented physics ``model`` is nearer to the test measurements (at most ``locate_rows`` of them,
+    drawn at random) than f_p alone (:mod:`.closer`), on fresh draws of both: ``CLOSER_DRAWS`` per test trajectory, at
+    most ``locate_rows`` and at least as many as the test trajectories. None where too few trajectories of either
+    model stay finite to test (the augmented physics's divergences are logged and counted against it)."""
+    tested = at_most(test, settings.locate_rows, settings.seed)
+    n = max(len(tested), min(CLOSER_DRAWS * len(tested), settings.locate_rows))
+    augmented = simulate_candidate(model, n, settings.seed, "closer-augmented")
+    f_p = simulate_from_priors(physics, n, settings.seed, "closer-f_p")
+    try:
+        return closer(augmented, f_p, tested, settings.n_permutations, settings.alpha, settings.seed, n - len(augmented))
+    except ValueError:  # too few finite trajectories: the verdict says no test could run
+        return None
+
+
+def paired_after(fitted: FittedTerms, physics: PhysicsModel, data: Measurements, alpha: float) -> PairedCheck | None:
+    """The named terms' paired check on the test part at level ``alpha``, where it applies: recorded inputs, a given
+    noise and constant coefficients (with a spread, a coefficient per trajectory is unknown and nothing pairs)."""
+    if not data.pairable() or fitted.family != "constant":
+        return None
+    model, (x0, theta) = fitted.model(physics), data.test_inputs
+    coefficients = model.sample_theta(len(theta), torch.Generator())[:, theta.shape[1] :]  # constants: the same each row
+    names = {"model": "the augmented physics", "part": "the test part's"}
+    check = paired_check(model, data.test, x0, torch.cat([theta, coefficients], dim=1), data.noise, **names)
+    check.significant = check.pvalue < alpha
+    return check
