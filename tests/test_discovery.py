@@ -1325,6 +1325,46 @@ def _discover(tmp_path: Path, measured: Path, *extra: str) -> subprocess.Complet
     )
 
 
+def test_missing_effect_of_a_physics_model_built_in_python_takes_its_config_and_writes_nothing(tmp_path, monkeypatch):
+    """``MissingEffect(physics, **settings)``: the matching config's grey-box and budget, that model (its own prior on
+    omega) in place of the config's; on f_p's own trajectories nothing is detected, no grey-box is trained, and
+    nothing is written in the working directory."""
+    from otgb.discovery import MissingEffect
+    from otgb.physics import Uniform
+
+    physics = Pendulum(omega=Uniform(1.0, 2.0))
+    measured = generate_measured(physics, 200, 7)["y"]
+    monkeypatch.chdir(tmp_path)
+    result = MissingEffect(physics, n_permutations=199, seed=3).fit(measured.numpy())
+    assert not list(tmp_path.iterdir()), "nothing written in the working directory"
+    assert result.outcome == "nothing detected" and result.terms == [] and result.augmented_physics is None
+    assert repr(result.physics) == repr(physics) and result.to_dict()["found"] is False
+    result.write(tmp_path / "report")
+    assert (tmp_path / "report" / "report.md").is_file() and not (tmp_path / "report" / "augmented.yaml").exists()
+    assert result.config["data"]["physics"]["init_args"]["omega"]["init_args"] == {"low": 1.0, "high": 2.0}
+
+
+@pytest.mark.parametrize(
+    "make, expected",
+    [
+        (lambda M: M(Pendulum(), alhpa=0.01), "MissingEffect: no discover setting 'alhpa'; did you mean alpha?"),
+        (lambda M: M(Augmented(Pendulum(), [])), None),
+        (lambda M: M("configs/pendulum.yaml"), "MissingEffect: physics='configs/pendulum.yaml' is not an otgb.physics"),
+        (lambda M: M.from_config("a.yaml", ["--data.seed=1"]), "MissingEffect.from_config: overrides=['--data.seed=1']"),
+        (lambda M: M(Pendulum()).fit({"y": 1}), "MissingEffect.fit: measurements of type dict; expected a file path"),
+    ],
+)
+def test_missing_effect_refuses_bad_input_in_one_line(make, expected):
+    from otgb.discovery import MissingEffect
+
+    if expected is None:  # an augmented pendulum takes the pendulum's config
+        assert "configs/pendulum.yaml" in repr(make(MissingEffect)._files)
+        return
+    with pytest.raises(InputError) as raised:
+        make(MissingEffect)
+    assert str(raised.value).startswith(expected) and "\n" not in str(raised.value), str(raised.value)
+
+
 def test_discover_negative_control_names_nothing(tmp_path):
     done = _discover(tmp_path, _export(tmp_path, 0.0))
     assert done.returncode == 0, done.stderr[-2000:]

@@ -34,6 +34,7 @@ from otgb.discovery.result import DiscoveryResult
 from otgb.discovery.session import build
 from otgb.discovery.settings import DiscoverySettings
 from otgb.errors import InputError
+from otgb.physics.arguments import as_config
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 from otgb.runs import Run
@@ -56,8 +57,8 @@ class MissingEffect:
         if not isinstance(physics, PhysicsModel):
             raise InputError(f"MissingEffect: physics={physics!r} is not an otgb.physics.PhysicsModel; expected one")
         self._files = [str(built_in_config(physics))]
-        self._overrides = {f"discover.{key}": value for key, value in checked_settings(settings).items()}
-        self._physics: PhysicsModel | None = physics
+        self._overrides = {"data.physics": as_config(physics)}  # rebuilt by the parser: its config, logs and checkpoints
+        self._overrides |= {f"discover.{key}": value for key, value in checked_settings(settings).items()}
 
     @classmethod
     def from_config(cls, path: str | Path, overrides: Mapping[str, Any] | None = None) -> MissingEffect:
@@ -66,7 +67,7 @@ class MissingEffect:
         if overrides is not None and not isinstance(overrides, Mapping):
             raise InputError(f"MissingEffect.from_config: overrides={overrides!r}; expected a mapping of dotted keys to values")
         finder = cls.__new__(cls)
-        finder._files, finder._overrides, finder._physics = [str(Path(path).resolve())], dict(overrides or {}), None
+        finder._files, finder._overrides = [str(Path(path).resolve())], dict(overrides or {})
         return finder
 
     def fit(self, measurements: Any, run_dir: str | Path | None = None) -> DiscoveryResult:
@@ -79,7 +80,7 @@ class MissingEffect:
             measured, ckpt_path = measurements_in(measurements, folder)
             args = self._arguments(measured, ckpt_path)
             with inside(folder):  # the config's relative folders (runs/, its data cache) are the working folder's
-                result = discover(build(args, physics=self._physics))
+                result = discover(build(args))
             if run_dir is not None:
                 result.write(folder)
         return result
@@ -91,8 +92,7 @@ class MissingEffect:
         return args + ([f"--ckpt_path={ckpt_path}"] if ckpt_path else [])
 
     def __repr__(self) -> str:
-        given = f"physics={self._physics!r}" if self._physics is not None else repr(self._files[0])
-        return f"MissingEffect({given}, overrides={self._overrides!r})"
+        return f"MissingEffect.from_config({self._files[0]!r}, {self._overrides!r})"
 
 
 def built_in_config(physics: PhysicsModel) -> Path:

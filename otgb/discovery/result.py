@@ -60,7 +60,7 @@ class DiscoveryResult:
         facts: What the report says of the run besides the result (the measurements, the config files, ...).
         samples: The gap table's draws by source, for the distribution figure.
         components: The grey-box's component analysis, or None where no grey-box was trained.
-        config: The run's resolved config as YAML data, the base of ``augmented.yaml`` (None: not written).
+        config: The run's resolved config as YAML data, the base of ``augmented.yaml``.
         measured: Every measured trajectory (all parts), for a next round that needs them in a file.
         source: Where they came from (:mod:`otgb.data.sources`).
     """
@@ -70,7 +70,7 @@ class DiscoveryResult:
     facts: dict[str, Any]
     samples: dict[str, Tensor]
     components: dict | None
-    config: dict[str, Any] | None
+    config: dict[str, Any]
     measured: Tensor
     source: MeasurementSource
 
@@ -123,11 +123,11 @@ class DiscoveryResult:
 
     def write(self, run_dir: str | Path) -> Path:
         """Write ``report.md``, ``report.json``, ``figures/`` (and ``components.json``) into ``run_dir``, and
-        ``augmented.yaml`` where terms were named and the run has a config form. Returns ``run_dir``."""
+        ``augmented.yaml`` where terms were named. Returns ``run_dir``."""
         run_dir = Path(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         write_report(run_dir, self.discovery, self.physics, self.facts, self.samples, self.components)
-        if self.found and self.config is not None:
+        if self.found:
             config = copy.deepcopy(self.config)
             # the next round reads these measurements from a file (for generated ones, not the DGP: it would add the
             # named terms twice; for an array given from Python, a copy beside the report)

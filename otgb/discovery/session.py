@@ -34,12 +34,7 @@ class DescribedHelp(RawDescriptionHelpFormatter, DefaultHelpFormatter):
 
 
 class DiscoverCLI(OTGBCLI):
-    """The ``otgb fit`` parser plus the ``discover:`` section and ``--ckpt_path``; with ``physics``, that model instead
-    of the config's ``data.physics`` (a :class:`PhysicsModel` built in Python)."""
-
-    def __init__(self, *args: Any, physics: PhysicsModel | None = None, **kwargs: Any) -> None:
-        self.given_physics = physics
-        super().__init__(*args, **kwargs)
+    """The ``otgb fit`` parser plus the ``discover:`` section and ``--ckpt_path``."""
 
     def add_core_arguments_to_parser(self, parser) -> None:
         parser.add_class_arguments(DiscoverySettings, "discover")  # first: ``--help`` shows it before Lightning's sections
@@ -56,24 +51,19 @@ class DiscoverCLI(OTGBCLI):
             help="A checkpoint of an OT grey-box trained on these measurements with this config: skip training.",
         )
 
-    def instantiate_classes(self) -> None:
-        if self.given_physics is not None:
-            self.config["data"]["physics"] = self.given_physics
-        super().instantiate_classes()
-
 
 @dataclass(frozen=True)
 class Session:
     """A parsed discovery run: the Lightning objects (built, not started), its settings, the grey-box checkpoint to
-    load (None: train one), the resolved config as YAML data (the base of ``augmented.yaml``; None where a model built
-    in Python has no config form) and the config files it came from."""
+    load (None: train one), the resolved config as YAML data (the base of ``augmented.yaml``) and the config files it
+    came from."""
 
     datamodule: SimulationDataModule
     module: MapTraining
     trainer: Trainer
     settings: DiscoverySettings
     ckpt_path: str | None
-    config: dict[str, Any] | None
+    config: dict[str, Any]
     config_files: tuple[str, ...]
 
     @property
@@ -86,16 +76,15 @@ class Session:
         return Path(self.trainer.log_dir)
 
 
-def build(args: list[str], parser: dict[str, Any] | None = None, physics: PhysicsModel | None = None) -> Session:
+def build(args: list[str], parser: dict[str, Any] | None = None) -> Session:
     """Parse ``otgb discover`` arguments into a :class:`Session`; bad input is an :class:`InputError` before anything
     is written. ``parser``: the argument parser's keyword arguments (its name and help)."""
     quiet_known_harmless()  # as the otgb command, when discovery runs from Python
     with warnings.catch_warnings():  # the arguments come from the command line, after the word "discover"
         warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
         cli = DiscoverCLI(
-            MapTraining, SimulationDataModule, args=args, run=False, parser_kwargs=parser or {}, parser_class=ConciseParser,
-            physics=physics,
-        )  # fmt: skip
+            MapTraining, SimulationDataModule, args=args, run=False, parser_kwargs=parser or {}, parser_class=ConciseParser
+        )
     settings: DiscoverySettings = cli.config_init["discover"]
     refuse_position_terms_without_a_grid(settings, cli.datamodule.physics)
     refuse_written_log_dirs(cli.trainer)  # the report goes into the trainer's log folder
@@ -105,7 +94,7 @@ def build(args: list[str], parser: dict[str, Any] | None = None, physics: Physic
     ckpt_path = cli.config.get("ckpt_path")
     if ckpt_path is None:
         check_validation_in_budget(cli.datamodule, cli.trainer)
-    config = None if physics is not None else yaml.safe_load(cli.parser.dump(cli.config, format="yaml", skip_none=False))
+    config = yaml.safe_load(cli.parser.dump(cli.config, format="yaml", skip_none=False))
     files = tuple(str(c) for c in cli.config.get("config") or [])
     return Session(cli.datamodule, cli.model, cli.trainer, settings, ckpt_path, config, files)
 

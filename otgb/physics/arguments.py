@@ -40,6 +40,23 @@ class RecordsInitArgs:
         return f"{name}({args})"
 
 
+def as_config(value: Any) -> Any:
+    """``value`` as a config entry that jsonargparse builds again: an object that records its constructor's arguments
+    as its ``class_path`` and ``init_args`` (theirs too), a list or tuple as a list, anything else as it is. A default
+    written as ``lazy_instance(cls, **kwargs)`` is named as ``cls``."""
+    lazy_data = getattr(value, "lazy_get_init_data", None)
+    if lazy_data is not None:
+        data = lazy_data().as_dict()
+        return {"class_path": data["class_path"], "init_args": {k: as_config(v) for k, v in data.get("init_args", {}).items()}}
+    if isinstance(value, RecordsInitArgs):
+        cls = type(value)
+        arguments = {key: as_config(item) for key, item in value.init_args.items()}
+        return {"class_path": f"{cls.__module__}.{cls.__qualname__}", "init_args": arguments}
+    if isinstance(value, (list, tuple)):
+        return [as_config(item) for item in value]
+    return value
+
+
 def _recording(init: Callable[..., None]) -> Callable[..., None]:
     @functools.wraps(init)
     def __init__(self: Any, *args: Any, **kwargs: Any) -> None:
