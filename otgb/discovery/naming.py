@@ -18,7 +18,7 @@ from otgb.discovery.record import Discovery
 from otgb.discovery.refine import FittedTerms, Fitting, centre
 from otgb.discovery.regression import Selection, describe_terms, design_matrix, regress, subset_coefficients
 from otgb.discovery.scores import beats, difference, discrepancies
-from otgb.discovery.settings import DiscoverySettings, Measurements
+from otgb.discovery.settings import Context, DiscoverySettings, Measurements
 from otgb.discovery.variation import FamilyChoice
 from otgb.discovery.variation import choose_prior as choose_family_of
 from otgb.physics.base import PhysicsModel
@@ -80,13 +80,16 @@ def cross_check_step(strong: list[tuple], fitting: Fitting) -> list[dict]:
     return sorted(rows, key=lambda r: -r["gap_closed"])
 
 
-def fitting_for(physics: PhysicsModel, data: Measurements, settings: DiscoverySettings, designs: dict) -> Fitting:
+def fitting_for(
+    physics: PhysicsModel, data: Measurements, settings: DiscoverySettings, designs: dict, context: Context | None = None
+) -> Fitting:
     """The run's :class:`otgb.discovery.refine.Fitting`: the settings' steps, batch and seed, and each library
     candidate's natural scale, the slope at which its term alone would be as large as f_phi on its component."""
     natural = {c: _natural_scale(c, design) for design in designs.values() for c in design.candidates}
     train, val = (at_most(part, settings.score_rows, settings.seed) for part in (data.train, data.val))
     steps = (settings.fit_steps, settings.fit_batch, settings.seed)
-    return Fitting(physics, train, val, *steps, natural, settings.cache, settings.device)
+    context = context or Context.of(settings)
+    return Fitting(physics, train, val, *steps, natural, context.cache, context.device)
 
 
 def _natural_scale(candidate: Candidate, design: Any) -> float:

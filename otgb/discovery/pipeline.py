@@ -44,8 +44,8 @@ def discover(session: Session) -> DiscoveryResult:
     if before.any_significant:
         trained = load_or_fit(session)
         components = component_analysis(session.module, datamodule, seed=settings.seed)
-        with as_measured(session), stopped_by_signals(settings.cache, trained if session.ckpt_path is None else None):
-            result = run(session.module, data, settings, before)
+        with as_measured(session), stopped_by_signals(session.context.cache, trained if session.ckpt_path is None else None):
+            result = run(session.module, data, settings, before, session.context)
         add_pointwise_errors(result, session)
     else:
         result = nothing_detected(session, data, before)
@@ -99,7 +99,7 @@ def nothing_detected(session: Session, data: Measurements, before: DisagreementM
 def facts_of(session: Session) -> dict[str, Any]:
     """What the report says of the run besides the result: the measurements, the config files, their noise, where the
     grey-box's checkpoint was trained (if on other measurements) and the fit cache."""
-    datamodule, cache = session.datamodule, session.settings.cache
+    datamodule, cache = session.datamodule, session.context.cache
     facts = {"description": datamodule.describe(), "config": list(session.config_files)}
     facts["measurement_noise"] = datamodule.measurement_noise
     if datamodule.trained_on:  # the grey-box's checkpoint came from other measurements (said at load, kept here)

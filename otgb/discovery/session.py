@@ -13,7 +13,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import torch
 import yaml
 from jsonargparse import DefaultHelpFormatter
 from lightning import Trainer
@@ -21,7 +20,7 @@ from lightning import Trainer
 from otgb.command import OTGBCLI, check_validation_in_budget, refuse_written_log_dirs
 from otgb.data import SimulationDataModule
 from otgb.discovery.fit_cache import FitCache
-from otgb.discovery.settings import DiscoverySettings
+from otgb.discovery.settings import Context, DiscoverySettings
 from otgb.errors import InputError
 from otgb.parser_errors import ConciseParser
 from otgb.physics.base import PhysicsModel
@@ -54,7 +53,7 @@ class DiscoverCLI(OTGBCLI):
 
 @dataclass(frozen=True)
 class Session:
-    """A parsed discovery run: the Lightning objects (built, not started), its settings, the grey-box checkpoint to
+    """A parsed discovery run: the Lightning objects (built, not started), its settings and context, the grey-box checkpoint to
     load (None: train one), the resolved config as YAML data (the base of ``augmented.yaml``) and the config files it
     came from."""
 
@@ -62,6 +61,7 @@ class Session:
     module: MapTraining
     trainer: Trainer
     settings: DiscoverySettings
+    context: Context
     ckpt_path: str | None
     config: dict[str, Any]
     config_files: tuple[str, ...]
@@ -88,15 +88,14 @@ def build(args: list[str], parser: dict[str, Any] | None = None) -> Session:
     settings: DiscoverySettings = cli.config_init["discover"]
     refuse_position_terms_without_a_grid(settings, cli.datamodule.physics)
     refuse_written_log_dirs(cli.trainer)  # the report goes into the trainer's log folder
-    settings.cache_beside(Path(cli.trainer.log_dir).parent)
-    device = cli.trainer.strategy.root_device  # the coefficient fits run where the grey-box trains, on a CUDA device
-    settings.device = device if device.type == "cuda" else torch.device("cpu")  # (Apple's MPS has no float64 for scores)
+    # the fits' cache beside the run directories; the fits on the grey-box's device where it is a CUDA device
+    context = Context.of(settings, Path(cli.trainer.log_dir).parent, cli.trainer.strategy.root_device)
     ckpt_path = cli.config.get("ckpt_path")
     if ckpt_path is None:
         check_validation_in_budget(cli.datamodule, cli.trainer)
     config = yaml.safe_load(cli.parser.dump(cli.config, format="yaml", skip_none=False))
     files = tuple(str(c) for c in cli.config.get("config") or [])
-    return Session(cli.datamodule, cli.model, cli.trainer, settings, ckpt_path, config, files)
+    return Session(cli.datamodule, cli.model, cli.trainer, settings, context, ckpt_path, config, files)
 
 
 def refuse_position_terms_without_a_grid(settings: DiscoverySettings, physics: PhysicsModel) -> None:

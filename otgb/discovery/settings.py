@@ -87,12 +87,30 @@ class DiscoverySettings:
         self.families, self.c2st_classifier, self.seed = tuple(families), c2st_classifier, seed
         self.fit_cache = fit_cache
         self.cache = None if fit_cache in (None, "auto") else FitCache(fit_cache)  # refuses a file before any work
-        self.device = torch.device("cpu")  # of the coefficient fits: otgb discover's is the trainer's
+        self._frozen = True
 
-    def cache_beside(self, runs: Path) -> None:
-        """Resolve ``fit_cache: auto`` to the folder ``runs/fit_cache`` (``runs``: where the run directories are)."""
-        if self.fit_cache == "auto":
-            self.cache = FitCache(runs / "fit_cache")
+    def __setattr__(self, name: str, value: Any) -> None:
+        if getattr(self, "_frozen", False):
+            raise AttributeError(f"DiscoverySettings are frozen once validated: {name} cannot be set")
+        super().__setattr__(name, value)
+
+
+@dataclass(frozen=True)
+class Context:
+    """Where a discovery run computes and what it keeps, beside its settings: the device of the coefficient fits (a
+    CUDA device where the grey-box trains on one, else the CPU: Apple's MPS has no float64 for scores) and the fit
+    cache (:mod:`otgb.discovery.fit_cache`; None: no fit is stored)."""
+
+    device: torch.device = torch.device("cpu")
+    cache: FitCache | None = None
+
+    @classmethod
+    def of(cls, settings: DiscoverySettings, runs: Path | None = None, device: torch.device | None = None) -> Context:
+        """The context of ``settings``: ``fit_cache: auto`` resolved to ``runs/fit_cache`` where ``runs`` (the folder of
+        the run directories) is given, none otherwise; the fits on ``device`` if it is a CUDA device."""
+        cache = FitCache(runs / "fit_cache") if settings.fit_cache == "auto" and runs is not None else settings.cache
+        on_cuda = device is not None and device.type == "cuda"
+        return cls(device if on_cuda else torch.device("cpu"), cache)
 
 
 @dataclass

@@ -47,7 +47,7 @@ from otgb.discovery.record import Discovery
 from otgb.discovery.refine import FittedTerms, Fitting
 from otgb.discovery.scores import beats, difference, sample_scores
 from otgb.discovery.search import search
-from otgb.discovery.settings import DiscoverySettings, Measurements
+from otgb.discovery.settings import Context, DiscoverySettings, Measurements
 from otgb.discovery.verdict import sentence_after, undertrained_text
 from otgb.discovery.verify import closer_step, gap_step, paired_after
 from otgb.physics.augmented import Augmented
@@ -72,16 +72,18 @@ def locate_step(
     return result
 
 
-def run(module: Any, data: Measurements, settings: DiscoverySettings, before: DisagreementMap) -> Discovery:
+def run(
+    module: Any, data: Measurements, settings: DiscoverySettings, before: DisagreementMap, context: Context | None = None
+) -> Discovery:
     """Steps 3-5 on a trained grey-box ``module`` (a MapTraining), after a significant locate; a candidate model
     whose solve diverges is dropped where it diverged and listed in ``diverged``."""
     with DivergenceLog() as log:
-        result = _run(module, data, settings, before)
+        result = _run(module, data, settings, before, context or Context.of(settings))
     result.diverged = log.records
     return result
 
 
-def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: DisagreementMap) -> Discovery:
+def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: DisagreementMap, context: Context) -> Discovery:
     physics = module.physics
     result = Discovery(before, describe(before))
     result.selections, designs, draws, result.correction_share = name_step(module, settings)
@@ -93,7 +95,7 @@ def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: D
         else "f_phi's regression proposes no term"
     )
     strong = strong_candidates(result.selections, designs, settings.strong_candidates)
-    fitting = fitting_for(physics, data, settings, designs)
+    fitting = fitting_for(physics, data, settings, designs, context)
     result.cross_check = cross_check_step(strong, fitting)
     progress(f"cross-checked {len(strong)} candidates alone")
     result.undertrained = undertrained(module, fitting.val, settings)
