@@ -30,6 +30,7 @@ from otgb.discovery.details import cross_check_row, family_section, search_secti
 from otgb.discovery.discrepancy import discrepancy, row_terms
 from otgb.discovery.draws import at_most, simulate_candidate
 from otgb.discovery.evidence import Comparison, alternatives, choose_swap, moves_with, weigh
+from otgb.discovery.families import FAMILIES, centre
 from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.intervals import Intervals, fitted_intervals, sandwich_intervals
 from otgb.discovery.library import Candidate, build_library, feature_names, physical_name
@@ -40,7 +41,7 @@ from otgb.discovery.naming import family_step, fitting_for
 from otgb.discovery.paired import paired_check
 from otgb.discovery.prior_text import distribution, distribution_text
 from otgb.discovery.record import Discovery
-from otgb.discovery.refine import FAMILIES, FAMILY_REPEATS, CoefficientPrior, FittedTerms, Fitting, centre, fit
+from otgb.discovery.refine import FAMILY_REPEATS, CoefficientPrior, FittedTerms, Fitting, fit
 from otgb.discovery.regression import SelectedTerm, Selection, design_matrix, regress
 from otgb.discovery.report import augmented_config, write_report
 from otgb.discovery.scores import Scores, beats, discrepancies

@@ -6,7 +6,9 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from otgb.discovery.families import CONSTANT, varies
 from otgb.discovery.prior_text import distribution_text
+from otgb.discovery.scores import STANDARD_ERRORS, clears
 from otgb.discovery.variation import FIRST_SPREAD, SPREAD_DOUBLINGS
 from otgb.discovery.verdict import undertrained_text
 
@@ -17,7 +19,7 @@ def cross_check_row(row: dict[str, Any]) -> str:
     """One strong candidate alone added to f_p: its coefficient, its lead over f_p alone, and the share of the gap it
     closes where that lead exceeds two standard errors."""
     below, error = row["below_f_p"], row["standard_error"]
-    lead, closed = f"{below:.3g} ± {error:.2g}", f"{row['gap_closed']:.2f}" if below > 2 * error else "within noise"
+    lead, closed = f"{below:.3g} ± {error:.2g}", f"{row['gap_closed']:.2f}" if clears(below, error) else "within noise"
     if not math.isfinite(row["gap_closed"]):
         lead = closed = "diverges"
     return f"| {code(row['feature'])} | d{row['component']}/dt | {row['coefficient']:.4g} | {lead} | {closed} |"
@@ -178,19 +180,19 @@ def family_section(report: dict[str, Any]) -> list[str]:
     alike = [
         k
         for k, d in differences.items()
-        if k not in ("constant", report["family"]) and d["difference"] <= 2 * d["standard_error"]
+        if k not in (CONSTANT, report["family"]) and d["difference"] <= STANDARD_ERRORS * d["standard_error"]
     ]
     noise = report.get("run", {}).get("measurement_noise") or 0.0
     if noise > 0:
         lines.append(f"Every simulation compared with the measurements carried white noise of sd {noise:.4g} (theirs).")
-    elif report["family"] != "constant":
+    elif varies(report["family"]):
         lines.append(
             "The simulations carried no measurement noise (data.measurement_noise 0): noise in the measurements "
             "widens their spread at every time, as a coefficient that varies between trajectories would. Where the "
             "measurements are noisy, read this family as a varying coefficient or measurement noise, or give their "
             "noise's sd as data.measurement_noise (docs/discovery.md, measurement noise)."
         )
-    if report["family"] != "constant" and alike:
+    if varies(report["family"]) and alike:
         lines.append(
             f"The training measurements cannot tell the {report['family']} family from {' or '.join(alike)} (within two "
             "standard errors): that the coefficient varies is shown, the shape of its distribution is not."
@@ -205,7 +207,7 @@ def family_section(report: dict[str, Any]) -> list[str]:
             low, high = t["spread_interval"]
             spread = f"95 % interval [{low:.4g}, {high:.4g}]"
             lines.append(f"Spread of {code(t['feature'])} (half-width or standard deviation): {spread}.")
-        elif report["family"] == "constant":
+        elif not varies(report["family"]):
             lines.append(f"{code(t['feature'])} is constant; " + _spread_bound(t["excluded_spread"]))
     return lines
 

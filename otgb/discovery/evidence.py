@@ -43,10 +43,9 @@ from otgb.discovery.library import Candidate, implausible, signed_kind
 from otgb.discovery.log import progress
 from otgb.discovery.refine import FittedTerms
 from otgb.discovery.regression import Selection
-from otgb.discovery.scores import beats, difference
+from otgb.discovery.scores import STANDARD_ERRORS, beats, difference
 from otgb.physics.base import PhysicsModel
 
-AMBIGUOUS_WITHIN = 2.0  # standard errors
 MAX_SWAPS = 3  # rounds in which a better alternative replaces a kept term
 MAX_ADDITIONS = 2  # strong candidates added to the kept model
 
@@ -73,7 +72,7 @@ class Comparison:
     @property
     def ambiguous(self) -> bool:
         """Whether the measurements cannot tell the two apart (within two standard errors)."""
-        return math.isfinite(self.difference) and abs(self.standard_errors) <= AMBIGUOUS_WITHIN
+        return math.isfinite(self.difference) and abs(self.standard_errors) <= STANDARD_ERRORS
 
 
 Refit = Callable[[list[Candidate], list[float]], FittedTerms]  # constant coefficients fitted from a start
@@ -166,7 +165,7 @@ def _swap(physics, kept: FittedTerms, offered: Callable, refit: Refit, start: Ca
         comparison, kept = chosen
         by, replaced = comparison.by.feature, comparison.replaced.feature
         errors = comparison.standard_errors
-        if errors < -AMBIGUOUS_WITHIN:
+        if errors < -STANDARD_ERRORS:
             progress(f"evidence: {by} fits the validation measurements better than {replaced} by {-errors:.1f} standard errors")
         else:
             progress(f"evidence: {replaced} has the wrong sign for its physics; the measurements cannot tell it from {by}")
@@ -181,7 +180,7 @@ def choose_swap(physics: PhysicsModel, kept: FittedTerms, compared: list[tuple])
     term whose sign contradicts its physics (:func:`otgb.discovery.library.implausible`), an alternative of the same
     kind (a friction for a friction) with the right sign that the measurements cannot tell from it (the best fitting
     one); None if neither."""
-    better = [pair for pair in compared if pair[0].standard_errors < -AMBIGUOUS_WITHIN]
+    better = [pair for pair in compared if pair[0].standard_errors < -STANDARD_ERRORS]
     if better:
         return min(better, key=lambda pair: pair[0].difference)
     value = dict(zip(kept.candidates, (p.value for p in kept.priors)))

@@ -32,8 +32,9 @@ from torch import Tensor
 
 from otgb.discovery.chunked import Simulate, backward_in_chunks, chunk_size
 from otgb.discovery.discrepancy import batched_discrepancy, row_terms
+from otgb.discovery.families import centre, varies
 from otgb.discovery.log import diverged
-from otgb.discovery.refine import FitSample, FittedTerms, Fitting, centre
+from otgb.discovery.refine import FitSample, FittedTerms, Fitting
 from otgb.discovery.scores import term_names
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
@@ -57,7 +58,7 @@ class Intervals:
 def parameters(fitted: FittedTerms) -> Tensor:
     """p: the centres, then (families that vary) the half-widths (uniform, two-point) or standard deviations (normal)."""
     centres = [centre(prior) for prior in fitted.priors]
-    if fitted.family == "constant":
+    if not varies(fitted.family):
         return torch.tensor(centres, dtype=torch.float64)
     return torch.tensor(centres + [spread(prior) for prior in fitted.priors], dtype=torch.float64)
 
@@ -80,7 +81,7 @@ def sandwich_intervals(base: PhysicsModel, fitted: FittedTerms, measured: Tensor
     low, high = (p - Z95 * errors).tolist(), (p + Z95 * errors).tolist()
     k = len(fitted.candidates)
     centre = list(zip(low[:k], high[:k]))
-    width = None if fitted.family == "constant" else [(max(a, 0.0), b) for a, b in zip(low[k:], high[k:])]
+    width = None if not varies(fitted.family) else [(max(a, 0.0), b) for a, b in zip(low[k:], high[k:])]
     return Intervals(centre, width)
 
 
@@ -158,7 +159,7 @@ def _simulator(base: PhysicsModel, fitted: FittedTerms, variants: Tensor, sample
     def simulate(rows: slice) -> Tensor:
         index = torch.arange(len(variants) * n)[rows]
         variant, trajectory = variants[index // n], index % n
-        widths = variant[:, k:] if fitted.family != "constant" else torch.zeros_like(variant[:, :k])
+        widths = variant[:, k:] if varies(fitted.family) else torch.zeros_like(variant[:, :k])
         coefficients = variant[:, :k] + widths * sample.noise.double()[trajectory]
         theta = torch.cat([sample.theta[trajectory], coefficients.float()], 1)
         return model.observe(model.solve(model.vector_field, sample.x0[trajectory], theta)).double()

@@ -11,11 +11,12 @@ from torch import Tensor
 
 from otgb.discovery.draws import acting_components, at_most, greybox_draws
 from otgb.discovery.evidence import Comparison, moves_with, weigh
+from otgb.discovery.families import centre, varies
 from otgb.discovery.intervals import fitted_intervals
 from otgb.discovery.library import Candidate, build_library
 from otgb.discovery.log import progress
 from otgb.discovery.record import Discovery
-from otgb.discovery.refine import FittedTerms, Fitting, centre
+from otgb.discovery.refine import FittedTerms, Fitting
 from otgb.discovery.regression import Selection, describe_terms, design_matrix, regress, subset_coefficients
 from otgb.discovery.scores import beats, difference, discrepancies
 from otgb.discovery.settings import Context, DiscoverySettings, Measurements
@@ -210,7 +211,7 @@ def family_step(kept: FittedTerms, fitting: Fitting, families: tuple[str, ...]) 
     Returns the choice and the dropped terms.
     """
     choice = choose_prior(kept, fitting, families)
-    if choice.fitted.family == "constant" or len(kept.candidates) == 1:
+    if not varies(choice.fitted.family) or len(kept.candidates) == 1:
         return choice, []
     pruned = prune(choice.fitted, fitting)
     if len(pruned.candidates) == len(kept.candidates):

@@ -5,16 +5,12 @@ differentiable simulator; its coefficients, or the parameters of their prior, ar
 that its trajectories (inputs from f_p's priors) match the measured training trajectories in
 the unbiased energy distance (:mod:`otgb.metrics.energy`; no bandwidth to tune, unbiased, so
 it is 0 on average at the optimum whatever the batch size), between whole trajectories and
-between the values at each time step (:func:`discrepancy`). A prior family per fit:
-
-- ``constant``: c (the effect is the same in every trajectory);
-- ``uniform``: U(c - w, c + w); ``normal``: N(c, w^2); ``two_point``: c - w or c + w, equally likely
-  (the effect varies between trajectories; two-point: it takes one of two values, as two kinds of a
-  part or two operating conditions give).
+between the values at each time step (:func:`otgb.discovery.discrepancy.discrepancy`), in one prior family per fit
+(:mod:`otgb.discovery.families`).
 
 :mod:`otgb.discovery.variation` decides between them (a richer family only if it lowers the
 discrepancy by more than two standard errors, over simulation draws with common random numbers,
-:func:`discrepancies`), so whether the effect varies is decided by the data. The families are
+:func:`otgb.discovery.scores.discrepancies`), so whether the effect varies is decided by the data. The families are
 compared on the training measurements: the richer families add one width per term to hundreds of
 trajectories, too little to fit noise, and the training part is several times larger than the
 held-out parts, which a spread that varies over time needs to be seen.
@@ -31,6 +27,7 @@ from torch import Tensor
 
 from otgb.discovery.chunked import backward_in_chunks, chunk_size
 from otgb.discovery.discrepancy import Target, discrepancy_and_rows
+from otgb.discovery.families import CONSTANT, prior, standard_noise, varies
 from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.library import Candidate
 from otgb.discovery.log import diverged, held_divergences, logger, say_again
@@ -41,7 +38,6 @@ from otgb.physics.priors import Choice, Constant, Normal, Prior, Uniform
 from otgb.physics.solvers import current_solver
 from otgb.physics.terms import LibraryTerm
 
-FAMILIES = ("constant", "uniform", "normal", "two_point")  # simplest first
 FAMILY_REPEATS = 20  # simulation draws per score of a prior family on the training measurements
 # The loss a fit's L-BFGS sees where the model diverges: finite, so that its strong-Wolfe line search
 # backtracks (from an infinite value its cubic interpolation gives NaN, and every parameter becomes NaN).
@@ -125,39 +121,10 @@ class CoefficientPrior(torch.nn.Module):
 
     def draw(self, noise: Tensor) -> Tensor:
         """Coefficients (n, K) for standardised draws ``noise`` (n, K)."""
-        return self.centre + (torch.zeros_like(noise) if self.family == "constant" else self.width * noise)
+        return self.centre + (self.width * noise if varies(self.family) else torch.zeros_like(noise))
 
     def priors(self) -> list[Prior]:
-        centre, width = self.centre.tolist(), self.width.tolist()
-        if self.family == "constant":
-            return [Constant(c) for c in centre]
-        if self.family == "uniform":
-            return [Uniform(c - w, c + w) for c, w in zip(centre, width)]
-        if self.family == "two_point":
-            return [Choice([c - w, c + w]) for c, w in zip(centre, width)]
-        return [Normal(c, w) for c, w in zip(centre, width)]
-
-
-def centre(prior: Prior) -> float:
-    """The centre c of a fitted prior: the constant c, U(c - w, c + w), N(c, w^2) or {c - w, c + w}."""
-    if isinstance(prior, Constant):
-        return prior.value
-    if isinstance(prior, Uniform):
-        return (prior.low + prior.high) / 2
-    if isinstance(prior, Normal):
-        return prior.mean
-    if isinstance(prior, Choice):
-        return sum(prior.values) / len(prior.values)
-    raise TypeError(f"centre: a Constant, Uniform, Normal or Choice prior, got {type(prior).__name__}")
-
-
-def standard_noise(family: str, shape: tuple[int, ...], generator: torch.Generator) -> Tensor:
-    """Draws that a prior family's centre + width * noise maps to coefficients: N(0, 1) (normal), -1 or 1 equally
-    likely (two-point) or U(-1, 1)."""
-    if family == "normal":
-        return torch.randn(shape, generator=generator)
-    uniform = 2 * torch.rand(shape, generator=generator) - 1
-    return torch.where(uniform < 0, -1.0, 1.0) if family == "two_point" else uniform
+        return [prior(self.family, c, w) for c, w in zip(self.centre.tolist(), self.width.tolist())]
 
 
 @dataclass
@@ -269,7 +236,7 @@ class Fitting:
     device: torch.device = CPU  # where the fits run; the CPU from the first fit that fails elsewhere (:meth:`fit_on_device`)
     fallback: str | None = None  # why the fits moved to the CPU
 
-    def __call__(self, candidates: list[Candidate], init: list[float], family: str = "constant", natural_scales: bool = True):
+    def __call__(self, candidates: list[Candidate], init: list[float], family: str = CONSTANT, natural_scales: bool = True):
         """The fitted prior of ``family`` for ``candidates`` started at ``init``; without ``natural_scales`` each
         coefficient moves in units of its start's size. Read from the cache where it holds this fit."""
         scales = [float(self.natural[c]) for c in candidates] if natural_scales and self.natural else None

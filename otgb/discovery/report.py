@@ -10,12 +10,12 @@ import yaml
 
 from otgb.analysis.components import to_json
 from otgb.analysis.figures import close, components_figure, disagreement_figure, distribution_figure, save
+from otgb.discovery.families import centre
 from otgb.discovery.library import implausible, term_name
 from otgb.discovery.locate import DisagreementMap
 from otgb.discovery.markdown import markdown
 from otgb.discovery.prior_text import distribution, prior_dict
 from otgb.discovery.record import Discovery
-from otgb.discovery.refine import centre
 from otgb.discovery.verdict import confirmed, kept_terms, named_divergences, outcome, verdict
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel

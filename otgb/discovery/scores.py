@@ -143,4 +143,13 @@ def beats(a: Scores, b: Scores) -> bool:
     if not math.isfinite(gap):
         return gap == float("inf")
     resolution = 1e-9 * abs(b.mean)  # below float rounding: a tie, e.g. a term fitted to zero
-    return gap > 2 * error + resolution
+    return clears(gap, error, resolution)
+
+
+STANDARD_ERRORS = 2  # how many standard errors of a difference decide between two models, everywhere in discovery
+
+
+def clears(difference: float, standard_error: float, resolution: float = 0.0) -> bool:
+    """Whether ``difference`` exceeds :data:`STANDARD_ERRORS` standard errors (and ``resolution``, a tie below float
+    rounding): the one rule every choice between two models follows."""
+    return difference > STANDARD_ERRORS * standard_error + resolution

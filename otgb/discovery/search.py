@@ -48,9 +48,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from otgb.discovery.families import centre
 from otgb.discovery.intervals import fitted_intervals
 from otgb.discovery.library import Candidate
-from otgb.discovery.refine import FittedTerms, Fitting, centre
+from otgb.discovery.refine import FittedTerms, Fitting
 from otgb.discovery.regression import design_matrix
 from otgb.discovery.scores import Scores, beats, difference, discrepancies
 from otgb.physics.base import PhysicsModel

@@ -10,9 +10,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from otgb.discovery.families import FAMILIES
 from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.library import MAX_DEGREE
-from otgb.discovery.refine import FAMILIES
 from otgb.errors import InputError
 
 

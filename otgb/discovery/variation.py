@@ -24,10 +24,11 @@ from dataclasses import dataclass, field
 
 from torch import Tensor
 
-from otgb.discovery.refine import FAMILIES, FAMILY_REPEATS, MIN_WIDTH, FittedTerms
+from otgb.discovery.families import CONSTANT, FAMILIES, SPREAD_FAMILIES, prior, varies
+from otgb.discovery.refine import FAMILY_REPEATS, MIN_WIDTH, FittedTerms
 from otgb.discovery.scores import Scores, beats, difference, discrepancies
 from otgb.physics.base import PhysicsModel
-from otgb.physics.priors import Choice, Constant, Normal, Prior, Uniform
+from otgb.physics.priors import Constant, Prior
 
 FIRST_SPREAD = 0.02  # the first half-width tried by excluded_spread, in units of the coefficient's size
 SPREAD_DOUBLINGS = 8
@@ -62,20 +63,20 @@ def choose_prior(
     """Each family of ``families`` for ``constant``'s terms (``refit(family)`` fits one from the constant's optimum),
     scored on ``measured``; the nested check, the choice, and the spread the data allow if the constant is chosen."""
     score = lambda f: discrepancies(physics, f.candidates, f.priors, measured, seed, FAMILY_REPEATS)  # noqa: E731
-    fits, scores, stopped_short = [constant], {"constant": score(constant)}, []
-    for family in (f for f in families if f != "constant"):
+    fits, scores, stopped_short = [constant], {CONSTANT: score(constant)}, []
+    for family in filter(varies, families):
         richer = refit(family)
         scores[family] = score(richer)
-        if difference(scores["constant"], scores[family])[0] > 0:  # worse than the width-zero member of its family
+        if difference(scores[CONSTANT], scores[family])[0] > 0:  # worse than the width-zero member of its family
             stopped_short.append(family)
-            richer, scores[family] = at_zero_width(richer, constant), scores["constant"]
+            richer, scores[family] = at_zero_width(richer, constant), scores[CONSTANT]
         fits.append(richer)
     fits = [f for f in fits if f.family in families] or [constant]
     chosen = choose_family(fits, scores)
     differences = {f.family: difference(scores[chosen.family], scores[f.family]) for f in fits}
     choice = FamilyChoice(chosen, {f.family: scores[f.family].mean for f in fits}, differences, stopped_short)
-    if chosen.family == "constant":
-        spread_family = next((f for f in ("uniform", "normal") if f in families), "uniform")
+    if not varies(chosen.family):
+        spread_family = next((f for f in SPREAD_FAMILIES if f in families), SPREAD_FAMILIES[0])
         choice.excluded_spread = [
             excluded_spread(physics, constant, k, spread_family, measured, seed) for k in range(len(constant.candidates))
         ]
@@ -85,16 +86,9 @@ def choose_prior(
 def at_zero_width(richer: FittedTerms, constant: FittedTerms) -> FittedTerms:
     """``richer``'s family at the constant's centres and (nearly) zero width: the constant as a member of the family."""
     sizes = richer.scales or [abs(p.value) for p in constant.priors]
-    priors = [widened(richer.family, p.value, MIN_WIDTH * max(size, 1e-12)) for p, size in zip(constant.priors, sizes)]
+    priors = [prior(richer.family, p.value, MIN_WIDTH * max(size, 1e-12)) for p, size in zip(constant.priors, sizes)]
     candidates = list(constant.candidates)
     return FittedTerms(richer.family, candidates, priors, constant.heldout, richer.loss, richer.start, richer.scales)
-
-
-def widened(family: str, centre: float, width: float) -> Prior:
-    """A prior of ``family`` around ``centre``: half-width (uniform, two-point) or standard deviation (normal) ``width``."""
-    if family == "two_point":
-        return Choice([centre - width, centre + width])
-    return Uniform(centre - width, centre + width) if family == "uniform" else Normal(centre, width)
 
 
 def excluded_spread(
@@ -108,7 +102,7 @@ def excluded_spread(
 
     def excluded(width: float) -> bool:
         priors: list[Prior] = [Constant(p.value) for p in constant.priors]
-        priors[k] = widened(family, centre, width)
+        priors[k] = prior(family, centre, width)
         return beats(baseline, discrepancies(physics, constant.candidates, priors, measured, seed, SPREAD_REPEATS))
 
     allowed, width = 0.0, FIRST_SPREAD * size

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import math
 
+from otgb.discovery.families import centre
 from otgb.discovery.library import fixed_in_space, implausible, term_name
 from otgb.discovery.locate import DisagreementMap, describe
 from otgb.discovery.record import Discovery
-from otgb.discovery.refine import centre
 from otgb.discovery.scores import term_names
 from otgb.physics.base import PhysicsModel
 

@@ -8,6 +8,7 @@ from torch import Tensor
 
 from otgb.discovery.closer import Closeness, closer
 from otgb.discovery.draws import at_most, simulate_candidate, simulate_from_priors
+from otgb.discovery.families import varies
 from otgb.discovery.paired import PairedCheck, paired_check
 from otgb.discovery.refine import FittedTerms
 from otgb.discovery.settings import DiscoverySettings, Measurements
@@ -61,7 +62,7 @@ def closer_step(model: Augmented, physics: PhysicsModel, test: Tensor, settings:
 def paired_after(fitted: FittedTerms, physics: PhysicsModel, data: Measurements, alpha: float) -> PairedCheck | None:
     """The named terms' paired check on the test part at level ``alpha``, where it applies: recorded inputs, a given
     noise and constant coefficients (with a spread, a coefficient per trajectory is unknown and nothing pairs)."""
-    if not data.pairable() or fitted.family != "constant":
+    if not data.pairable() or varies(fitted.family):
         return None
     model, (x0, theta) = fitted.model(physics), data.test_inputs
     coefficients = model.sample_theta(len(theta), torch.Generator())[:, theta.shape[1] :]  # constants: the same each row
