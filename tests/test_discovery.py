@@ -161,7 +161,7 @@ def test_on_a_field_whose_library_held_no_term_fixed_in_space_the_verdict_says_h
     rod = outside_the_library(nothing, AdvectionDiffusion())
     assert rod.startswith(OUTSIDE_THE_LIBRARY) and rod.endswith("--discover.position_degree 2 adds s and its powers")
     assert "adds x and y and their powers and products" in outside_the_library(nothing, ReactionDiffusion(n_grid=4))
-    nothing.selections = [SimpleNamespace(inclusion={"T": 0.1, "s^2": 0.0})]
+    nothing = dataclasses.replace(nothing, selections=[SimpleNamespace(inclusion={"T": 0.1, "s^2": 0.0})])
     assert outside_the_library(nothing, AdvectionDiffusion()) == OUTSIDE_THE_LIBRARY, "they were offered"
     assert verdict(nothing, AdvectionDiffusion())[1] == OUTSIDE_THE_LIBRARY
 
@@ -643,26 +643,26 @@ def test_terms_that_leave_the_test_part_no_closer_than_f_p_are_not_called_found_
         "p = 0.97, threshold 0.05)"
     ), head
     assert after == result.sentence_after and outside == OUTSIDE_THE_LIBRARY and not confirmed(result)
-    result.closer = None  # the augmented physics's solves diverged: no test could run
+    result = dataclasses.replace(result, closer=None)  # the augmented physics's solves diverged: no test could run
     assert verdict(result, Pendulum())[0].endswith(
         "nearer to the measurements than f_p alone (no test of which is nearer could run: too few of the models' "
         "trajectories stayed finite)"
     )
     assert outcome(result) == "named, not confirmed"
-    result.closer = closeness(0.262, 0.134, 150, 0.97)
+    result = dataclasses.replace(result, closer=closeness(0.262, 0.134, 150, 0.97))
     result.closer.diverged = 3  # nearer by the numbers, but some of its trajectories blew up
     result.closer.augmented, result.closer.permutation_pvalue, result.closer.normal_pvalue = 0.01, 0.001, 0.001
     assert "(energy distance 0.01 against f_p's 0.134, from 600 and 600 draws; half the test measurements against the " \
         "other half: -0.0123; 3 of its 603 trajectories diverged)" in verdict(result, Pendulum())[0]  # fmt: skip
     assert outcome(result) == "named, not confirmed"
-    result.closer = closeness(0.262, 0.134, 150, 0.97)
+    result = dataclasses.replace(result, closer=closeness(0.262, 0.134, 150, 0.97))
     nothing = Discovery(before=SimpleNamespace(any_significant=True), sentence_before="they differ")
     assert verdict(nothing, Pendulum()) == [
         "no missing effect found in the library: the measurements differ from f_p (they differ), but no candidate term "
         "fits the validation part better than f_p alone by two standard errors",
         OUTSIDE_THE_LIBRARY,
     ]
-    nothing.undertrained = {"validation_trajectories": 150}
+    nothing = dataclasses.replace(nothing, undertrained={"validation_trajectories": 150})
     assert verdict(nothing, Pendulum())[-1] == (
         "the OT grey-box does not beat f_p alone on the 150 validation trajectories by two standard errors (undertrained, "
         "or too few to tell; the gap table is on the test part), and the library search named nothing"
@@ -679,7 +679,7 @@ def test_nothing_kept_but_a_model_close_to_two_standard_errors_is_called_undecid
         return SearchStep(fitted.candidates, 0.8, fitted, versus_f_p=(below, error))
 
     result = Discovery(before=SimpleNamespace(any_significant=True), sentence_before="they differ", search_reason="why")
-    result.search = [step("velocity*|velocity|", 0.316, 0.22), step("velocity", 0.2, 0.25)]
+    result = dataclasses.replace(result, search=[step("velocity*|velocity|", 0.316, 0.22), step("velocity", 0.2, 0.25)])
     head, undecided, outside = verdict(result, Pendulum())
     assert head.endswith("but no candidate term fits the validation part better than f_p alone by two standard errors")
     assert undecided == (
@@ -688,7 +688,8 @@ def test_nothing_kept_but_a_model_close_to_two_standard_errors_is_called_undecid
         "tell whether it describes the process or fits their noise: more measurements would decide"
     ), undecided
     assert outside == OUTSIDE_THE_LIBRARY and outcome(result) == "nothing found"
-    result.search = [step("velocity", 0.2, 0.25), step("sign(velocity)", float("-inf"), float("nan"))]
+    diverging = step("sign(velocity)", float("-inf"), float("nan"))
+    result = dataclasses.replace(result, search=[step("velocity", 0.2, 0.25), diverging])
     assert verdict(result, Pendulum())[1:] == [OUTSIDE_THE_LIBRARY], "within one standard error: no such sentence"
 
 
@@ -699,7 +700,7 @@ def test_a_library_search_whose_joint_fit_diverged_is_not_reported_as_candidates
     result = Discovery(
         before=SimpleNamespace(any_significant=True), sentence_before="they differ", search_reason="f_phi named nothing"
     )
-    result.diverged = [joint]
+    result = dataclasses.replace(result, diverged=[joint])
     head = verdict(result, Pendulum())[0]
     assert head == (
         "no missing effect found in the library: the measurements differ from f_p (they differ), but the library search "
@@ -707,9 +708,10 @@ def test_a_library_search_whose_joint_fit_diverged_is_not_reported_as_candidates
         "Solves that diverged), so no term was compared with f_p alone"
     ), head
     assert outcome(result) == "nothing found"
-    result.diverged = [joint | {"what": "score", "diverged": 3, "of": 30}, {**joint, "terms": ["velocity on dvelocity/dt"]}]
+    scored = [joint | {"what": "score", "diverged": 3, "of": 30}, {**joint, "terms": ["velocity on dvelocity/dt"]}]
+    result = dataclasses.replace(result, diverged=scored)
     assert "its 2 local candidates diverged (score; " in verdict(result, Pendulum())[0], "its fit ended finite, its score not"
-    result.diverged = []
+    result = dataclasses.replace(result, diverged=[])
     assert verdict(result, Pendulum())[0].endswith(", but the library search scored no candidate model, so no term was "
                                                    "compared with f_p alone")  # fmt: skip
 
@@ -770,7 +772,7 @@ def test_constant_terms_are_checked_on_the_test_parts_recorded_inputs_and_an_ine
     head, after = verdict(result, Pendulum())[:2]
     assert head.startswith("missing effect found, not exactly: viscous friction") and after == result.sentence_after, head
     assert not confirmed(result)
-    result.paired_after = exact
+    result = dataclasses.replace(result, paired_after=exact)
     assert verdict(result, Pendulum())[0].startswith("missing effect found, the gap is closed") and confirmed(result)
 
 
@@ -797,7 +799,8 @@ def test_a_gap_the_c2st_still_sees_is_not_called_closed():
         assert outcome(result) == "gap closed" and confirmed(result), within
     result.gap["augmented"]["c2st"] = 0.5 + 2 * 0.106 + 1e-3  # the rule of test_part_blind for f_p, the same number
     assert outcome(result) == "partly found"
-    result.paired_after = SimpleNamespace(significant=True)  # recorded inputs, missed beyond the noise
+    missed = SimpleNamespace(significant=True)  # recorded inputs, missed beyond the noise
+    result = dataclasses.replace(result, paired_after=missed)
     assert outcome(result) == "partly found", "the C2ST tells them apart: the distributions do not agree"
     result.gap["augmented"]["c2st"] = 0.5
     assert outcome(result) == "found, not exactly"

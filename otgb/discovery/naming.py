@@ -15,7 +15,6 @@ from otgb.discovery.families import centre, varies
 from otgb.discovery.intervals import fitted_intervals
 from otgb.discovery.library import Candidate, build_library
 from otgb.discovery.log import progress
-from otgb.discovery.record import Discovery
 from otgb.discovery.refine import FittedTerms, Fitting
 from otgb.discovery.regression import Selection, describe_terms, design_matrix, regress, subset_coefficients
 from otgb.discovery.scores import beats, difference, discrepancies
@@ -143,9 +142,9 @@ def add_step(selections: list[Selection], designs: dict, fitting: Fitting):
 
 
 def evidence_step(
-    kept: FittedTerms, result: Discovery, designs: dict, fitting: Fitting, per_term: int
+    kept: FittedTerms, selections: list[Selection], cross_check: list[dict], designs: dict, fitting: Fitting, per_term: int
 ) -> tuple[FittedTerms, list[Comparison], list[dict]]:  # fmt: skip
-    """The kept terms against every single-term swap among ``result``'s strong candidates, the terms each moves with in
+    """The kept terms against every single-term swap among the ``cross_check``'s strong candidates, the terms each moves with in
     its regression and Coulomb friction, on the validation measurements (:mod:`otgb.discovery.evidence`); a swap that
     fits better by two standard errors is taken, and an added strong candidate that does so with a coefficient whose
     95 % interval excludes zero. Returns the kept fit, its comparisons and the additions."""
@@ -157,8 +156,8 @@ def evidence_step(
         intervals = fitted_intervals(fitting, fitted)
         return None if intervals is None else intervals.centre[-1]
 
-    partners = moves_with(result.selections)
-    kept, comparisons, added = weigh(fitting.physics, kept, result.cross_check, per_term, fitting, start, interval, partners)
+    partners = moves_with(selections)
+    kept, comparisons, added = weigh(fitting.physics, kept, cross_check, per_term, fitting, start, interval, partners)
     for c in comparisons:
         margin = f"{c.standard_errors:+.1f} standard errors" if math.isfinite(c.difference) else "the swapped model diverges"
         progress(f"evidence: {c.replaced.feature} against {c.by.feature}: {margin}")

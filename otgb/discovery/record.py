@@ -18,9 +18,9 @@ from otgb.discovery.search import SearchStep, Unsupported
 from otgb.discovery.variation import FamilyChoice
 
 
-@dataclass
+@dataclass(frozen=True)
 class Discovery:
-    """Everything the report shows."""
+    """Everything the report shows: each step's result, written once where the step returns it."""
 
     before: DisagreementMap
     sentence_before: str

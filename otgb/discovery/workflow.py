@@ -23,6 +23,7 @@ table the test part.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from torch import Tensor
@@ -46,7 +47,7 @@ from otgb.discovery.paired import PairedCheck
 from otgb.discovery.record import Discovery
 from otgb.discovery.refine import FittedTerms, Fitting
 from otgb.discovery.scores import beats, difference, sample_scores
-from otgb.discovery.search import search
+from otgb.discovery.search import SearchStep, Unsupported, search
 from otgb.discovery.settings import Context, DiscoverySettings, Measurements
 from otgb.discovery.verdict import sentence_after, undertrained_text
 from otgb.discovery.verify import closer_step, gap_step, paired_after
@@ -78,59 +79,75 @@ def run(
     """Steps 3-5 on a trained grey-box ``module`` (a MapTraining), after a significant locate; a candidate model
     whose solve diverges is dropped where it diverged and listed in ``diverged``."""
     with DivergenceLog() as log:
-        result = _run(module, data, settings, before, context or Context.of(settings))
-    result.diverged = log.records
-    return result
+        named, fitting, designs = name_and_add(module, data, settings, before, context or Context.of(settings))
+        result = verify(named, module, data, settings, fitting, designs)
+    return replace(result, diverged=log.records)
 
 
-def _run(module: Any, data: Measurements, settings: DiscoverySettings, before: DisagreementMap, context: Context) -> Discovery:
+def name_and_add(
+    module: Any, data: Measurements, settings: DiscoverySettings, before: DisagreementMap, context: Context
+) -> tuple[Discovery, Fitting, dict]:
+    """Name f_phi's terms, cross-check the strong candidates, add along f_phi's route or the library search, weigh the
+    evidence and choose the prior family; returns the record so far, the fits' :class:`Fitting` and the designs."""
     physics = module.physics
-    result = Discovery(before, describe(before))
-    result.selections, designs, draws, result.correction_share = name_step(module, settings)
-    selected = [(t.candidate, t.coefficient) for s in result.selections for t in s.terms]
+    selections, designs, _, correction_share = name_step(module, settings)
+    selected = [(t.candidate, t.coefficient) for s in selections for t in s.terms]
     proposed = [f"{c.feature} on d{c.component}/dt: {v:.4g}" for c, v in selected]
     progress(
         f"f_phi's regression proposes {proposed}; each is checked against the measurements next"
         if proposed
         else "f_phi's regression proposes no term"
     )
-    strong = strong_candidates(result.selections, designs, settings.strong_candidates)
+    strong = strong_candidates(selections, designs, settings.strong_candidates)
     fitting = fitting_for(physics, data, settings, designs, context)
-    result.cross_check = cross_check_step(strong, fitting)
+    cross_check = cross_check_step(strong, fitting)
     progress(f"cross-checked {len(strong)} candidates alone")
-    result.undertrained = undertrained(module, fitting.val, settings)
-    kept, truncated = None, False
-    if selected and result.undertrained is None:
-        kept, result.dropped, truncated = add_step(result.selections, designs, fitting)
+    unused = undertrained(module, fitting.val, settings)
+    kept, dropped, truncated = None, [], False
+    if selected and unused is None:
+        kept, dropped, truncated = add_step(selections, designs, fitting)
         progress(f"kept {[c.feature for c in kept.candidates]}, coefficients {short(kept.priors)}")
-    unused = bool(selected) and result.undertrained is not None
-    result.search_reason = search_reason(physics, kept, truncated, fitting.val, settings, unused)
-    if result.search_reason is not None:
-        kept = search_step(kept, result, designs, fitting)
+    reason = search_reason(physics, kept, truncated, fitting.val, settings, bool(selected) and unused is not None)
+    searched = search_step(kept, reason, designs, fitting) if reason is not None else Searched(kept)
+    kept, route = searched.kept, "library search" if searched.replaced else "f_phi regression"
+    dropped = [] if searched.replaced else dropped
+    evidence, added, family = [], [], None
     if kept is not None:
-        kept, result.evidence, result.added = evidence_step(kept, result, designs, fitting, settings.strong_candidates)
-        result.family, dropped = family_step(kept, fitting, settings.families)
-        result.dropped += dropped
-        result.fitted = result.family.fitted
-        progress(f"fitted {result.fitted.family} coefficients {short(result.fitted.priors)}")
-    sources = {
-        "f_p": simulate_from_priors(physics, len(data.test), settings.seed, "gap-f_p"),
-        "greybox": generated(module, len(data.test), settings.seed),
-    }
-    if result.found:
-        result.final_terms = final_regression(result.selections, designs, result.fitted.candidates, settings)
-        result.intervals = fitted_intervals(fitting, result.fitted)
-        progress(f"intervals: {rounded(result.intervals.centre) if result.intervals else 'none (the fit is not at a minimum)'}")
-        sources["augmented"] = simulate_candidate(result.fitted.model(physics), len(data.test), settings.seed, "gap-augmented")
-        result.before_on_test = locate_step(physics, data.test, settings, "f_p-test")
-        result.after = locate_step(result.fitted.model(physics), data.test, settings, "augmented")
-        result.paired_after = paired_after(result.fitted, physics, data, settings.alpha)
+        kept, evidence, added = evidence_step(kept, selections, cross_check, designs, fitting, settings.strong_candidates)
+        family, pruned = family_step(kept, fitting, settings.families)
+        dropped = dropped + pruned
+        progress(f"fitted {family.fitted.family} coefficients {short(family.fitted.priors)}")
+    named = Discovery(
+        before, describe(before), selections, cross_check, family.fitted if family else None, family=family,
+        evidence=evidence, added=added, dropped=dropped, correction_share=correction_share, search=searched.steps,
+        unsupported=searched.unsupported, route=route, search_reason=reason, undertrained=unused,
+    )  # fmt: skip
+    return named, fitting, designs
+
+
+def verify(
+    named: Discovery, module: Any, data: Measurements, settings: DiscoverySettings, fitting: Fitting, designs: dict
+) -> Discovery:
+    """On the test part, which no fit saw: the gap table of f_p, the grey-box and the augmented physics, and for named
+    terms their intervals, the disagreement maps before and after, the paired check and the test of which is nearer."""
+    physics, n = module.physics, len(data.test)
+    sources = {"f_p": simulate_from_priors(physics, n, settings.seed, "gap-f_p"), "greybox": generated(module, n, settings.seed)}
+    found: dict[str, Any] = {}
+    if named.found:  # each solve gets a model of its own, as each counts its solves (otgb.physics.solvers)
+        found["final_terms"] = final_regression(named.selections, designs, named.fitted.candidates, settings)
+        found["intervals"] = fitted_intervals(fitting, named.fitted)
+        shown = rounded(found["intervals"].centre) if found["intervals"] else "none (the fit is not at a minimum)"
+        progress(f"intervals: {shown}")
+        sources["augmented"] = simulate_candidate(named.fitted.model(physics), n, settings.seed, "gap-augmented")
+        found["before_on_test"] = locate_step(physics, data.test, settings, "f_p-test")
+        found["after"] = locate_step(named.fitted.model(physics), data.test, settings, "augmented")
+        found["paired_after"] = paired_after(named.fitted, physics, data, settings.alpha)
     progress("verifying on the test part")
-    result.gap, result.draws = gap_step(sources, data.test, settings), sources
-    if result.found:
-        result.closer = closer_step(result.fitted.model(physics), physics, data.test, settings)
-        result.sentence_after = sentence_after(result)
-    return result
+    result = replace(named, gap=gap_step(sources, data.test, settings), draws=sources, **found)
+    if not result.found:
+        return result
+    result = replace(result, closer=closer_step(result.fitted.model(physics), physics, data.test, settings))
+    return replace(result, sentence_after=sentence_after(result))
 
 
 def search_reason(
@@ -158,20 +175,30 @@ def search_reason(
     return None
 
 
-def search_step(kept: FittedTerms | None, result: Discovery, designs: dict, fitting: Fitting) -> FittedTerms | None:
-    """The library search (:mod:`otgb.discovery.search`) for ``result.search_reason``; its model replaces ``kept`` as
-    :func:`replaces` says. Returns the constant fit kept."""
-    progress(f"{result.search_reason}: searching the local library")
+@dataclass(frozen=True)
+class Searched:
+    """What the library search gave: the constant fit kept, whether its model replaced f_phi's, its path and the terms
+    it dropped because their intervals hold zero."""
+
+    kept: FittedTerms | None
+    replaced: bool = False
+    steps: list[SearchStep] = field(default_factory=list)
+    unsupported: list[Unsupported] = field(default_factory=list)
+
+
+def search_step(kept: FittedTerms | None, reason: str, designs: dict, fitting: Fitting) -> Searched:
+    """The library search (:mod:`otgb.discovery.search`), run for ``reason``; its model replaces ``kept`` as
+    :func:`replaces` says."""
+    progress(f"{reason}: searching the local library")
     candidates = [c for design in designs.values() for c in design.candidates]
     current = {} if kept is None else {c: p.value for c, p in zip(kept.candidates, kept.priors)}
     init = [current.get(c, 0.0) for c in candidates]
-    found, result.search, result.unsupported = search(candidates, init, fitting, progress)
+    found, steps, unsupported = search(candidates, init, fitting, progress)
     if found is None or (kept is not None and not replaces(found, kept)):
         progress("search: nothing better than " + ("f_phi's terms" if kept else "f_p alone"))
-        return kept
-    result.dropped, result.route = [], "library search"
+        return Searched(kept, False, steps, unsupported)
     progress(f"search: kept {[c.feature for c in found.candidates]}, coefficients {short(found.priors)}")
-    return found
+    return Searched(found, True, steps, unsupported)
 
 
 def replaces(found: FittedTerms, kept: FittedTerms) -> bool:
