@@ -40,6 +40,7 @@ from pathlib import Path
 import optuna
 import torch
 import yaml
+from result_tables import header, listed, read_json, results_in, row, spaced
 from torch import Tensor, nn
 
 from otgb.data.measured import generate_joint
@@ -62,7 +63,7 @@ def runs(args: argparse.Namespace) -> list[tuple[int, int]]:
 def sweep(args: argparse.Namespace) -> None:
     out = Path(args.out)
     path = out / f"{args.name}.json"
-    results = json.loads(path.read_text()) if path.exists() else {}
+    results = read_json(path)
     for seed in args.seeds:
         for budget, batch in runs(args):
             key = f"{budget}/{batch}/seed{seed}"
@@ -194,16 +195,12 @@ def test_abs_err(run) -> float:
 
 def averaged_lines(out: Path) -> list[str]:
     """A line per ``average`` result in ``out``."""
-    lines = []
-    for path in sorted(out.glob("averaged/*.json")):
-        r = json.loads(path.read_text())
-        size = f"{r['budget']:,}".replace(",", " ")
-        lines.append(
-            f"- `{r['sweep']}` at {size} simulations, batch {r['batch']}: one grey-box with the mean of its "
-            f"{len(r['per_seed'])} seeds' f_phi has test ABS ERR {r['averaged']:.4g}; the seeds alone "
-            f"{mean_spread(r['per_seed'])} ({', '.join(f'{v:.4g}' for v in r['per_seed'])}). {r['machine']}."
-        )
-    return lines
+    return [
+        f"- `{r['sweep']}` at {spaced(r['budget'])} simulations, batch {r['batch']}: one grey-box with the mean of its "
+        f"{len(r['per_seed'])} seeds' f_phi has test ABS ERR {r['averaged']:.4g}; the seeds alone "
+        f"{mean_spread(r['per_seed'])} ({listed(r['per_seed'])}). {r['machine']}."
+        for r in results_in(out, "averaged/*.json").values()
+    ]
 
 
 def gap_lines(out: Path) -> list[str]:
@@ -213,18 +210,15 @@ def gap_lines(out: Path) -> list[str]:
         "standard error over the inputs) and the energy distance of its outputs to the DGP's for as many other inputs (unbiased, "
         "on pooled-standardised values: 0 on average for equal distributions; for the true map, the noise, with its sd over "
         "random halves of the DGP's outputs).", "",
-        "| sweep | budget | batch | map | inputs | ABS ERR | transport cost minus the true map's | energy distance |",
-        "|---" * 8 + "|",
+        *header(["sweep", "budget", "batch", "map", "inputs", "ABS ERR", "transport cost minus the true map's",
+                 "energy distance"]),
     ]  # fmt: skip
-    for path in sorted(out.glob("gap/*.json")):
-        r = json.loads(path.read_text())
-        first = [r["sweep"], f"{r['budget']:,}".replace(",", " "), str(r["batch"])]
+    for r in results_in(out, "gap/*.json").values():
+        first = [r["sweep"], spaced(r["budget"]), r["batch"]]
         noise = f"{r['true_energy']:.2g} ± {r['null_energy_sd']:.2g}"
-        truth = [f"true map (cost {r['true_cost']:.4g})", str(r["inputs"]), "0", "0", noise]
-        lines.append("| " + " | ".join(first + truth) + " |")
+        lines.append(row([*first, f"true map (cost {r['true_cost']:.4g})", r["inputs"], "0", "0", noise]))
         for key, err, d, se, energy in zip(r["keys"], r["abs_err"], r["cost_minus_true"], r["cost_minus_true_se"], r["energy"]):
-            seed = [key.rsplit("/", 1)[1], str(r["inputs"]), f"{err:.4g}", f"{d:+.4f} ± {se:.4f}", f"{energy:.2g}"]
-            lines.append("| " + " | ".join(first + seed) + " |")
+            lines.append(row([*first, key.rsplit("/", 1)[1], r["inputs"], f"{err:.4g}", f"{d:+.4f} ± {se:.4f}", f"{energy:.2g}"]))
     return lines if len(lines) > 5 else []
 
 
@@ -260,11 +254,10 @@ def record_study(out: Path, storage: str, study_name: str, space: str) -> None:
 def study_lines(out: Path) -> list[str]:
     """A line per recorded study in ``out``: its size, its best trial and the config's own (trial 0)."""
     lines = []
-    for path in sorted(out.glob("*/study.json")):
-        s = json.loads(path.read_text())
+    for path, s in results_in(out, "*/study.json").items():
         states = ", ".join(f"{n} {state}" for state, n in sorted(s["states"].items()))
         best = ", ".join(f"`{key}` {value:.4g}" for key, value in s["best_params"].items())
-        size = f"{s['simulations']:,}".replace(",", " ")
+        size = spaced(s["simulations"])
         lines.append(
             f"- `otgb tune` study `{s['study']}` over `{s['space']}` at {size} simulations, batch {s['batch']}: "
             f"{s['trials']} trials ({states}), {s['minutes']:.0f} trial-minutes. Best trial {s['best_trial']}, "
@@ -276,18 +269,16 @@ def study_lines(out: Path) -> list[str]:
 
 def table(out: Path) -> str:
     """One row per sweep, budget and batch, over its seeds; then each sweep's overrides and machine."""
-    sweeps = {path.stem: json.loads(path.read_text()) for path in sorted(out.glob("*.json"))}
+    sweeps = {path.stem: results for path, results in results_in(out).items()}
     metric = next(k for k in next(iter(next(iter(sweeps.values())).values())) if k.startswith("model_")).removeprefix("model_")
-    lines = [f"| sweep | budget | batch | map / critic lr | seeds | test {LABELS[metric]}, mean ± std | per seed | f_p alone |"]
-    lines += ["|---" * 8 + "|"]
+    columns = ["sweep", "budget", "batch", "map / critic lr", "seeds", f"test {LABELS[metric]}, mean ± std", "per seed"]
+    lines = header([*columns, "f_p alone"])
     for name, results in sweeps.items():
         for budget, batch in sorted({(r["budget"], r["batch"]) for r in results.values()}):
             group = sorted((r for r in results.values() if (r["budget"], r["batch"]) == (budget, batch)), key=lambda r: r["seed"])
             values = [r[f"model_{metric}"] for r in group]
-            rates = f"{group[0]['map_lr']:.3g} / {group[0]['critic_lr']:.3g}"
-            cells = [name, f"{budget:,}".replace(",", " "), str(batch), rates, str(len(group)), mean_spread(values)]
-            cells += [", ".join(f"{v:.4g}" for v in values), f"{group[0][f'fp_{metric}']:.4g}"]
-            lines.append("| " + " | ".join(cells) + " |")
+            rates, f_p = f"{group[0]['map_lr']:.3g} / {group[0]['critic_lr']:.3g}", f"{group[0][f'fp_{metric}']:.4g}"
+            lines.append(row([name, spaced(budget), batch, rates, len(group), mean_spread(values), listed(values), f_p]))
     lines.append("")
     for name, results in sweeps.items():
         first = next(iter(results.values()))

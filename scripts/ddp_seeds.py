@@ -23,6 +23,7 @@ import statistics
 from pathlib import Path
 
 import yaml
+from result_tables import header, row
 
 from otgb.runs import fit_and_test
 
@@ -70,11 +71,10 @@ def main() -> None:
     runs = {name: o for name, o in variants(batch, args.steps).items() if name in {VARIANTS[v] for v in args.variants}}
     rows = {name: [test_abs_err(args.out, args.config, seed, name, o) for seed in args.seeds] for name, o in runs.items()}
     print(f"{args.config}, {args.steps * batch} simulations per run; test ABS ERR\n")
-    print("| run | " + " | ".join(f"seed {s}" for s in args.seeds) + " | mean +- std |")
-    print("|---|" + "---|" * (len(args.seeds) + 1))
+    print("\n".join(header(["run", *(f"seed {s}" for s in args.seeds), "mean +- std"])))
     for name, values in rows.items():
         spread = f"{statistics.mean(values):.5f} +- {statistics.stdev(values):.5f}" if len(values) > 1 else "-"
-        print(f"| {name} | " + " | ".join(f"{v:.5f}" for v in values) + f" | {spread} |")
+        print(row([name, *(f"{v:.5f}" for v in values), spread]))
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from result_tables import read_json, row
 
 from otgb.data import generate_measured
 from otgb.discovery.prior_text import distribution_text
@@ -251,38 +252,20 @@ def table(out: Path) -> str:
         named = "; ".join(_named(t, report) for t in report["terms"]) or "nothing"
         gap = report["gap"]
         reference = f"{gap['reference']['c2st']:.3f} ± {gap['reference']['c2st_std']:.3f}"
-        second = latest_report(folder / "round2") if (folder / "round2").exists() else None
-        round2 = (
-            "-"
-            if second is None
-            else ("found " + "; ".join(_named(t, second) for t in second["terms"]))
-            if second["found"]
-            else "nothing found"
-        )
-        timing = folder / "wall_time.json"
-        wall = f"{json.loads(timing.read_text())['seconds'] / 60:.1f} min" if timing.exists() else "-"
-        cells = [
-            case,
-            seed,
-            named,
-            truth_text(case),
-            outcome_text(report),
-            *(f"{gap[k]['c2st']:.3f}" if k in gap else "-" for k in ("f_p", "greybox", "augmented")),
-            reference,
-            round2,
-            wall,
-        ]
-        rows.append("| " + " | ".join(cells) + " |")
+        second = latest_report(folder / "round2")
+        round2 = "-" if second is None else "nothing found"
+        if second is not None and second["found"]:
+            round2 = "found " + "; ".join(_named(t, second) for t in second["terms"])
+        timing = read_json(folder / "wall_time.json")
+        wall = f"{timing['seconds'] / 60:.1f} min" if timing else "-"
+        c2sts = [f"{gap[k]['c2st']:.3f}" if k in gap else "-" for k in ("f_p", "greybox", "augmented")]
+        rows.append(row([case, seed, named, truth_text(case), outcome_text(report), *c2sts, reference, round2, wall]))
         if (folder / "correction_after.json").exists():
-            shares = json.loads((folder / "correction_after.json").read_text())
-            corrections.append(
-                f"| {case} | {shares.get('f_p', float('nan')):.3g} | {shares.get('augmented', float('nan')):.3g} |"
-            )
-        if (folder / "extrapolation.json").exists():
-            errors = json.loads((folder / "extrapolation.json").read_text())
-            if errors:
-                values = [f"{errors[m][h]:.4g}" for m in ("f_p", "augmented") for h in ("train_horizon", "twice_horizon")]
-                extrapolated.append("| " + " | ".join([case, seed, *values]) + " |")
+            shares = read_json(folder / "correction_after.json")
+            corrections.append(row([case, *(f"{shares.get(m, float('nan')):.3g}" for m in ("f_p", "augmented"))]))
+        if errors := read_json(folder / "extrapolation.json"):
+            values = [f"{errors[m][h]:.4g}" for m in ("f_p", "augmented") for h in ("train_horizon", "twice_horizon")]
+            extrapolated.append(row([case, seed, *values]))
     text = "\n".join(rows) + "\n"
     if extrapolated:
         text += "\nMean |y - y_DGP| on 200 DGP inputs, over the training horizon and over the second, unseen one:\n\n"
@@ -305,11 +288,6 @@ def keep(out: Path, results: Path) -> None:
             target = results / path.relative_to(out)
             target.parent.mkdir(parents=True, exist_ok=True)
             target.write_bytes(path.read_bytes())
-
-
-def write_doc(doc: Path, results: Path) -> None:
-    """The table of ``results`` between the page's START and END markers."""
-    write_between(doc, START, END, table(results))
 
 
 def _named(t: dict, report: dict) -> str:
@@ -361,7 +339,7 @@ def main() -> None:
         print(f"wrote {args.table}")
         return
     if args.doc:
-        write_doc(args.doc, args.out)
+        write_between(args.doc, START, END, table(args.out))
         print(f"rewrote the table in {args.doc}")
         return
     for case in args.cases:

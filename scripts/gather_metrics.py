@@ -17,6 +17,8 @@ import re
 import sys
 from pathlib import Path
 
+from result_tables import header, row
+
 from otgb.reports import HEADERS, LABELS, SOURCES, mean_spread
 
 
@@ -47,10 +49,8 @@ def metric_cell(runs: list[dict], source: str, metric: str) -> str:
 
 def table(groups: dict[str, list[dict]], metrics: list[str]) -> str:
     columns = [(m, s) for m in metrics for s in SOURCES]
-    header = "| task | runs | " + " | ".join(f"{LABELS[m]} ({HEADERS[s]})" for m, s in columns) + " |"
-    lines = [header, "|---" * (len(columns) + 2) + "|"]
-    for name, runs in groups.items():
-        lines.append(f"| {name} | {len(runs)} | " + " | ".join(metric_cell(runs, s, m) for m, s in columns) + " |")
+    lines = header(["task", "runs", *(f"{LABELS[m]} ({HEADERS[s]})" for m, s in columns)])
+    lines += [row([name, len(runs), *(metric_cell(runs, s, m) for m, s in columns)]) for name, runs in groups.items()]
     return "\n".join(lines) + "\n"
 
 

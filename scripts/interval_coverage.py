@@ -20,10 +20,13 @@ import math
 import time
 from pathlib import Path
 
+from result_tables import header, results_in, row
+
 from otgb.data import generate_measured
+from otgb.discovery.families import centre
 from otgb.discovery.intervals import sandwich_intervals, spread
 from otgb.discovery.library import Candidate
-from otgb.discovery.refine import centre, fit
+from otgb.discovery.refine import fit
 from otgb.physics import AdvectionDiffusion, Choice, Constant, LibraryTerm, Pendulum, Uniform
 from otgb.reports import write_between
 
@@ -95,12 +98,10 @@ def study(case: str, files: int, steps: int) -> None:
 
 
 def coverage_table() -> str:
-    lines = [
-        "| case | files | truth | parameter | covered | coverage [95 %] | mean interval width | interval time per file |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
+    columns = ["case", "files", "truth", "parameter", "covered", "coverage [95 %]", "mean interval width"]
+    lines = header([*columns, "interval time per file"])
     for case in CASES:
-        rows = [json.loads(p.read_text()) for p in sorted((OUT / case).glob("file*.json"))]
+        rows = list(results_in(OUT / case, "file*.json").values())
         if not rows:
             continue
         for part in rows[0]["truth"]:
@@ -108,10 +109,9 @@ def coverage_table() -> str:
             widths = [r["interval"][part][1] - r["interval"][part][0] for r in rows if r["interval"]]
             seconds = sum(r["interval_seconds"] for r in rows) / len(rows)
             low, high = wilson(covered, len(rows))
-            lines.append(
-                f"| {case} | {len(rows)} | {rows[0]['truth'][part]:.4g} | {part} | {covered} | "
-                f"{covered / len(rows):.2f} [{low:.2f}, {high:.2f}] | {sum(widths) / max(len(widths), 1):.4g} | {seconds:.2g} s |"
-            )
+            true, coverage = f"{rows[0]['truth'][part]:.4g}", f"{covered / len(rows):.2f} [{low:.2f}, {high:.2f}]"
+            width = f"{sum(widths) / max(len(widths), 1):.4g}"
+            lines.append(row([case, len(rows), true, part, covered, coverage, width, f"{seconds:.2g} s"]))
     return "\n".join(lines)
 
 
@@ -121,10 +121,6 @@ def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
     middle = (p + z * z / (2 * n)) / denominator
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denominator
     return max(0.0, middle - half), min(1.0, middle + half)
-
-
-def write_table(doc: Path) -> None:
-    write_between(doc, MARK, MARK, coverage_table())
 
 
 def main() -> None:
@@ -138,7 +134,7 @@ def main() -> None:
     if args.case:
         study(args.case, args.files, args.steps)
     if args.table:
-        write_table(args.doc)
+        write_between(args.doc, MARK, MARK, coverage_table())
 
 
 if __name__ == "__main__":

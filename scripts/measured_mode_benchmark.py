@@ -23,8 +23,9 @@ with ``data.measurement_noise`` given and one with it ignored (0), each best che
 against the truth (the joint test set of the noise-free DGP: ABS ERR) and on the file's held-out
 part with the noise given (marginal metrics); mean and spread over the seeds in ``noise.md``.
 
-Every step is skipped when its output exists, and an unfinished fit resumes from its
-``last.ckpt``, so an interrupted benchmark is continued by running the same command again.
+Each ``otgb fit`` and ``otgb test`` runs in this process (:func:`otgb.runs.load_run`). Every step is skipped when its
+output exists, and an unfinished fit resumes from its ``last.ckpt``, so an interrupted benchmark is continued by
+running the same command again.
 
     python scripts/measured_mode_benchmark.py selection --config configs/pendulum.yaml --out bench/pendulum
     python scripts/measured_mode_benchmark.py separation --config configs/*.yaml --out bench/separation
@@ -37,25 +38,36 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import statistics
 import subprocess
 import sys
 from itertools import product
 from pathlib import Path
 
+from result_tables import header, row
+
+from otgb.cli import closing_line
 from otgb.command import logger_override
 from otgb.data.seeding import generator_for
 from otgb.metrics.joint import JointEvaluator
+from otgb.reports import mean_spread, summary_of
 from otgb.runs import load_run, newest
 
 MARGINAL = ["--data.hidden_effect=[]"]
 METRICS = ("abs_err", "nrmse", "mmd", "energy", "c2st", "mmdagg_reject")
 
 
-def otgb(*args: str) -> None:
-    command = [sys.executable, "-m", "otgb.cli", *args]
-    print("+", " ".join(command), flush=True)
-    subprocess.run(command, check=True)
+def otgb(command: str, config: str, overrides: list[str], ckpt_path: Path | None) -> None:
+    """``otgb fit`` (resumed from ``ckpt_path``) or ``otgb test`` (of ``ckpt_path``) in this process."""
+    print("+ otgb", command, "--config", config, *overrides, *([f"--ckpt_path={ckpt_path}"] if ckpt_path else []), flush=True)
+    run = load_run(config, *overrides)
+    if command == "fit":
+        run.trainer.fit(run.model, run.datamodule, ckpt_path=ckpt_path)
+    else:
+        run.trainer.test(run.model, run.datamodule, ckpt_path=ckpt_path, verbose=False)  # as otgb test: metrics.md has them
+    folder = Path(run.trainer.loggers[0].log_dir)  # the command's last lines: the test's summary, the run directory
+    if command == "test" and (sentence := summary_of(folder)):
+        print(f"otgb test: {sentence}")
+    print(closing_line(command, folder), flush=True)
 
 
 def export(config: str, out: Path, record: list[str], noise: float = 0.0) -> Path:
@@ -68,8 +80,8 @@ def export(config: str, out: Path, record: list[str], noise: float = 0.0) -> Pat
     return path
 
 
-def run_args(out: Path, name: str, config: str) -> list[str]:
-    return ["--config", config, logger_override(str(out), name), f"--data.cache_dir={out / 'cache'}"]
+def run_args(out: Path, name: str) -> list[str]:
+    return [logger_override(str(out), name), f"--data.cache_dir={out / 'cache'}"]
 
 
 def fit(out: Path, name: str, config: str, extra: list[str]) -> Path:
@@ -77,7 +89,7 @@ def fit(out: Path, name: str, config: str, extra: list[str]) -> Path:
     done = out / name / "fit.done"
     if not done.exists():
         last = newest(out / name, "version_*/checkpoints/last.ckpt")
-        otgb("fit", *run_args(out, name, config), *extra, *([f"--ckpt_path={last}"] if last else []))
+        otgb("fit", config, [*run_args(out, name), *extra], last)
         done.write_text("finished\n")
     return newest(out / name, "version_*/checkpoints/best-*.ckpt")
 
@@ -85,18 +97,15 @@ def fit(out: Path, name: str, config: str, extra: list[str]) -> Path:
 def test(out: Path, name: str, config: str, extra: list[str], ckpt: Path | None) -> dict:
     report = newest(out / name, "version_*/metrics.json")
     if report is None:
-        otgb("test", *run_args(out, name, config), *extra, *([f"--ckpt_path={ckpt}"] if ckpt else []))
+        otgb("test", config, [*run_args(out, name), *extra], ckpt)
         report = newest(out / name, "version_*/metrics.json")
     return json.loads(report.read_text())
 
 
-def row(labels: list[str], report: dict, source: str = "model") -> str:
+def report_row(labels: list[str], report: dict, source: str = "model") -> str:
+    """A row of ``labels`` and the report's figures of ``METRICS`` for ``source``."""
     cells = [report[source].get(m, {}).get("mean") for m in METRICS]
-    return "| " + " | ".join([*labels, *("" if c is None else f"{c:.4g}" for c in cells)]) + " |"
-
-
-def header(labels: list[str]) -> list[str]:
-    return ["| " + " | ".join([*labels, *METRICS]) + " |", "|---" * (len(labels) + len(METRICS)) + "|"]
+    return row([*labels, *("" if c is None else f"{c:.4g}" for c in cells)])
 
 
 def selection(config: str, out: Path, extra: list[str]) -> None:
@@ -104,24 +113,24 @@ def selection(config: str, out: Path, extra: list[str]) -> None:
     marginal = [*MARGINAL, f"--data.measured_path={measured}"]
     selected = {"joint": fit(out, "fit-joint", config, extra), "marginal": fit(out, "fit-marginal", config, [*extra, *marginal])}
     scored_on = {"joint": ("joint test set (DGP known)", extra), "heldout": ("held-out measurements", [*extra, *marginal])}
-    lines = header(["selected by", "scored on"])
+    lines = header(["selected by", "scored on", *METRICS])
     reports = {}
     for (mode, ckpt), (on, (where, args)) in product(selected.items(), scored_on.items()):
         reports[on] = test(out, f"test-{mode}-on-{on}", config, args, ckpt)
-        lines.append(row([f"{mode} mode ({ckpt.name})", where], reports[on]))
+        lines.append(report_row([f"{mode} mode ({ckpt.name})", where], reports[on]))
     for on, (where, _) in scored_on.items():  # f_p and the Reference do not depend on the checkpoint
-        lines += [row(["f_p alone", where], reports[on], "fp"), row(["Reference", where], reports[on], "reference")]
+        lines += [report_row(["f_p alone", where], reports[on], "fp"), report_row(["Reference", where], reports[on], "reference")]
     (out / "selection.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
 def separation(configs: list[str], out: Path, extra: list[str]) -> None:
-    lines = header(["config", "source"])
+    lines = header(["config", "source", *METRICS])
     for config in configs:
         name = Path(config).stem
         measured = export(config, out, [])
         report = test(out, f"separation-{name}", config, [*extra, *MARGINAL, f"--data.measured_path={measured}"], None)
-        lines += [row([name, "f_p alone"], report, "fp"), row([name, "Reference"], report, "reference")]
+        lines += [report_row([name, "f_p alone"], report, "fp"), report_row([name, "Reference"], report, "reference")]
         (out / "separation.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
@@ -184,17 +193,10 @@ def noise(config: str, out: Path, extra: list[str], sd: float, seeds: list[int])
     ]
     for label, rows in scores.items():
         columns = [[r[k] for r in rows] for k in range(4)]
-        cells = [spread(c) for c in columns]
-        lines.append(f"| {label} | {' | '.join(cells[:3])} | {sum(columns[3]):.0f} of {len(rows)} |")
+        cells = ["-" if any(math.isnan(v) for v in c) else mean_spread(c) for c in columns]  # "-": the Reference's ABS ERR
+        lines.append(row([label, *cells[:3], f"{sum(columns[3]):.0f} of {len(rows)}"]))
     (out / "noise.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
-
-
-def spread(values: list[float]) -> str:
-    """Mean ± std of a column ("-" where it has no value, as the Reference's ABS ERR)."""
-    if any(math.isnan(v) for v in values):
-        return "-"
-    return f"{statistics.mean(values):.4g}" + (f" ± {statistics.stdev(values):.2g}" if len(values) > 1 else "")
 
 
 def main() -> None:

@@ -40,6 +40,7 @@ from pathlib import Path
 
 import torch
 import yaml
+from result_tables import header, results_in
 
 from otgb.command import logger_override
 from otgb.discovery.prior_text import distribution_text
@@ -238,13 +239,12 @@ def task_table(results: Path, task: str) -> list[str]:
     """Markdown rows of one task from its result files: each row over its seeds, the paper beside."""
     one_to_one = TASKS[task][2]
     names = ("nrmse", "abs_err") if one_to_one else ("mmd", "c2st", "c2st_paper")
-    head = "N-RMSE | ABS ERR" if one_to_one else "MMD | C2ST (strong judge) | C2ST (paper's judge)"
-    records = {row: [json.loads(p.read_text()) for p in sorted((results / task / folder_of(row)).glob("*.json"))]
-               for row in ROWS}  # fmt: skip
+    heads = ["N-RMSE", "ABS ERR"] if one_to_one else ["MMD", "C2ST (strong judge)", "C2ST (paper's judge)"]
+    records = {row: list(results_in(results / task / folder_of(row)).values()) for row in ROWS}
     machines = sorted({r["machine"] for rows in records.values() for r in rows})
     stem = TASKS[task][0]
     lines = [f"**{task}** (`configs/{stem}.yaml`; measured on {' and '.join(machines) or '-'})", ""]
-    lines += [f"| row | seeds | {head} | paper | wall time per fit or discover run |", "|" + "---|" * (len(names) + 4)]
+    lines += header(["row", "seeds", *heads, "paper", "wall time per fit or discover run"])
     paper = PAPER.get(task, {})
     floor = records["f_p only"] or next((runs[:1] for runs in records.values() if runs), [])  # every test measures it
     earlier = {row: earlier_settings(task, row, runs) for row, runs in records.items() if row in (*METHODS, AUGMENTED)}

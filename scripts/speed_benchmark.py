@@ -72,8 +72,9 @@ from pathlib import Path
 import numpy as np
 import torch
 from lightning import Callback
+from result_tables import header, read_json, row
 
-from otgb.metrics.classifiers import PaperConvClassifier, PaperConvNet, _TorchClassifier
+from otgb.metrics.classifiers import PaperConvClassifier, PaperConvNet
 from otgb.reports import write_between
 
 ROOT = Path(__file__).parents[1]
@@ -163,7 +164,7 @@ def results_file(args: argparse.Namespace, name: str) -> tuple[Path, dict]:
     """``<out>/<name>`` (``out`` created) and what it holds so far."""
     Path(args.out).mkdir(parents=True, exist_ok=True)
     path = Path(args.out) / name
-    return path, _read(path)
+    return path, read_json(path)
 
 
 def alternate_commands(args: argparse.Namespace, name: str, run: Callable[[str, str], dict]) -> dict:
@@ -349,7 +350,9 @@ class LibraryConvNet(PaperConvNet):
 
 
 class LibraryConvJudge(PaperConvClassifier):
-    _autocast = _TorchClassifier._autocast  # "auto" as for otgb's other judges, not float32 for the fused loops
+    def _autocast(self, device: torch.device) -> torch.autocast:
+        """ "auto" as for otgb's other judges (PaperConvClassifier's base), not float32 for the fused loops."""
+        return super(PaperConvClassifier, self)._autocast(device)
 
     def _network(self, n_features: int) -> torch.nn.Module:
         return LibraryConvNet(n_features)
@@ -363,7 +366,7 @@ class TorchOpsNet(PaperConvNet):
 
 
 class TorchOpsJudge(PaperConvClassifier):
-    _autocast = _TorchClassifier._autocast
+    _autocast = LibraryConvJudge._autocast
 
     def _network(self, n_features: int) -> torch.nn.Module:
         return TorchOpsNet(n_features)
@@ -485,73 +488,57 @@ def write_table(args: argparse.Namespace) -> None:
     if not doc.is_file():
         raise SystemExit(f"speed_benchmark table: --doc {doc}: no such page")
     lines = [""]
-    steps = _read(out / "steps.json")
+    steps = read_json(out / "steps.json")
     configs = list(dict.fromkeys(key.split("/")[0] for key in steps))
-    if configs:
-        columns = ["config", "solver", "ms per training step", "speed-up", "first run's warm-up (s)", "runs"]
-        columns += ["torch threads", "machine"]
-        lines += ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    columns = ["config", "solver", "ms per training step", "speed-up", "first run's warm-up (s)", "runs", "torch threads"]
+    lines += header([*columns, "machine"]) if configs else []
     for config in configs:
         solvers = list(dict.fromkeys(key.split("/")[1] for key in steps if key.startswith(f"{config}/")))
         reference = _median(steps, f"{config}/{solvers[0]}/", "median_ms")
         for solver in solvers:
             prefix = f"{config}/{solver}/"
             step, warmup = _median(steps, prefix, "median_ms"), _median(steps, prefix, "warmup_s")
-            runs = sum(key.startswith(prefix) for key in steps)
-            threads = ", ".join(sorted({str(v["threads"]) for k, v in steps.items() if k.startswith(prefix)}))
-            machines = ", ".join(sorted({v.get("machine", LOCAL_MACHINE) for k, v in steps.items() if k.startswith(prefix)}))
-            lines.append(
-                f"| {config} | {solver} | {step:.1f} | {reference / step:.2f}x | {warmup:.1f} | {runs} | {threads} | {machines} |"
-            )
-    fits = _read(out / "fit.json")
-    if fits:
-        head = "| whole `otgb fit` | solver | minutes | runs | compile cache | torch threads | machine |"
-        lines += ["", head, "|" + "---|" * 7]
+            runs = [v for k, v in steps.items() if k.startswith(prefix)]
+            threads = ", ".join(sorted({str(v["threads"]) for v in runs}))
+            machines = ", ".join(sorted({v.get("machine", LOCAL_MACHINE) for v in runs}))
+            figures = [f"{step:.1f}", f"{reference / step:.2f}x", f"{warmup:.1f}"]
+            lines.append(row([config, solver, *figures, len(runs), threads, machines]))
+    if fits := read_json(out / "fit.json"):
+        lines += ["", *header(["whole `otgb fit`", "solver", "minutes", "runs", "compile cache", "torch threads", "machine"])]
         for prefix in dict.fromkeys(key.rsplit("/", 1)[0] + "/" for key in fits):
             config, solver = prefix.split("/")[:2]
             runs = [v for k, v in fits.items() if k.startswith(prefix)]
             walls = [v["wall_s"] / 60 for v in runs]
-            cache = {"empty" if v.get("cold_cache") else "as found" if "cold_cache" in v else "-" for v in runs}
+            caches = {"empty" if v.get("cold_cache") else "as found" if "cold_cache" in v else "-" for v in runs}
+            cache = ", ".join(sorted(caches))
             threads = ", ".join(sorted({str(v.get("threads", "-")) for v in runs}))
-            cache_text = ", ".join(sorted(cache))
             machines = ", ".join(sorted({v.get("machine", LOCAL_MACHINE) for v in runs}))
-            lines.append(
-                f"| {config} | {solver} | {statistics.median(walls):.2f} | {len(walls)} | {cache_text} | {threads} | {machines} |"
-            )
+            lines.append(row([config, solver, f"{statistics.median(walls):.2f}", len(walls), cache, threads, machines]))
     lines += designs_table(out) + judges_table(out) + discover_table(out)
     write_between(doc, SECTION_START, SECTION_END, "\n".join(lines))
     print(f"speed_benchmark: wrote {doc}")
 
 
-def _read(path: Path) -> dict:
-    return json.loads(path.read_text()) if path.exists() else {}
-
-
 def designs_table(out: Path) -> list[str]:
-    designs = _read(out / "designs.json")
+    designs = read_json(out / "designs.json")
     if not designs:
         return []
-    lines = [
-        "",
-        "| grey-box solve + backward | design | ms | of eager | first call (s) | max difference to eager | torch threads |",
-        "|---|---|---|---|---|---|---|",
-    ]
+    columns = ["grey-box solve + backward", "design", "ms", "of eager", "first call (s)", "max difference to eager"]
+    lines = ["", *header([*columns, "torch threads"])]
     for key, value in designs.items():
         config, design = key.split("/", 1)
-        eager = designs[f"{config}/eager loop"]["median_ms"]
-        lines.append(
-            f"| {config} | {design} | {value['median_ms']:.1f} | {eager / value['median_ms']:.2f}x | {value['first_s']:.1f} "
-            f"| {value['max_difference']:.1e} | {value['threads']} |"
-        )
+        ms, eager = value["median_ms"], designs[f"{config}/eager loop"]["median_ms"]
+        cells = [f"{ms:.1f}", f"{eager / ms:.2f}x", f"{value['first_s']:.1f}", f"{value['max_difference']:.1e}", value["threads"]]
+        lines.append(row([config, design, *cells]))
     return lines
 
 
 def judges_table(out: Path) -> list[str]:
-    judges = _read(out / "judges.json")
+    judges = read_json(out / "judges.json")
     if not judges:
         return []
-    head = "| paper C2ST judge | network, or how the folds train | s per epoch of one fold | of the library's | runs | machine |"
-    lines = ["", head, "|---|---|---|---|---|---|"]
+    columns = ["paper C2ST judge", "network, or how the folds train", "s per epoch of one fold", "of the library's", "runs"]
+    lines = ["", *header([*columns, "machine"])]
     names = dict.fromkeys(key.split("/")[1] for key, run in judges.items() if "s_per_epoch" in run)
     runs_of = {name: [v for k, v in judges.items() if k.startswith(f"paper/{name}/") and "s_per_epoch" in v] for name in names}
     epoch = {name: statistics.median(v["s_per_epoch"] for v in runs) for name, runs in runs_of.items()}
@@ -559,7 +546,7 @@ def judges_table(out: Path) -> list[str]:
         rows, machines = " x ".join(map(str, runs[0]["rows"])), ", ".join(sorted({v.get("machine", LOCAL_MACHINE) for v in runs}))
         one_fold = "library-conv1d" in epoch and not name.startswith("5 folds")  # a whole C2ST's fold-epochs: no ratio
         ratio = f"{epoch['library-conv1d'] / epoch[name]:.2f}x" if one_fold else "-"
-        lines.append(f"| {rows} rows | {name} | {epoch[name]:.3f} | {ratio} | {len(runs)} | {machines} |")
+        lines.append(row([f"{rows} rows", name, f"{epoch[name]:.3f}", ratio, len(runs), machines]))
     kinds = {
         "c2st-apart": "separable rows,",
         "c2st": "close rows,",
@@ -575,27 +562,23 @@ def judges_table(out: Path) -> list[str]:
             )
     stops = {key[9:].replace("/", " rows, "): run for key, run in judges.items() if key.startswith("stopping/")}
     if stops:
-        lines += [
-            "",
-            "| paper judge, one fold: rows, tolerance | epochs run (of at most) | s | accuracy, the fold's test rows | machine |",
-            "|---|---|---|---|---|",
-        ]
-        lines += [
-            f"| {name} | {r['epochs']} ({r['max_epochs']}) | {r['wall_s']:.0f} | {r['accuracy']:.4f} | {r['machine']} |"
-            for name, r in stops.items()
-        ]
+        columns = ["paper judge, one fold: rows, tolerance", "epochs run (of at most)", "s", "accuracy, the fold's test rows"]
+        lines += ["", *header([*columns, "machine"])]
+        for name, r in stops.items():
+            epochs, wall = f"{r['epochs']} ({r['max_epochs']})", f"{r['wall_s']:.0f}"
+            lines.append(row([name, epochs, wall, f"{r['accuracy']:.4f}", r["machine"]]))
     return lines
 
 
 def discover_table(out: Path) -> list[str]:
-    runs = _read(out / "discover.json")
+    runs = read_json(out / "discover.json")
     if not runs:
         return []
-    lines = ["", "| whole `otgb discover` | solver | minutes | named |", "|---|---|---|---|"]
+    lines = ["", *header(["whole `otgb discover`", "solver", "minutes", "named"])]
     for key, value in runs.items():
         config, solver, _ = key.split("/")
         named = "; ".join(f"`{name}` {c:.5g}" for name, c in value["terms"].items()) or "nothing"
-        lines.append(f"| {config} | {solver} | {value['wall_s'] / 60:.2f} | {named} |")
+        lines.append(row([config, solver, f"{value['wall_s'] / 60:.2f}", named]))
     return lines
 
 

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import optuna
 import torch
+from result_tables import header, listed, read_json, row, spaced
 
 from otgb.reports import mean_spread, write_between
 from otgb.runs import fit_and_test, machine, newest, run_otgb
@@ -46,16 +47,15 @@ def study(out: Path, trials: int, simulations: int) -> None:
     for name in ("trials.md", "best.yaml", "history.png", "importances.png"):
         if (study_dir / name).exists():
             shutil.copy(study_dir / name, out / name)
-    timing = out / "study.json"
-    spent = json.loads(timing.read_text())["seconds"] if timing.exists() else 0.0
+    spent = read_json(out / "study.json").get("seconds", 0.0)
     record = {"seconds": spent + seconds, "trials": trials, "simulations": simulations, "machine": machine()}
-    timing.write_text(json.dumps(record))
+    (out / "study.json").write_text(json.dumps(record))
 
 
 def refit(out: Path, seeds: list[int]) -> None:
     """Per seed: best.yaml as it is (the study's budget: does its trial's score come back?), and best.yaml and the
     hand-tuned config at the full budget, each fitted and tested."""
-    results = json.loads((out / "refits.json").read_text()) if (out / "refits.json").exists() else {}
+    results = read_json(out / "refits.json")
     storage = f"sqlite:///{out / 'runs' / 'tune-pendulum' / 'study.db'}"
     results.setdefault("study_best", optuna.load_study(study_name="pendulum", storage=storage).best_value)
     runs = [("tuned-as-is", out / "best.yaml", []), ("tuned", out / "best.yaml", [f"--data.simulation_budget={FULL_BUDGET}"])]
@@ -110,36 +110,28 @@ START, END = "<!-- results: scripts/tune_benchmark.py table -->", "<!-- end resu
 def table(out: Path, doc: Path | None = None) -> None:
     """summary.md from the result files; with ``doc``, the same between that page's markers."""
     lines = ["# otgb tune on Pendulum-1-m", ""]
-    if (out / "study.json").exists():
-        timing = json.loads((out / "study.json").read_text())
-        minutes = timing["seconds"] / 60
-        each = f"{timing.get('simulations', 16_000):,}".replace(",", " ")
+    if timing := read_json(out / "study.json"):
+        minutes, each = timing["seconds"] / 60, spaced(timing.get("simulations", 16_000))
         lines += [f"Study: {timing['trials']} trials at {each} simulations each, {minutes:.0f} min ({timing['machine']}).", ""]
-    if (out / "refits.json").exists():
-        results = json.loads((out / "refits.json").read_text())
+    if results := read_json(out / "refits.json"):
         trial = results.get("study_best")
         as_is = [v["val_best"] for k, v in results.items() if k.startswith("tuned-as-is-seed")]
         if as_is:
             against = f", against its trial's {trial:.4g}" if trial is not None else ""
-            per_seed = ", ".join(f"{v:.4g}" for v in as_is)
             lines.append(f"best.yaml refitted as it is (the study's budget): best validation ABS ERR {mean_spread(as_is)}")
-            lines += [f"over {len(as_is)} seeds ({per_seed}){against}.", ""]
-        lines += ["| config, full budget (1e5 simulations) | seeds | test ABS ERR, mean ± std | per seed |", "|---|---|---|---|"]
+            lines += [f"over {len(as_is)} seeds ({listed(as_is)}){against}.", ""]
+        lines += header(["config, full budget (1e5 simulations)", "seeds", "test ABS ERR, mean ± std", "per seed"])
         for name in ("tuned", "hand-tuned"):
-            runs = {k: v for k, v in results.items() if k.startswith(f"{name}-seed")}
-            values = [v["abs_err"] for v in runs.values()]
-            per_seed = ", ".join(f"{v:.4g}" for v in values)
+            values = [v["abs_err"] for k, v in results.items() if k.startswith(f"{name}-seed")]
             label = "best.yaml (tuned)" if name == "tuned" else "configs/pendulum.yaml (hand-tuned)"
-            lines.append(f"| {label} | {len(values)} | {mean_spread(values) or '-'} | {per_seed} |")
+            lines.append(row([label, len(values), mean_spread(values) or "-", listed(values)]))
         lines.append("")
-    if (out / "workers.json").exists():
-        w = json.loads((out / "workers.json").read_text())
-        size = len(w["1_trials"])
-        per_trial = w.get("simulations_per_trial", 3200)
+    if w := read_json(out / "workers.json"):
+        size, per_trial = len(w["1_trials"]), w.get("simulations_per_trial", 3200)
         lines.append(
-            f"Workers: the same {size}-trial study ({per_trial} simulations per trial) took {w['1']:.0f} s with one worker"
+            f"Workers: the same {size}-trial study ({per_trial} simulations per trial) took {w['1']:.0f} s with one worker "
+            f"and {w['2']:.0f} s with two"
         )
-        lines[-1] += f" and {w['2']:.0f} s with two"
         lines += [f"(ratio {w['ratio']:.2f}; each worker 1 thread, {w['machine']}); trials run: {len(w['2_trials'])}.", ""]
     (out / "summary.md").write_text("\n".join(lines))
     print("\n".join(lines))
