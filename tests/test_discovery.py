@@ -1348,6 +1348,22 @@ def test_missing_effect_of_a_physics_model_built_in_python_takes_its_config_and_
     assert result.config["data"]["physics"]["init_args"]["omega"]["init_args"] == {"low": 1.0, "high": 2.0}
 
 
+def test_missing_effect_fits_the_measurements_of_a_loaded_run(tmp_path, monkeypatch):
+    """A run of ``otgb.runs.load_run`` on a measured file gives discovery that file: here f_p's own trajectories, in
+    which nothing is detected, and nothing is written in the working directory."""
+    from otgb.discovery import MissingEffect
+    from otgb.runs import load_run
+
+    measured = _export(tmp_path, 0.0)
+    config = str(ROOT / "configs" / "pendulum.yaml")
+    run = load_run(config, "--data.hidden_effect=[]", f"--data.measured_path={measured}", f"--data.cache_dir={tmp_path}")
+    monkeypatch.chdir(tmp_path)
+    before = sorted(tmp_path.iterdir())
+    result = MissingEffect.from_config(config, {"discover.n_permutations": 199}).fit(run)
+    assert sorted(tmp_path.iterdir()) == before, "nothing written in the working directory"
+    assert result.outcome == "nothing detected" and str(measured) in result.facts["description"]
+
+
 @pytest.mark.parametrize(
     "make, expected",
     [
