@@ -1348,6 +1348,16 @@ def test_missing_effect_of_a_physics_model_built_in_python_takes_its_config_and_
     assert result.config["data"]["physics"]["init_args"]["omega"]["init_args"] == {"low": 1.0, "high": 2.0}
 
 
+def test_missing_effect_reads_relative_paths_from_the_callers_folder(tmp_path, monkeypatch):
+    """Discovery runs inside its own folder: the paths an override gives (``..._path``) are made absolute first."""
+    from otgb.discovery import MissingEffect
+
+    monkeypatch.chdir(tmp_path)
+    finder = MissingEffect.from_config(str(ROOT / "configs" / "pendulum.yaml"), {"ckpt_path": "g.ckpt", "data.seed": 1})
+    args = finder._arguments(str(tmp_path / "m.npz"), None)
+    assert f"--ckpt_path={tmp_path / 'g.ckpt'}" in args and "--data.seed=1" in args, args
+
+
 def test_missing_effect_fits_the_measurements_of_a_loaded_run(tmp_path, monkeypatch):
     """A run of ``otgb.runs.load_run`` on a measured file gives discovery that file: here f_p's own trajectories, in
     which nothing is detected, and nothing is written in the working directory."""
@@ -1537,6 +1547,8 @@ def test_discover_from_python_as_the_tutorial_does_names_friction_with_its_inter
     config = yaml.safe_load((run_dir / "augmented.yaml").read_text())
     assert config["data"]["physics"]["class_path"] == "otgb.physics.Augmented"
     assert Path(config["data"]["measured_path"]) == run_dir / "measured.npz", "the array, kept beside the report"
+    assert np.array_equal(np.load(run_dir / "measured.npz")["y"], names["measured"]), "in its own order"
+    assert "from an array given to MissingEffect.fit" in report["run"]["description"] and "fit_cache" not in report["run"]
     loggers = [logger["init_args"] for logger in config["trainer"]["logger"]]
     assert all(args["name"] == "auto" and args["version"] is None for args in loggers), "each round: a new version_N"
     fit = subprocess.run(

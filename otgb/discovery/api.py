@@ -21,6 +21,7 @@ import os
 import tempfile
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -75,7 +76,8 @@ class MissingEffect:
         torch tensor ``(N, T, *obs)`` on the model's time grid, or a run of :func:`otgb.runs.load_run` (its
         measurements, and its loaded checkpoint as the grey-box). With ``run_dir``, the report's files, the grey-box's
         logs and checkpoints (``runs/<config stem>/version_N``) and the fit cache (``runs/<config stem>/fit_cache``:
-        the same call resumes) go there; without, nothing is kept."""
+        the same call resumes) go there; without, nothing is kept. Relative paths (the measurements' file, an override
+        ending in ``_path``) are read from the working directory."""
         with working_folder(run_dir) as folder:
             measured, ckpt_path = measurements_in(measurements, folder)
             args = self._arguments(measured, ckpt_path)
@@ -83,12 +85,13 @@ class MissingEffect:
                 result = discover(build(args))
             if run_dir is not None:
                 result.write(folder)
-        return result
+                return result
+            return kept_in_memory(result, folder, measurements)
 
     def _arguments(self, measured: str, ckpt_path: str | None) -> list[str]:
         args = [arg for path in self._files for arg in ("--config", path)]
         args += ["--data.hidden_effect=[]", f"--data.measured_path={measured}"]
-        args += [f"--{key}={as_argument(value)}" for key, value in self._overrides.items()]
+        args += [f"--{key}={as_argument(resolved(key, value))}" for key, value in self._overrides.items()]
         return args + ([f"--ckpt_path={ckpt_path}"] if ckpt_path else [])
 
     def __repr__(self) -> str:
@@ -117,6 +120,24 @@ def checked_settings(settings: dict[str, Any]) -> dict[str, Any]:
             hint = f"; did you mean {', '.join(close)}?" if close else f"; expected one of {', '.join(known)}"
             raise InputError(f"MissingEffect: no discover setting {key!r}{hint}")
     return settings
+
+
+def resolved(key: str, value: Any) -> Any:
+    """A path an override gives (its key ends in ``_path``) made absolute, as the caller's working directory reads it:
+    discovery runs in another folder."""
+    if key.endswith("_path") and isinstance(value, (str, Path)):
+        return str(Path(value).resolve())
+    return value
+
+
+def kept_in_memory(result: DiscoveryResult, folder: Path, measurements: Any) -> DiscoveryResult:
+    """``result`` of a run whose working ``folder`` is removed: the report names no file in it (an array given is
+    named as such, and no fit cache was kept) and a next round's file holds the array in its own order."""
+    facts = {key: value for key, value in result.facts.items() if key != "fit_cache"}
+    facts["description"] = facts["description"].replace(str(folder / "measured.npz"), "an array given to MissingEffect.fit")
+    if isinstance(measurements, (np.ndarray, torch.Tensor)):
+        return replace(result, facts=facts, measured=torch.as_tensor(np.asarray(measurements)))
+    return replace(result, facts=facts)
 
 
 def as_argument(value: Any) -> str:
@@ -156,12 +177,12 @@ def measurements_in(measurements: Any, folder: Path) -> tuple[str, str | None]:
     if isinstance(measurements, Run):
         source, loaded = measurements.datamodule.source, getattr(measurements.model, "loaded_from", None)
         if isinstance(source, FileMeasurements):
-            return str(Path(source.path).resolve()), loaded
+            return str(Path(source.path).resolve()), loaded and str(Path(loaded).resolve())
         data = measurements.datamodule
         data.setup("fit")
         data.setup("test")
         measurements = torch.cat([data.measured, data.val_set["y"].flatten(0, 1), data.test_set["y"].flatten(0, 1)])
-        return measurements_in(measurements, folder)[0], loaded
+        return measurements_in(measurements, folder)[0], loaded and str(Path(loaded).resolve())
     if isinstance(measurements, (np.ndarray, torch.Tensor)):
         array = measurements.detach().cpu().numpy() if isinstance(measurements, torch.Tensor) else measurements
         path = folder / "measured.npz"

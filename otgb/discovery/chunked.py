@@ -1,6 +1,6 @@
 """Exact gradients of a loss of many simulated trajectories, with the autograd graph of only a few in memory.
 
-A distribution-matching loss (:func:`otgb.discovery.refine.discrepancy`) compares every simulated
+A distribution-matching loss (:func:`otgb.discovery.discrepancy.discrepancy`) compares every simulated
 trajectory with every other, so it does not split into a sum over chunks of trajectories; but its
 gradient does, by the chain rule. :func:`backward_in_chunks` takes it in two passes:
 

@@ -255,7 +255,8 @@ def pointwise_section(pointwise: dict) -> list[str]:
     """ABS ERR / N-RMSE against a known DGP, over the training horizon and the next one (extrapolation)."""
     if not pointwise:
         return []
-    lines = ["", "Against the known DGP, on the test inputs (the second horizon is extrapolation):", ""]
+    lines = ["", "## Pointwise errors against the known process", ""]
+    lines += ["On the test inputs (the second horizon is extrapolation):", ""]
     lines += ["| model | ABS ERR | N-RMSE | ABS ERR, 2nd horizon | N-RMSE, 2nd horizon |", "|---|---|---|---|---|"]
     for key, label in GAP_ROWS.items():
         if key in pointwise:

@@ -18,7 +18,9 @@ def grey_box_elsewhere(facts: dict[str, Any]) -> list[str]:
 
 def markdown(report: dict[str, Any], facts: dict[str, Any]) -> str:
     """report.md, top-down: its first screen holds the verdict, the named terms, the gap before and after and the
-    disagreement figure; the evidence, cross-checks, diverged solves and family scores follow under "Details"."""
+    disagreement figure; under "Details" follow the grey-box's components, f_phi's regression, the diverged solves,
+    the evidence, the cross-checks, the search, the prior family, the pointwise errors (a known process) and the gap
+    table's samples."""
     lines = [
         "# Missing-effect discovery",
         "",

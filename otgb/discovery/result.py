@@ -123,7 +123,8 @@ class DiscoveryResult:
 
     def write(self, run_dir: str | Path) -> Path:
         """Write ``report.md``, ``report.json``, ``figures/`` (and ``components.json``) into ``run_dir``, and
-        ``augmented.yaml`` where terms were named. Returns ``run_dir``."""
+        ``augmented.yaml`` where terms were named (with ``measured.npz``, the measurements, where no file of them is
+        left: an array given to :meth:`MissingEffect.fit` without a run directory). Returns ``run_dir``."""
         run_dir = Path(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         write_report(run_dir, self.discovery, self.physics, self.facts, self.samples, self.components)

@@ -26,9 +26,9 @@ HELDOUT_REPEATS = 10  # simulation draws per held-out score
 
 @dataclass
 class Scores:
-    """A model's :func:`discrepancy` to a measured set: one value per simulation draw (``draws``), and
-    per measured trajectory its cross term averaged over the draws (``rows``: twice its mean
-    distance to the simulated trajectories, summed over the discrepancy's parts).
+    """A model's discrepancy (:func:`otgb.discovery.discrepancy.discrepancy`) to a measured set: one value per
+    simulation draw (``draws``), and per measured trajectory its cross term averaged over the draws (``rows``: twice its
+    mean distance to the simulated trajectories, summed over the discrepancy's parts).
 
     Two models scored against the same measured set differ by the mean of their ``rows``
     differences (the measured set's own within-sample term cancels) and by their simulated

@@ -42,8 +42,9 @@ class DiscoverySettings:
         seed: Seed of every draw of the workflow.
         fit_cache: A folder where each finished coefficient fit is stored and from which a run that asks for the same
             fit reads it (:mod:`otgb.discovery.fit_cache`): a stopped run started again with the same folder resumes.
-            ``auto``: ``fit_cache`` beside the run directories (``runs/<config stem>/fit_cache``) under ``otgb discover``,
-            none where the workflow is called directly; ``null``: no fit is stored.
+            ``auto``: ``fit_cache`` beside the run directories (``runs/<config stem>/fit_cache``) under ``otgb discover``
+            and ``MissingEffect.fit`` (inside its ``run_dir``; without one, a temporary folder), none where the workflow
+            is called directly; ``null``: no fit is stored.
     """
 
     def __init__(

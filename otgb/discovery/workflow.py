@@ -1,20 +1,21 @@
-"""The missing-effect discovery workflow: locate, learn, name, add, verify.
+"""The steps of discovery after its grey-box has learned (:func:`run`): name, add, verify.
 
-Given f_p, a file of measured trajectories and an OT grey-box trained on them ("Hybrid
-Generative Modeling for Incomplete Physics: Deep Grey-Box Meets Optimal Transport"):
+Given f_p, measured trajectories and an OT grey-box trained on them ("Hybrid Generative Modeling
+for Incomplete Physics: Deep Grey-Box Meets Optimal Transport"); the locate and learn steps before
+these are :mod:`otgb.discovery.pipeline`'s:
 
-1. **Locate** (:mod:`otgb.discovery.locate`): where and when f_p's simulations and the
-   measured training trajectories disagree. Nothing significant: no missing effect detected.
-2. **Learn**: the grey-box T_phi (trained by ``otgb discover`` or loaded from a checkpoint).
-3. **Name** (:mod:`otgb.discovery.regression`): its correction f_phi, evaluated along generated
-   trajectories, regressed on the candidate library (:mod:`otgb.discovery.library`).
-4. **Cross-check and add** (:mod:`otgb.discovery.refine`): each strong candidate alone added
-   to f_p with its coefficient fitted by distribution matching, ranked by the share of the gap
-   it closes; the selected terms fitted together, each prior family tried, terms that do not
-   lower the held-out energy dropped.
-5. **Verify**: MMD, C2ST and energy distance on the held-out test measurements for f_p, the
-   grey-box and the augmented physics next to the Reference (half the test measurements
-   against the other half), and the disagreement map drawn again for the augmented physics.
+3. **Name** (:mod:`otgb.discovery.naming`, :mod:`otgb.discovery.regression`): its correction f_phi,
+   evaluated along generated trajectories, regressed on the candidate library
+   (:mod:`otgb.discovery.library`).
+4. **Cross-check and add** (:mod:`otgb.discovery.naming`, fits by :mod:`otgb.discovery.refine`):
+   each strong candidate alone added to f_p with its coefficient fitted by distribution matching,
+   ranked by the share of the gap it closes; the selected terms fitted together, each prior
+   family tried, terms that do not lower the held-out energy dropped; the library search
+   (:mod:`otgb.discovery.search`) where f_phi's route falls short.
+5. **Verify** (:mod:`otgb.discovery.verify`): MMD, C2ST and energy distance on the held-out test
+   measurements for f_p, the grey-box and the augmented physics next to the Reference (half the
+   test measurements against the other half), and the disagreement map drawn again for the
+   augmented physics.
 
 The measured data are split by the data module (train / validation / test): locating and
 fitting use the training part, choices between fitted models the validation part, the gap
