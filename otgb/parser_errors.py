@@ -18,6 +18,8 @@ from typing import NoReturn
 from jsonargparse import ArgumentParser
 from lightning.pytorch.cli import LightningArgumentParser
 
+from otgb.errors import InputError
+
 
 def closest(name: str, options: list[str], n: int = 3) -> list[str]:
     """The valid names nearest to ``name`` (difflib's ratio), best first."""
@@ -119,9 +121,10 @@ class ConciseParser(LightningArgumentParser):
     ``--trainer.max_steps`` without a word, while a misspelling was rejected).
     """
 
-    def __init__(self, *args, **kwargs) -> None:
+    def __init__(self, *args, raise_input_errors: bool = False, **kwargs) -> None:
         super().__init__(*args, **{"allow_abbrev": False, **kwargs})
         self._given: list[str] = []
+        self.raise_input_errors = raise_input_errors  # from Python (MissingEffect): the line as an InputError, no exit
 
     def parse_args(self, args=None, *rest, **kwargs):
         self._given = list(sys.argv[1:] if args is None else args)  # to name the config file of an error
@@ -135,6 +138,8 @@ class ConciseParser(LightningArgumentParser):
         text, about_names = concise(message, parser)
         where = config_file_with(text, self._given) if about_names else None
         hint = (f" in {where}" if where else "") + (f"; list the options with: {prog} --help" if about_names else "")
+        if self.raise_input_errors:
+            raise InputError(f"{text}{hint}")
         sys.stderr.write(f"otgb: error: {text}{hint}\n")
         self.exit(2)
 

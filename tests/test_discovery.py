@@ -1382,10 +1382,18 @@ def test_missing_effect_fits_the_measurements_of_a_loaded_run(tmp_path, monkeypa
         (lambda M: M("configs/pendulum.yaml"), "MissingEffect: physics='configs/pendulum.yaml' is not an otgb.physics"),
         (lambda M: M.from_config("a.yaml", ["--data.seed=1"]), "MissingEffect.from_config: overrides=['--data.seed=1']"),
         (lambda M: M(Pendulum()).fit({"y": 1}), "MissingEffect.fit: measurements of type dict; expected a file path"),
+        (lambda M: M(Pendulum(), seed=1).fit(np.zeros((40, 7, 1))), "the array given to MissingEffect.fit: 'y': measured"),
+        (
+            lambda M: M.from_config(ROOT / "configs" / "pendulum.yaml", {"data.batch_sise": 8}).fit(np.zeros((40, 50, 1))),
+            "unknown option --data.batch_sise (did you mean --data.batch_size",
+        ),
     ],
 )
-def test_missing_effect_refuses_bad_input_in_one_line(make, expected):
+def test_missing_effect_refuses_bad_input_in_one_line(make, expected, tmp_path, monkeypatch):
+    """From Python a bad input is an InputError of one line (no exit, no temporary file named), and nothing is written."""
     from otgb.discovery import MissingEffect
+
+    monkeypatch.chdir(tmp_path)
 
     if expected is None:  # an augmented pendulum takes the pendulum's config
         assert "configs/pendulum.yaml" in repr(make(MissingEffect)._files)
@@ -1393,6 +1401,7 @@ def test_missing_effect_refuses_bad_input_in_one_line(make, expected):
     with pytest.raises(InputError) as raised:
         make(MissingEffect)
     assert str(raised.value).startswith(expected) and "\n" not in str(raised.value), str(raised.value)
+    assert not list(tmp_path.iterdir())
 
 
 def test_discover_negative_control_names_nothing(tmp_path):

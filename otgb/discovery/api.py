@@ -15,7 +15,6 @@ writes the report's files where you choose.
 
 from __future__ import annotations
 
-import difflib
 import inspect
 import os
 import tempfile
@@ -35,6 +34,7 @@ from otgb.discovery.result import DiscoveryResult
 from otgb.discovery.session import build
 from otgb.discovery.settings import DiscoverySettings
 from otgb.errors import InputError
+from otgb.parser_errors import closest
 from otgb.physics.arguments import as_config
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
@@ -81,8 +81,8 @@ class MissingEffect:
         with working_folder(run_dir) as folder:
             measured, ckpt_path = measurements_in(measurements, folder)
             args = self._arguments(measured, ckpt_path)
-            with inside(folder):  # the config's relative folders (runs/, its data cache) are the working folder's
-                result = discover(build(args))
+            with inside(folder), naming_the_array(folder):  # the config's relative folders are the working folder's
+                result = discover(build(args, {"prog": "otgb discover", "raise_input_errors": True}))
             if run_dir is not None:
                 result.write(folder)
                 return result
@@ -116,7 +116,7 @@ def checked_settings(settings: dict[str, Any]) -> dict[str, Any]:
     known = list(inspect.signature(DiscoverySettings).parameters)
     for key in settings:
         if key not in known:
-            close = difflib.get_close_matches(key, known, n=3)
+            close = closest(key, known)
             hint = f"; did you mean {', '.join(close)}?" if close else f"; expected one of {', '.join(known)}"
             raise InputError(f"MissingEffect: no discover setting {key!r}{hint}")
     return settings
@@ -134,7 +134,7 @@ def kept_in_memory(result: DiscoveryResult, folder: Path, measurements: Any) -> 
     """``result`` of a run whose working ``folder`` is removed: the report names no file in it (an array given is
     named as such, and no fit cache was kept) and a next round's file holds the array in its own order."""
     facts = {key: value for key, value in result.facts.items() if key != "fit_cache"}
-    facts["description"] = facts["description"].replace(str(folder / "measured.npz"), "an array given to MissingEffect.fit")
+    facts["description"] = facts["description"].replace(str(folder / "measured.npz"), ARRAY)
     if isinstance(measurements, (np.ndarray, torch.Tensor)):
         return replace(result, facts=facts, measured=torch.as_tensor(np.asarray(measurements)))
     return replace(result, facts=facts)
@@ -145,6 +145,21 @@ def as_argument(value: Any) -> str:
     if isinstance(value, str):
         return value
     return yaml.safe_dump(value, default_flow_style=True, width=10**9).strip().removesuffix("\n...")
+
+
+ARRAY = "the array given to MissingEffect.fit"
+
+
+@contextmanager
+def naming_the_array(folder: Path) -> Iterator[None]:
+    """Within it, bad input that names the file an array was written to names the array instead."""
+    try:
+        yield
+    except InputError as error:
+        text = str(error)
+        if str(folder / "measured.npz") not in text:
+            raise
+        raise InputError(text.replace(str(folder / "measured.npz"), ARRAY)) from None
 
 
 @contextmanager

@@ -78,7 +78,8 @@ class Session:
 
 def build(args: list[str], parser: dict[str, Any] | None = None) -> Session:
     """Parse ``otgb discover`` arguments into a :class:`Session`; bad input is an :class:`InputError` before anything
-    is written. ``parser``: the argument parser's keyword arguments (its name and help)."""
+    is written. ``parser``: the argument parser's keyword arguments (its name and help; ``raise_input_errors``: a
+    bad option raises its one line as an InputError instead of printing it and exiting, for calls from Python)."""
     quiet_known_harmless()  # as the otgb command, when discovery runs from Python
     with warnings.catch_warnings():  # the arguments come from the command line, after the word "discover"
         warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
