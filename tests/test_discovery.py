@@ -1537,7 +1537,9 @@ def test_discover_from_python_as_the_tutorial_does_names_friction_with_its_inter
     exec('result.write("discovery")' + write, names)
     result, run_dir = names["result"], tmp_path / "discovery"
     printed = capfd.readouterr()
-    assert printed.out.startswith(f"verdict: {result.verdict}") and "viscous friction" in printed.out
+    answer, *details = result.to_dict()["verdict_parts"]
+    assert printed.out.startswith(f"verdict: {answer}\n" + "".join(f"  {d}\n" for d in details)), printed.out
+    assert "viscous friction  velocity on dvelocity/dt" in printed.out
     assert "litlogger" not in printed.err + printed.out and "TPU available" not in printed.err + printed.out
     assert "Trainable params" not in printed.err + printed.out, "no layer table: the grey-box's training is a step"
     report = json.loads((run_dir / "report.json").read_text())
@@ -1557,7 +1559,7 @@ def test_discover_from_python_as_the_tutorial_does_names_friction_with_its_inter
     assert config["data"]["physics"]["class_path"] == "otgb.physics.Augmented"
     assert Path(config["data"]["measured_path"]) == run_dir / "measured.npz", "the array, kept beside the report"
     assert np.array_equal(np.load(run_dir / "measured.npz")["y"], names["measured"]), "in its own order"
-    assert "from an array given to MissingEffect.fit" in report["run"]["description"] and "fit_cache" not in report["run"]
+    assert "from the array given to MissingEffect.fit" in report["run"]["description"] and "fit_cache" not in report["run"]
     loggers = [logger["init_args"] for logger in config["trainer"]["logger"]]
     assert all(args["name"] == "auto" and args["version"] is None for args in loggers), "each round: a new version_N"
     fit = subprocess.run(

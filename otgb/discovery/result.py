@@ -148,7 +148,8 @@ class DiscoveryResult:
 def terminal_table(result: DiscoveryResult) -> str:
     """The verdict, each named term (name, term, coefficient, 95 % interval, constant or its distribution) and the gap
     table, in plain text."""
-    lines = [f"verdict: {result.verdict}", ""]
+    answer, *details = result.report["verdict_parts"]  # as otgb discover prints them: the answer, then its evidence
+    lines = [f"verdict: {answer}", *(f"  {detail}" for detail in details), ""]
     if result.terms:
         rows = [("name", "term", "coefficient", "95 % interval", "varies")]
         for t in result.terms:
