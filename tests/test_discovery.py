@@ -46,7 +46,8 @@ from otgb.discovery.regression import SelectedTerm, Selection, design_matrix, re
 from otgb.discovery.report import augmented_config, write_report
 from otgb.discovery.scores import Scores, beats, discrepancies
 from otgb.discovery.search import SearchStep, best_subsets, search, sparsest_kept, subset_values, supported
-from otgb.discovery.settings import DiscoverySettings, Measurements
+from otgb.discovery.seeds import Seeds
+from otgb.discovery.settings import Context, DiscoverySettings, Measurements
 from otgb.discovery.variation import choose_family
 from otgb.discovery.verdict import (
     OUTCOMES,
@@ -89,6 +90,13 @@ ROOT = Path(__file__).parents[1]
 FAST = dict(n_permutations=199, n_trajectories=48, n_bootstrap=5, fit_steps=30, fit_batch=256, strong_candidates=1)
 
 REAL_FIT = refine.fit
+
+
+def _located_and_run(module, model, data, settings):
+    """The disagreement map of ``model`` on the training part, then the later steps on ``module``, as the pipeline runs
+    them (the measurements taken as noise-free)."""
+    context = Context.of(settings)
+    return run(module, data, settings, locate_step(model, data.train, settings, context), context)
 
 
 def _draws(model, n, seed):
@@ -288,15 +296,16 @@ def test_a_disagreement_map_tests_at_most_locate_rows_measured_trajectories_and_
     pendulum = Pendulum()
     measured = _draws(pendulum, 120, 1)
     settings = DiscoverySettings(n_permutations=99, locate_rows=50)
-    result = locate_step(pendulum, measured, settings)
+    result = locate_step(pendulum, measured, settings, Context.of(settings))
     assert result.sizes == (50, 50) and result.drawn_from == 120
     assert "(50 and 50 of 120, drawn at random)" in describe(result) and result.to_dict()["drawn_from"] == 120
     assert result.measured_trajectories == "50 of its 120 trajectories, drawn at random"
-    again = locate_step(pendulum, measured, settings)
+    again = locate_step(pendulum, measured, settings, Context.of(settings))
     assert torch.equal(again.statistic, result.statistic)  # the same draw from the same seed
-    other_model = locate_step(pendulum, measured, settings, "augmented")
+    other_model = locate_step(pendulum, measured, settings, Context.of(settings), "augmented")
     assert torch.equal(other_model.mean_a, result.mean_a)  # the same measured trajectories, whatever the model
-    everything = locate_step(pendulum, measured, DiscoverySettings(n_permutations=99))
+    more_permutations = DiscoverySettings(n_permutations=99)
+    everything = locate_step(pendulum, measured, more_permutations, Context.of(more_permutations))
     assert everything.sizes == (120, 120) and everything.drawn_from == 0 and "(120 and 120)" in describe(everything)
     assert everything.measured_trajectories == "120 trajectories"
     with pytest.raises(InputError, match="locate_rows >= 10"):
@@ -306,10 +315,10 @@ def test_a_disagreement_map_tests_at_most_locate_rows_measured_trajectories_and_
 def test_fits_and_scores_use_at_most_score_rows_of_each_part_nested_in_the_maps_rows():
     pendulum = Pendulum()
     data = Measurements(_draws(pendulum, 60, 1), _draws(pendulum, 30, 2), _draws(pendulum, 30, 3))
-    fitting = fitting_for(pendulum, data, DiscoverySettings(score_rows=20), {})
+    fitting = fitting_for(pendulum, data, DiscoverySettings(score_rows=20), {}, Context())
     assert len(fitting.train) == len(fitting.val) == 20
-    assert fitting_for(pendulum, data, DiscoverySettings(), {}).train is data.train  # fewer rows than the cap: all
-    smaller, larger = at_most(data.train, 10, 0), at_most(data.train, 20, 0)
+    assert fitting_for(pendulum, data, DiscoverySettings(), {}, Context()).train is data.train  # fewer rows than the cap: all
+    smaller, larger = at_most(data.train, 10, Seeds(0)), at_most(data.train, 20, Seeds(0))
     assert torch.equal(larger, fitting.train)
     position = {tuple(row.flatten().tolist()): i for i, row in enumerate(data.train)}
     assert {position[tuple(r.flatten().tolist())] for r in smaller} <= {position[tuple(r.flatten().tolist())] for r in larger}
@@ -458,7 +467,8 @@ def test_a_candidate_that_diverges_is_dropped_and_listed_not_a_crash():
     cubic = next(c for c in build_library(pendulum, ["velocity"]) if c.feature == "velocity^3")
     with DivergenceLog() as log:
         scores = discrepancies(pendulum, [cubic], [Constant(50.0)], measured, 0, repeats=2)
-        kept = simulate_candidate(Augmented(pendulum, [LibraryTerm("velocity^3", "velocity", Constant(50.0))]), 100, 0, "gap")
+        cubic_model = Augmented(pendulum, [LibraryTerm("velocity^3", "velocity", Constant(50.0))])
+        kept = simulate_candidate(cubic_model, 100, Seeds(0), "gap")
     assert not scores.finite and len(kept) < 100 and torch.isfinite(kept).all()
     assert [r["what"] for r in log.records] == ["score", "gap"]
     assert log.records[1]["diverged"] == 100 - len(kept) and log.records[1]["terms"] == ["velocity^3 on dvelocity/dt"]
@@ -1041,7 +1051,7 @@ def test_the_undertrained_check_simulates_grey_box_and_f_p_from_the_same_inputs(
     newcomer's pendulum: a difference's standard error of 1.3 against an energy of 1.4)."""
     pendulum = Pendulum()
     dgp = pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))])
-    record = undertrained(_knowing(pendulum, lambda state: 0 * state[:, 1:2]), _draws(dgp, 30, 2), DiscoverySettings(**FAST))
+    record = undertrained(_knowing(pendulum, lambda state: 0 * state[:, 1:2]), _draws(dgp, 30, 2), Seeds(0))
     assert record is not None and record["validation_trajectories"] == 30
     assert abs(record["difference"]) < 1e-4 * record["f_p_heldout_energy"] and record["standard_error"] < 1e-4, record
 
@@ -1052,8 +1062,8 @@ def test_workflow_names_adds_and_closes_the_gap():
     module = _knowing(pendulum, lambda state: -1.2 * state[:, 1:2])
     data = Measurements(_draws(dgp, 300, 1), _draws(dgp, 100, 2), _draws(dgp, 100, 3))
     settings = DiscoverySettings(**FAST)
-    before = locate_step(pendulum, data.train, settings)
-    result = run(module, data, settings, before)
+    before = locate_step(pendulum, data.train, settings, Context.of(settings))
+    result = run(module, data, settings, before, Context.of(settings))
     assert result.found and [c.feature for c in result.fitted.candidates] == ["velocity"]
     assert abs(result.fitted.priors[0].value + 1.2) < 0.12 and result.fitted.family == "constant"
     assert result.gap["f_p"]["c2st"] > 0.85 and result.gap["augmented"]["c2st"] < 0.7
@@ -1071,15 +1081,16 @@ def test_a_stopped_run_resumed_from_its_fit_cache_reaches_the_result_of_a_run_ne
     module = _knowing(pendulum, lambda state: -1.2 * state[:, 1:2])
     data = Measurements(_draws(dgp, 300, 1), _draws(dgp, 100, 2), _draws(dgp, 100, 3))
     settings = DiscoverySettings(**FAST, fit_cache=str(tmp_path / "fits"))
-    before = locate_step(pendulum, data.train, settings)
-    whole = run(module, data, settings, before)
+    before = locate_step(pendulum, data.train, settings, Context.of(settings))
+    whole = run(module, data, settings, before, Context.of(settings))
     stored = sorted((tmp_path / "fits").glob("*.pt"), key=lambda path: path.stat().st_mtime_ns)
     assert len(stored) >= 4 and not list((tmp_path / "fits").glob(".*")), "one file per fit, no partial file left"
     for path in stored[len(stored) // 2 :]:
         path.unlink()
     fits = []
     monkeypatch.setattr(refine, "fit", lambda *args, **kwargs: fits.append(args[1]) or REAL_FIT(*args, **kwargs))
-    resumed = run(module, _clone(data), DiscoverySettings(**FAST, fit_cache=str(tmp_path / "fits")), before)
+    cached = DiscoverySettings(**FAST, fit_cache=str(tmp_path / "fits"))
+    resumed = run(module, _clone(data), cached, before, Context.of(cached))
     assert len(fits) == len(stored) - len(stored) // 2, "the finished fits are read back, the others fitted"
     assert list(map(repr, resumed.fitted.priors)) == list(map(repr, whole.fitted.priors))
     assert resumed.fitted.heldout.draws == whole.fitted.heldout.draws
@@ -1169,7 +1180,7 @@ def test_workflow_names_quadratic_drag_and_closes_the_gap():
     module = _knowing(pendulum, lambda state: -0.5 * state[:, 1:2] * state[:, 1:2].abs())
     data = Measurements(_draws(dgp, 300, 1), _draws(dgp, 100, 2), _draws(dgp, 100, 3))
     settings = DiscoverySettings(**FAST)
-    result = run(module, data, settings, locate_step(pendulum, data.train, settings))
+    result = _located_and_run(module, pendulum, data, settings)
     assert [(c.feature, c.component) for c in result.fitted.candidates] == [("velocity*|velocity|", "velocity")]
     value = result.fitted.priors[0].value
     assert abs(value + 0.5) < 0.05 and physical_name("velocity*|velocity|", "velocity", value, pendulum) == "quadratic drag"
@@ -1183,7 +1194,7 @@ def test_search_names_the_effect_a_mean_only_correction_missed(tmp_path):
     module = _knowing(pendulum, lambda state: torch.full_like(state[:, 1:2], -0.3))  # friction's average, not its shape
     data = Measurements(_draws(dgp, 300, 1), _draws(dgp, 100, 2), _draws(dgp, 100, 3))
     settings = DiscoverySettings(**FAST)
-    result = run(module, data, settings, locate_step(pendulum, data.train, settings))
+    result = _located_and_run(module, pendulum, data, settings)
     assert [t.candidate.feature for s in result.selections for t in s.terms] == ["1"]  # f_phi's route names a constant
     assert result.search and result.route == "library search"
     assert [c.feature for c in result.search[0].candidates] == ["velocity"]
@@ -1215,16 +1226,18 @@ def test_a_forward_route_still_improving_at_six_terms_is_cut_short_and_hands_ove
 
     monkeypatch.setattr(naming, "_initial", lambda candidates, designs: [0.0] * len(candidates))
     monkeypatch.setattr(naming, "prune", lambda current, fitting: current)
-    kept, dropped, truncated = naming.add_step([selection], {}, fitting)
+    route = naming.add_step([selection], {}, fitting)
+    kept, dropped, truncated = route.kept, route.dropped, route.truncated
     assert tried == [1, 2, 3, 4, 5, 6] and truncated and len(kept.candidates) == naming.MAX_FORWARD_TERMS
     assert [d["feature"] for d in dropped] == ["angle^3", "velocity^3"]
-    assert "cut short" in workflow.search_reason(Pendulum(), kept, truncated, torch.zeros(0), DiscoverySettings(**FAST), False)
-    reason = partial(workflow.search_reason, Pendulum(), None, False, torch.zeros(0), DiscoverySettings(**FAST))
+    fast = DiscoverySettings(**FAST)
+    assert "cut short" in workflow.search_reason(Pendulum(), kept, truncated, torch.zeros(0), fast, Context(), False)
+    reason = partial(workflow.search_reason, Pendulum(), None, False, torch.zeros(0), fast, Context())
     assert reason(False) == "f_phi named nothing" and "f_phi's terms are not used" in reason(True), "undertrained: unused"
     rod = AdvectionDiffusion()
     kept_on_rod = FittedTerms("constant", [Candidate("T^2", "T")], [Constant(0.3)], Scores([1.0, 1.1]), [])
     in_space = workflow.search_reason(
-        rod, kept_on_rod, False, torch.zeros(0), DiscoverySettings(**FAST, position_degree=2), False
+        rod, kept_on_rod, False, torch.zeros(0), DiscoverySettings(**FAST, position_degree=2), Context(), False
     )
     assert in_space.startswith("terms fixed in space were asked for"), "the search runs whatever f_phi's route found"
 
@@ -1578,7 +1591,7 @@ def test_workflow_names_advection_on_a_field():
     module = _knowing(model, lambda state: -0.1 * model.derivative(state))
     data = Measurements(_draws(dgp, 300, 1), _draws(dgp, 100, 2), _draws(dgp, 100, 3))
     settings = DiscoverySettings(**FAST)
-    result = run(module, data, settings, locate_step(model, data.train, settings))
+    result = _located_and_run(module, model, data, settings)
     assert [(c.feature, c.component) for c in result.fitted.candidates] == [("d_s(T)", "T")]
     assert abs(result.fitted.priors[0].value + 0.1) < 0.01
     assert result.gap["augmented"]["c2st"] < 0.7 < result.gap["f_p"]["c2st"]
@@ -1593,7 +1606,7 @@ def test_workflow_names_a_source_fixed_in_space_when_position_terms_are_asked_fo
     module = _knowing(model, lambda state: (1.89 * model.grid - 0.9 * model.grid**2).to(state).expand_as(state))
     data = Measurements(_draws(dgp, 300, 1), _draws(dgp, 100, 2), _draws(dgp, 100, 3))
     settings = DiscoverySettings(**FAST, position_degree=2)
-    result = run(module, data, settings, locate_step(model, data.train, settings))
+    result = _located_and_run(module, model, data, settings)
     assert result.search_reason.startswith("terms fixed in space were asked for")
     named = {c.feature: p.value for c, p in zip(result.fitted.candidates, result.fitted.priors)}
     assert set(named) == {"s", "s^2"} and all(c.component == "T" for c in result.fitted.candidates), named
@@ -1643,7 +1656,8 @@ def test_a_term_that_only_helped_a_constant_coefficient_goes_once_the_coefficien
     viscous, coulomb = (next(c for c in library if c.feature == f) for f in ("velocity", "sign(velocity)"))
     fitting = Fitting(pendulum, _draws(dgp, 1260, 1), _draws(dgp, 270, 2), 50, 1024, 0)
     kept = fitting([viscous, coulomb], [-0.8, -0.3])
-    choice, dropped = family_step(kept, fitting, FAMILIES)
+    step = family_step(kept, fitting, FAMILIES)
+    choice, dropped = step.choice, step.dropped
     assert dropped == [{"feature": "sign(velocity)", "component": "velocity"}]
     assert choice.fitted.candidates == [viscous] and choice.fitted.family == "two_point"
 
@@ -1655,7 +1669,7 @@ def test_workflow_names_linear_decay_on_a_field():
     module = _knowing(model, lambda state: -0.5 * state)
     data = Measurements(_draws(dgp, 300, 1), _draws(dgp, 100, 2), _draws(dgp, 100, 3))
     settings = DiscoverySettings(**FAST)
-    result = run(module, data, settings, locate_step(model, data.train, settings))
+    result = _located_and_run(module, model, data, settings)
     assert [(c.feature, c.component) for c in result.fitted.candidates] == [("T", "T")]
     assert abs(result.fitted.priors[0].value + 0.5) < 0.05
     assert physical_name("T", "T", result.fitted.priors[0].value, model) == "linear decay"
@@ -1675,7 +1689,7 @@ def test_workflow_names_the_u_reaction_of_reaction_diffusion():
 
     data = Measurements(_draws(dgp, 300, 1), _draws(dgp, 100, 2), _draws(dgp, 100, 3))
     settings = DiscoverySettings(**FAST)
-    result = run(_knowing(model, reacting), data, settings, locate_step(model, data.train, settings))
+    result = _located_and_run(_knowing(model, reacting), model, data, settings)
     named = {c.feature: p.value for c, p in zip(result.fitted.candidates, result.fitted.priors)}
     assert sorted(named) == sorted(f for f, _ in reaction) and {c.component for c in result.fitted.candidates} == {"u"}
     assert all(abs(named[f] - c) < 0.1 * abs(c) for f, c in reaction), named

@@ -1,5 +1,5 @@
 """Trajectories drawn for discovery: f_p's and a candidate model's from their priors, the grey-box's with its
-components, and random subsets of measured rows; every stream seeded by name."""
+components, and random subsets of measured rows; each stream from :class:`~otgb.discovery.seeds.Seeds`."""
 
 from __future__ import annotations
 
@@ -9,25 +9,25 @@ import torch
 from torch import Tensor
 
 from otgb.data.measured import CHUNK, simulate_in_chunks
-from otgb.data.seeding import generator_for
 from otgb.discovery.log import diverged
 from otgb.discovery.scores import simulate_finite, term_names
+from otgb.discovery.seeds import Seeds
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 
 
 @torch.no_grad()
-def simulate_from_priors(physics: PhysicsModel, n: int, seed: int, name: str) -> Tensor:
-    """n observed trajectories of ``physics`` with inputs from its priors, (n, T, *obs)."""
-    g = generator_for(seed, "discover", name)
+def simulate_from_priors(physics: PhysicsModel, n: int, seeds: Seeds, name: str) -> Tensor:
+    """n observed trajectories of ``physics`` with inputs from its priors drawn from the stream ``name``, (n, T, *obs)."""
+    g = seeds.simulation(name)
     x0, theta = physics.sample_initial_state(n, g), physics.sample_theta(n, g)
     return simulate_in_chunks(physics, x0, theta)
 
 
 @torch.no_grad()
-def simulate_candidate(model: Augmented, n: int, seed: int, name: str) -> Tensor:
+def simulate_candidate(model: Augmented, n: int, seeds: Seeds, name: str) -> Tensor:
     """:func:`simulate_from_priors` for a candidate model: the trajectories that diverge are dropped and logged."""
-    g = generator_for(seed, "discover", name)
+    g = seeds.simulation(name)
     x0, theta = model.sample_initial_state(n, g), model.sample_theta(n, g)
     kept, bad = zip(*(_simulate_finite_rows(model, i, x0[i : i + CHUNK], theta[i : i + CHUNK]) for i in range(0, n, CHUNK)))
     bad = torch.cat(bad)
@@ -46,10 +46,10 @@ GREYBOX = "greybox"  # the grey-box's stream of inputs; f_p simulated from it ge
 
 
 @torch.no_grad()
-def greybox_draws(module: Any, n: int, seed: int) -> dict[str, Tensor]:
+def greybox_draws(module: Any, n: int, seeds: Seeds) -> dict[str, Tensor]:
     """The grey-box's states, f_p and f_phi (in state space) along n generated trajectories from the priors."""
     physics = module.physics
-    g = generator_for(seed, "discover", GREYBOX)
+    g = seeds.simulation(GREYBOX)
     x0, theta = physics.sample_initial_state(n, g), physics.sample_theta(n, g)
     transport_map, device = module.evaluation_map(), module.device
     rng = module.generator.get_state()
@@ -74,17 +74,17 @@ def acting_components(physics: PhysicsModel) -> list[str]:
     return [name for name, r in zip(physics.state_names, reach) if r > 0]
 
 
-def at_most(rows: Tensor, n: int, seed: int) -> Tensor:
+def at_most(rows: Tensor, n: int, seeds: Seeds) -> Tensor:
     """``rows``, or ``n`` of them drawn at random (in their order) where there are more. One permutation per number of
     rows, whatever the model compared with them: the before and after maps of a part see the same trajectories, and a
     smaller subset of a part is a part of a larger one."""
     if len(rows) <= n:
         return rows
-    drawn = torch.randperm(len(rows), generator=generator_for(seed, "discover", "rows", len(rows)))
+    drawn = torch.randperm(len(rows), generator=seeds.rows(len(rows)))
     return rows[drawn[:n].sort().values]
 
 
 @torch.no_grad()
-def generated(module: Any, n: int, seed: int) -> Tensor:
+def generated(module: Any, n: int, seeds: Seeds) -> Tensor:
     """n trajectories of the grey-box with inputs from the priors, (n, T, *obs)."""
-    return greybox_draws(module, n, seed)["observed"][:, -module.physics.n_obs :]
+    return greybox_draws(module, n, seeds)["observed"][:, -module.physics.n_obs :]

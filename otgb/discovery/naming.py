@@ -4,6 +4,7 @@ forward route with its pruning, the evidence against alternatives and the prior 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -18,27 +19,42 @@ from otgb.discovery.log import progress
 from otgb.discovery.refine import FittedTerms, Fitting
 from otgb.discovery.regression import Selection, describe_terms, design_matrix, regress, subset_coefficients
 from otgb.discovery.scores import beats, difference, discrepancies
+from otgb.discovery.seeds import Seeds
 from otgb.discovery.settings import Context, DiscoverySettings, Measurements
 from otgb.discovery.variation import FamilyChoice
 from otgb.discovery.variation import choose_prior as choose_family_of
 from otgb.physics.base import PhysicsModel
 
 
-def name_step(module: Any, settings: DiscoverySettings) -> tuple[list[Selection], dict, dict[str, Tensor], float]:
-    """Regress f_phi on the library, per component; also returns the designs, the draws and |f_phi| / |f_p| (RMS)."""
+@dataclass(frozen=True)
+class Naming:
+    """f_phi's regression on the library: per acting component its selection and its design, the grey-box's draws
+    along which f_phi was evaluated, and the share |f_phi| / |f_p| (RMS) along them."""
+
+    selections: list[Selection]
+    designs: dict
+    draws: dict[str, Tensor]
+    correction_share: float
+
+    @property
+    def proposed(self) -> list[tuple[Candidate, float]]:
+        """The selected terms with their slopes on f_phi."""
+        return [(t.candidate, t.coefficient) for s in self.selections for t in s.terms]
+
+
+def name_step(module: Any, settings: DiscoverySettings, seeds: Seeds) -> Naming:
+    """Regress f_phi on the library, per component."""
     physics = module.physics
-    draws = greybox_draws(module, settings.n_trajectories, settings.seed)
+    draws = greybox_draws(module, settings.n_trajectories, seeds)
     selections, designs = [], {}
     for component in acting_components(physics):
         index = physics.state_names.index(component)
         candidates = build_library(physics, [component], settings.theta_products, settings.position_degree)
-        design = design_matrix(
-            physics, candidates, draws["states"], draws["theta"], draws["correction"][:, :, index], settings.seed
-        )
-        selections.append(regress(design, component, settings.n_bootstrap, settings.seed))
+        design = design_matrix(physics, candidates, draws["states"], draws["theta"], draws["correction"][:, :, index], seeds.root)
+        selections.append(regress(design, component, settings.n_bootstrap, seeds.root))
         designs[component] = design
     share = float(draws["correction"].pow(2).mean().sqrt() / draws["physics"].pow(2).mean().sqrt().clamp_min(1e-12))
-    return selections, designs, draws, share
+    return Naming(selections, designs, draws, share)
 
 
 def strong_candidates(selections: list[Selection], designs: dict, k: int) -> list[tuple]:
@@ -81,14 +97,13 @@ def cross_check_step(strong: list[tuple], fitting: Fitting) -> list[dict]:
 
 
 def fitting_for(
-    physics: PhysicsModel, data: Measurements, settings: DiscoverySettings, designs: dict, context: Context | None = None
+    physics: PhysicsModel, data: Measurements, settings: DiscoverySettings, designs: dict, context: Context
 ) -> Fitting:
     """The run's :class:`otgb.discovery.refine.Fitting`: the settings' steps, batch and seed, and each library
     candidate's natural scale, the slope at which its term alone would be as large as f_phi on its component."""
     natural = {c: _natural_scale(c, design) for design in designs.values() for c in design.candidates}
-    train, val = (at_most(part, settings.score_rows, settings.seed) for part in (data.train, data.val))
-    steps = (settings.fit_steps, settings.fit_batch, settings.seed)
-    context = context or Context.of(settings)
+    train, val = (at_most(part, settings.score_rows, context.seeds) for part in (data.train, data.val))
+    steps = (settings.fit_steps, settings.fit_batch, context.seeds.root)
     return Fitting(physics, train, val, *steps, natural, context.cache, context.device)
 
 
@@ -104,7 +119,16 @@ def _on(candidate: Candidate) -> str:
     return f"{candidate.feature} on d{candidate.component}/dt"
 
 
-def add_step(selections: list[Selection], designs: dict, fitting: Fitting):
+@dataclass(frozen=True)
+class Route:
+    """The terms kept along f_phi's route (their constant fit), those it left out, and whether it was cut short."""
+
+    kept: FittedTerms
+    dropped: list[dict]
+    truncated: bool
+
+
+def add_step(selections: list[Selection], designs: dict, fitting: Fitting) -> Route:
     """Forward selection on held-out measurements, then the prior family.
 
     The selected terms are ordered by the size of their contribution to f_phi; the models made
@@ -117,8 +141,7 @@ def add_step(selections: list[Selection], designs: dict, fitting: Fitting):
     rather than a shape; the route is then *truncated* and the library search (which tries every
     subset) runs. The sparsest model that the best
     does not beat by more than two standard errors is kept, then pruned backwards (:func:`prune`);
-    the terms left out are reported as dropped. Returns the kept terms' constant fit, the dropped
-    terms, and whether the route was truncated.
+    the terms left out are reported as dropped.
     """
     ordered = sorted(((t.size, t.candidate) for s in selections for t in s.terms), key=lambda pair: -pair[0])
     path = [c for _, c in ordered]
@@ -138,16 +161,26 @@ def add_step(selections: list[Selection], designs: dict, fitting: Fitting):
     best = min(fits, key=lambda f: f.heldout_energy)
     current = prune(next(f for f in fits if not beats(best.heldout, f.heldout)), fitting)
     dropped = [{"feature": c.feature, "component": c.component} for c in path if c not in current.candidates]
-    return current, dropped, truncated
+    return Route(current, dropped, truncated)
+
+
+@dataclass(frozen=True)
+class Weighed:
+    """The kept terms after the evidence step: their fit, their comparisons with the alternatives and the strong
+    candidates it added."""
+
+    kept: FittedTerms
+    comparisons: list[Comparison]
+    added: list[dict]
 
 
 def evidence_step(
     kept: FittedTerms, selections: list[Selection], cross_check: list[dict], designs: dict, fitting: Fitting, per_term: int
-) -> tuple[FittedTerms, list[Comparison], list[dict]]:  # fmt: skip
+) -> Weighed:  # fmt: skip
     """The kept terms against every single-term swap among the ``cross_check``'s strong candidates, the terms each moves with in
     its regression and Coulomb friction, on the validation measurements (:mod:`otgb.discovery.evidence`); a swap that
     fits better by two standard errors is taken, and an added strong candidate that does so with a coefficient whose
-    95 % interval excludes zero. Returns the kept fit, its comparisons and the additions."""
+    95 % interval excludes zero."""
 
     def start(candidate: Candidate) -> float:
         return _initial([candidate], designs)[0]
@@ -161,7 +194,7 @@ def evidence_step(
     for c in comparisons:
         margin = f"{c.standard_errors:+.1f} standard errors" if math.isfinite(c.difference) else "the swapped model diverges"
         progress(f"evidence: {c.replaced.feature} against {c.by.feature}: {margin}")
-    return kept, comparisons, added
+    return Weighed(kept, comparisons, added)
 
 
 def choose_prior(constant: FittedTerms, fitting: Fitting, families: tuple[str, ...]) -> FamilyChoice:
@@ -199,7 +232,15 @@ def prune(current: FittedTerms, fitting: Fitting) -> FittedTerms:
     return current
 
 
-def family_step(kept: FittedTerms, fitting: Fitting, families: tuple[str, ...]) -> tuple[FamilyChoice, list[dict]]:
+@dataclass(frozen=True)
+class FamilyStep:
+    """The prior family chosen for the kept terms, and the terms dropped once they were fitted in it."""
+
+    choice: FamilyChoice
+    dropped: list[dict]
+
+
+def family_step(kept: FittedTerms, fitting: Fitting, families: tuple[str, ...]) -> FamilyStep:
     """The prior family of ``kept``'s terms (:func:`choose_prior`); when it varies, the terms are pruned again in it.
 
     Every earlier step fits constant coefficients. When the effect varies between trajectories, a
@@ -207,27 +248,28 @@ def family_step(kept: FittedTerms, fitting: Fitting, families: tuple[str, ...]) 
     taking up part of the variation (on the one-to-many pendulum, whose friction is one of two values,
     Coulomb friction was added beside viscous friction). Fitted with the chosen family, such a term is
     no longer needed: it is dropped (:func:`prune`) and the family is chosen again for the terms left.
-    Returns the choice and the dropped terms.
     """
     choice = choose_prior(kept, fitting, families)
     if not varies(choice.fitted.family) or len(kept.candidates) == 1:
-        return choice, []
+        return FamilyStep(choice, [])
     pruned = prune(choice.fitted, fitting)
     if len(pruned.candidates) == len(kept.candidates):
-        return choice, []
+        return FamilyStep(choice, [])
     dropped = [{"feature": c.feature, "component": c.component} for c in kept.candidates if c not in pruned.candidates]
     constant = fitting(pruned.candidates, [centre(p) for p in pruned.priors], natural_scales=False)
-    return choose_prior(constant, fitting, families), dropped
+    return FamilyStep(choose_prior(constant, fitting, families), dropped)
 
 
-def final_regression(selections: list[Selection], designs: dict, kept: list[Candidate], settings: DiscoverySettings) -> list:
+def final_regression(
+    selections: list[Selection], designs: dict, kept: list[Candidate], settings: DiscoverySettings, seeds: Seeds
+) -> list:
     """The regression of f_phi on the kept terms alone, per component (intervals, shares, ambiguity)."""
     terms = []
     for selection in selections:
         mine = [c for c in kept if c.component == selection.component]
         if mine:
             inclusion = {Candidate(f, selection.component): p for f, p in selection.inclusion.items()}
-            terms += describe_terms(designs[selection.component], mine, inclusion, settings.n_bootstrap, settings.seed)
+            terms += describe_terms(designs[selection.component], mine, inclusion, settings.n_bootstrap, seeds.root)
     return terms
 
 

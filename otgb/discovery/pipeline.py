@@ -7,7 +7,6 @@ The files of a result are written by :meth:`DiscoveryResult.write`.
 
 from __future__ import annotations
 
-from contextlib import AbstractContextManager
 from dataclasses import replace
 from typing import Any
 
@@ -27,37 +26,31 @@ from otgb.discovery.verify import gap_step
 from otgb.discovery.workflow import locate_step, run
 from otgb.runs import load_weights
 
-NOISE_STREAM = 7919  # the seed offset of the noise that simulations compared with the measurements carry
-
 
 def discover(session: Session) -> DiscoveryResult:
     """Run discovery on the session's measurements: the nothing-detected branch where the disagreement map finds no
     difference, else the grey-box (trained, or loaded from ``session.ckpt_path``) and the later steps, with pointwise
     errors where a DGP is known."""
     show_on_stderr()
-    datamodule, settings, physics = session.datamodule, session.settings, session.physics
+    datamodule, settings, physics, context = session.datamodule, session.settings, session.physics, session.context
     data = Measurements.from_datamodule(datamodule)
     paired = paired_check(physics, data.train, *data.train_inputs, data.noise) if data.pairable() else None
-    with as_measured(session):
-        before = locate_step(physics, data.train, settings, paired=paired)
+    with context.as_measured(physics, data.noise):
+        before = locate_step(physics, data.train, settings, context, paired=paired)
     progress(describe(before))
     components = None
     if before.any_significant:
         trained = load_or_fit(session)
-        components = component_analysis(session.module, datamodule, seed=settings.seed)
-        with as_measured(session), stopped_by_signals(session.context.cache, trained if session.ckpt_path is None else None):
-            result = run(session.module, data, settings, before, session.context)
+        components = component_analysis(session.module, datamodule, seed=context.seeds.root)
+        fitted_now = trained if session.ckpt_path is None else None  # a checkpoint trained by this run, kept on a stop
+        with context.as_measured(physics, data.noise), stopped_by_signals(context.cache, fitted_now):
+            result = run(session.module, data, settings, before, context)
         result = with_pointwise_errors(result, session)
     else:
         result = nothing_detected(session, data, before)
     samples = {"measured": data.test, **{k: v for k, v in result.draws.items() if k != "greybox"}}
     measured = torch.cat([data.train, data.val, data.test])
     return DiscoveryResult(result, physics, facts_of(session), samples, components, session.config, measured, datamodule.source)
-
-
-def as_measured(session: Session) -> AbstractContextManager[None]:
-    """Within it, simulations compared with the measurements carry the measurements' noise (the truth does not)."""
-    return session.physics.measured_with_noise(session.datamodule.measurement_noise, session.settings.seed + NOISE_STREAM)
 
 
 def load_or_fit(session: Session) -> str | None:
@@ -81,18 +74,18 @@ def with_pointwise_errors(result: Discovery, session: Session) -> Discovery:
     if process is None:
         return result
     augmented = result.fitted.model(session.physics) if result.found else None
-    test_set, seed = session.datamodule.test_set, session.settings.seed
     with DivergenceLog() as log:
-        pointwise = pointwise_errors(session.module, process, augmented, test_set, seed)
+        pointwise = pointwise_errors(session.module, process, augmented, session.datamodule.test_set, session.context.seeds.root)
     return replace(result, pointwise=pointwise, diverged=result.diverged + log.records)
 
 
 def nothing_detected(session: Session, data: Measurements, before: DisagreementMap) -> Discovery:
     """The result where f_p and the measurements show no difference: f_p's gap to the test part beside the
     Reference's, no grey-box trained."""
-    with as_measured(session):
-        draws = {"f_p": simulate_from_priors(session.physics, len(data.test), session.settings.seed, "gap-f_p")}
-    return Discovery(before, describe(before), draws=draws, gap=gap_step(draws, data.test, session.settings))
+    physics, seeds = session.physics, session.context.seeds
+    with session.context.as_measured(physics, data.noise):
+        draws = {"f_p": simulate_from_priors(physics, len(data.test), seeds, "gap-f_p")}
+    return Discovery(before, describe(before), draws=draws, gap=gap_step(draws, data.test, session.settings, seeds))
 
 
 def facts_of(session: Session) -> dict[str, Any]:

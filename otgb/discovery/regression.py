@@ -34,6 +34,7 @@ from sklearn.model_selection import GroupKFold
 from torch import Tensor
 
 from otgb.discovery.library import Candidate
+from otgb.discovery.seeds import SLOPE_BOOTSTRAP
 from otgb.physics.base import PhysicsModel
 from otgb.physics.features import evaluate_feature, parse_feature
 
@@ -198,7 +199,7 @@ def describe_terms(
     position = {design.candidates[i]: k for k, i in enumerate(usable)}
     support = np.array([position[c] for c in candidates], dtype=int)
     coef = least_squares(Xs, y, support)
-    rng = np.random.default_rng(seed + 1)
+    rng = np.random.default_rng(seed + SLOPE_BOOTSTRAP)
     trajectories = np.unique(groups)
     boot = np.array(
         [least_squares(Xs[rows], y[rows], support) for rows in (_resample(groups, trajectories, rng) for _ in range(n_bootstrap))]

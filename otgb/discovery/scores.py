@@ -15,6 +15,7 @@ from torch import Tensor
 from otgb.discovery.discrepancy import Target, discrepancy_and_rows
 from otgb.discovery.library import Candidate
 from otgb.discovery.log import diverged
+from otgb.discovery.seeds import FIT_INPUTS, FIT_NOISE, stream
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 from otgb.physics.priors import Constant, Prior
@@ -88,7 +89,7 @@ def discrepancies(
     """
     terms = [LibraryTerm(c.feature, c.component, Constant(0.0)) for c in candidates]
     model = Augmented(on_device(base, device), terms).to(device)
-    inputs, noise = torch.Generator().manual_seed(seed + 1), torch.Generator().manual_seed(seed + 2)
+    inputs, noise = stream(seed, FIT_INPUTS), stream(seed, FIT_NOISE)
     n, values, rows = len(measured), [], torch.zeros(len(measured), dtype=torch.float64, device=device)
     target = Target.of(measured.double().to(device))
     for _ in range(repeats):

@@ -54,6 +54,7 @@ from otgb.discovery.library import Candidate
 from otgb.discovery.refine import FittedTerms, Fitting
 from otgb.discovery.regression import design_matrix
 from otgb.discovery.scores import Scores, beats, difference, discrepancies
+from otgb.discovery.seeds import FITTED_CORRECTION, stream
 from otgb.physics.base import PhysicsModel
 from otgb.physics.features import is_local
 from otgb.physics.priors import Constant
@@ -89,7 +90,7 @@ class Unsupported:
 def fitted_correction(physics: PhysicsModel, dense: FittedTerms, n: int, seed: int) -> tuple[Tensor, Tensor, Tensor]:
     """States (n, T, *state), theta and the fitted terms' correction (n, T, *state) along n trajectories of the fitted model."""
     model = dense.model(physics)
-    g = torch.Generator().manual_seed(seed + 5)
+    g = stream(seed, FITTED_CORRECTION)
     x0, theta = physics.sample_initial_state(n, g), physics.sample_theta(n, g)
     coefficients = torch.tensor([centre(p) for p in dense.priors]).expand(n, -1)
     states = model.solve(model.vector_field, x0, torch.cat([theta, coefficients], 1))

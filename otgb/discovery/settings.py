@@ -3,6 +3,7 @@ trajectories it works on, split into training, validation and test parts."""
 
 from __future__ import annotations
 
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -13,7 +14,9 @@ from torch import Tensor
 from otgb.discovery.families import FAMILIES
 from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.library import MAX_DEGREE
+from otgb.discovery.seeds import Seeds
 from otgb.errors import InputError
+from otgb.physics.base import PhysicsModel
 
 
 class DiscoverySettings:
@@ -98,23 +101,31 @@ class DiscoverySettings:
 
 @dataclass(frozen=True)
 class Context:
-    """Where a discovery run computes and what it keeps, beside its settings: the device of the coefficient fits (a
-    CUDA device where the grey-box trains on one, else the CPU: Apple's MPS has no float64 for scores) and the fit
-    cache (:mod:`otgb.discovery.fit_cache`; None: no fit is stored)."""
+    """Where a discovery run computes, what it keeps and what it draws, beside its settings: the device of the
+    coefficient fits (a CUDA device where the grey-box trains on one, else the CPU: Apple's MPS has no float64 for
+    scores), the fit cache (:mod:`otgb.discovery.fit_cache`; None: no fit is stored) and the run's random streams
+    (:class:`~otgb.discovery.seeds.Seeds`), the measurement noise of its simulations among them."""
 
     device: torch.device = torch.device("cpu")
     cache: FitCache | None = None
+    seeds: Seeds = Seeds(0)
 
     @classmethod
     def of(cls, settings: DiscoverySettings, runs: Path | None = None, device: torch.device | None = None) -> Context:
         """The context of ``settings``: ``fit_cache: auto`` resolved to ``runs/fit_cache`` where ``runs`` (the folder of
-        the run directories) is given, none otherwise; the fits on ``device`` if it is a CUDA device."""
+        the run directories) is given, none otherwise; the fits on ``device`` if it is a CUDA device; the streams of
+        ``settings.seed``."""
         cache = FitCache(runs / "fit_cache") if settings.fit_cache == "auto" and runs is not None else settings.cache
         on_cuda = device is not None and device.type == "cuda"
-        return cls(device if on_cuda else torch.device("cpu"), cache)
+        return cls(device if on_cuda else torch.device("cpu"), cache, Seeds(settings.seed))
+
+    def as_measured(self, physics: PhysicsModel, noise: float) -> AbstractContextManager[None]:
+        """Within it, simulations of ``physics`` compared with the measurements carry the measurements' noise of sd
+        ``noise`` (the truth does not), from the run's stream of it."""
+        return physics.measured_with_noise(noise, self.seeds.measurement_noise)
 
 
-@dataclass
+@dataclass(frozen=True)
 class Measurements:
     """The measured trajectories (n, T, *obs) of each part of the split, the training and test parts' x0 and theta
     where the measurements recorded both, and the sd of their noise (0: noise-free or not given)."""

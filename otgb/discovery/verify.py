@@ -11,6 +11,7 @@ from otgb.discovery.draws import at_most, simulate_candidate, simulate_from_prio
 from otgb.discovery.families import varies
 from otgb.discovery.paired import PairedCheck, paired_check
 from otgb.discovery.refine import FittedTerms
+from otgb.discovery.seeds import Seeds, stream
 from otgb.discovery.settings import DiscoverySettings, Measurements
 from otgb.metrics.c2st import c2st
 from otgb.metrics.energy import energy_distance
@@ -19,20 +20,20 @@ from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 
 
-def gap_step(sources: dict[str, Tensor], test: Tensor, settings: DiscoverySettings) -> dict[str, dict[str, float]]:
-    """MMD, C2ST and energy distance of each source's draws against the test measurements, and the Reference."""
-    gap = {name: scores(draws, test, settings) for name, draws in sources.items()}
-    g = torch.Generator().manual_seed(settings.seed)
-    order = torch.randperm(len(test), generator=g)
+def gap_step(sources: dict[str, Tensor], test: Tensor, settings: DiscoverySettings, seeds: Seeds) -> dict[str, dict[str, float]]:
+    """MMD, C2ST and energy distance of each source's draws against the test measurements, and the Reference (one
+    random half of the test part against the other)."""
+    gap = {name: scores(draws, test, settings.c2st_classifier, seeds) for name, draws in sources.items()}
+    order = torch.randperm(len(test), generator=stream(seeds.root))
     half = len(test) // 2
-    gap["reference"] = scores(test[order[:half]], test[order[half : 2 * half]], settings)
+    gap["reference"] = scores(test[order[:half]], test[order[half : 2 * half]], settings.c2st_classifier, seeds)
     return gap
 
 
-def scores(p: Tensor, q: Tensor, settings: DiscoverySettings) -> dict[str, float]:
+def scores(p: Tensor, q: Tensor, classifier: str, seeds: Seeds) -> dict[str, float]:
     shape = tuple(p.shape[1:])
     p, q = p.flatten(1).double(), q.flatten(1).double()
-    judge = c2st(p.float(), q.float(), folds=5, seed=settings.seed, classifier=settings.c2st_classifier, trajectory_shape=shape)
+    judge = c2st(p.float(), q.float(), folds=5, seed=seeds.root, classifier=classifier, trajectory_shape=shape)
     return {
         "mmd": float(mmd_multiscale(p, q)),
         "c2st": float(judge["c2st"]),
@@ -44,17 +45,19 @@ def scores(p: Tensor, q: Tensor, settings: DiscoverySettings) -> dict[str, float
 CLOSER_DRAWS = 4  # trajectories of each model per test trajectory in the test of which is nearer: more draws, more power
 
 
-def closer_step(model: Augmented, physics: PhysicsModel, test: Tensor, settings: DiscoverySettings) -> Closeness | None:
+def closer_step(
+    model: Augmented, physics: PhysicsModel, test: Tensor, settings: DiscoverySettings, seeds: Seeds
+) -> Closeness | None:
     """Whether the augmented physics ``model`` is nearer to the test measurements (at most ``locate_rows`` of them,
     drawn at random) than f_p alone (:mod:`.closer`), on fresh draws of both: ``CLOSER_DRAWS`` per test trajectory, at
     most ``locate_rows`` and at least as many as the test trajectories. None where too few trajectories of either
     model stay finite to test (the augmented physics's divergences are logged and counted against it)."""
-    tested = at_most(test, settings.locate_rows, settings.seed)
+    tested = at_most(test, settings.locate_rows, seeds)
     n = max(len(tested), min(CLOSER_DRAWS * len(tested), settings.locate_rows))
-    augmented = simulate_candidate(model, n, settings.seed, "closer-augmented")
-    f_p = simulate_from_priors(physics, n, settings.seed, "closer-f_p")
+    augmented = simulate_candidate(model, n, seeds, "closer-augmented")
+    f_p = simulate_from_priors(physics, n, seeds, "closer-f_p")
     try:
-        return closer(augmented, f_p, tested, settings.n_permutations, settings.alpha, settings.seed, n - len(augmented))
+        return closer(augmented, f_p, tested, settings.n_permutations, settings.alpha, seeds.root, n - len(augmented))
     except ValueError:  # too few finite trajectories: the verdict says no test could run
         return None
 

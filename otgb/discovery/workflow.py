@@ -35,6 +35,7 @@ from otgb.discovery.locate import DisagreementMap, describe, locate
 from otgb.discovery.log import DivergenceLog, progress, rounded, short
 from otgb.discovery.naming import (
     MAX_FORWARD_TERMS,
+    Naming,
     add_step,
     cross_check_step,
     evidence_step,
@@ -49,6 +50,7 @@ from otgb.discovery.record import Discovery
 from otgb.discovery.refine import FittedTerms, Fitting
 from otgb.discovery.scores import beats, difference, sample_scores
 from otgb.discovery.search import SearchStep, Unsupported, search
+from otgb.discovery.seeds import Seeds
 from otgb.discovery.settings import Context, DiscoverySettings, Measurements
 from otgb.discovery.verdict import sentence_after, undertrained_text
 from otgb.discovery.verify import closer_step, gap_step, paired_after
@@ -57,103 +59,104 @@ from otgb.physics.base import PhysicsModel
 
 
 def locate_step(
-    physics: PhysicsModel, measured: Tensor, settings: DiscoverySettings, model_name: str = "f_p",
+    physics: PhysicsModel, measured: Tensor, settings: DiscoverySettings, context: Context, model_name: str = "f_p",
     paired: PairedCheck | None = None,
 ) -> DisagreementMap:  # fmt: skip
     """The disagreement map between ``measured`` (at most ``settings.locate_rows`` of them, drawn at random) and as many
     trajectories of ``physics`` (f_p, or a candidate model whose diverged trajectories are dropped), with f_p's
     ``paired`` check on the measurements' inputs, if any."""
-    tested = at_most(measured, settings.locate_rows, settings.seed)
+    seeds = context.seeds
+    tested = at_most(measured, settings.locate_rows, seeds)
     simulate = simulate_candidate if isinstance(physics, Augmented) else simulate_from_priors
-    simulated = simulate(physics, len(tested), settings.seed, model_name)
+    simulated = simulate(physics, len(tested), seeds, model_name)
     result = locate(
         tested, simulated, physics.observation_times(), physics.observed,
-        settings.n_permutations, settings.alpha, settings.regions_per_axis, settings.seed, paired,
+        settings.n_permutations, settings.alpha, settings.regions_per_axis, seeds.root, paired,
     )  # fmt: skip
     result.drawn_from = len(measured) if len(tested) < len(measured) else 0
     return result
 
 
-def run(
-    module: Any, data: Measurements, settings: DiscoverySettings, before: DisagreementMap, context: Context | None = None
-) -> Discovery:
+def run(module: Any, data: Measurements, settings: DiscoverySettings, before: DisagreementMap, context: Context) -> Discovery:
     """Steps 3-5 on a trained grey-box ``module`` (a MapTraining), after a significant locate; a candidate model
     whose solve diverges is dropped where it diverged and listed in ``diverged``."""
     with DivergenceLog() as log:
-        named, fitting, designs = name_and_add(module, data, settings, before, context or Context.of(settings))
-        result = verify(named, module, data, settings, fitting, designs)
+        naming = name_step(module, settings, context.seeds)
+        fitting = fitting_for(module.physics, data, settings, naming.designs, context)
+        named = name_and_add(module, naming, fitting, settings, before, context)
+        result = verify(named, module, data, settings, context, fitting, naming.designs)
     return replace(result, diverged=log.records)
 
 
 def name_and_add(
-    module: Any, data: Measurements, settings: DiscoverySettings, before: DisagreementMap, context: Context
-) -> tuple[Discovery, Fitting, dict]:
-    """Name f_phi's terms, cross-check the strong candidates, add along f_phi's route or the library search, weigh the
-    evidence and choose the prior family; returns the record so far, the fits' :class:`Fitting` and the designs."""
-    physics = module.physics
-    selections, designs, _, correction_share = name_step(module, settings)
-    selected = [(t.candidate, t.coefficient) for s in selections for t in s.terms]
-    proposed = [f"{c.feature} on d{c.component}/dt: {v:.4g}" for c, v in selected]
+    module: Any, naming: Naming, fitting: Fitting, settings: DiscoverySettings, before: DisagreementMap, context: Context
+) -> Discovery:
+    """From f_phi's regression ``naming``: cross-check the strong candidates, add along f_phi's route or the library
+    search, weigh the evidence and choose the prior family; the record up to the verification."""
+    physics, selections, designs = module.physics, naming.selections, naming.designs
+    proposed = [f"{c.feature} on d{c.component}/dt: {v:.4g}" for c, v in naming.proposed]
     progress(
         f"f_phi's regression proposes {proposed}; each is checked against the measurements next"
         if proposed
         else "f_phi's regression proposes no term"
     )
     strong = strong_candidates(selections, designs, settings.strong_candidates)
-    fitting = fitting_for(physics, data, settings, designs, context)
     cross_check = cross_check_step(strong, fitting)
     progress(f"cross-checked {len(strong)} candidates alone")
-    unused = undertrained(module, fitting.val, settings)
-    kept, dropped, truncated = None, [], False
-    if selected and unused is None:
-        kept, dropped, truncated = add_step(selections, designs, fitting)
-        progress(f"kept {[c.feature for c in kept.candidates]}, coefficients {short(kept.priors)}")
-    reason = search_reason(physics, kept, truncated, fitting.val, settings, bool(selected) and unused is not None)
+    unused = undertrained(module, fitting.val, context.seeds)
+    route = add_step(selections, designs, fitting) if proposed and unused is None else None
+    if route is not None:
+        progress(f"kept {[c.feature for c in route.kept.candidates]}, coefficients {short(route.kept.priors)}")
+    kept, truncated = (route.kept, route.truncated) if route else (None, False)
+    not_used = bool(proposed) and unused is not None  # f_phi proposed terms, but the grey-box is no evidence
+    reason = search_reason(physics, kept, truncated, fitting.val, settings, context, not_used)
     searched = search_step(kept, reason, designs, fitting) if reason is not None else Searched(kept)
-    kept, route = searched.kept, "library search" if searched.replaced else "f_phi regression"
-    dropped = [] if searched.replaced else dropped
-    evidence, added, family = [], [], None
-    if kept is not None:
-        kept, evidence, added = evidence_step(kept, selections, cross_check, designs, fitting, settings.strong_candidates)
-        family, pruned = family_step(kept, fitting, settings.families)
-        dropped = dropped + pruned
-        progress(f"fitted {family.fitted.family} coefficients {short(family.fitted.priors)}")
-    named = Discovery(
-        before, describe(before), selections, cross_check, family.fitted if family else None, family=family,
-        evidence=evidence, added=added, dropped=dropped, correction_share=correction_share, search=searched.steps,
-        unsupported=searched.unsupported, route=route, search_reason=reason, undertrained=unused,
+    dropped = [] if searched.replaced or route is None else route.dropped
+    weighed, family = None, None
+    if searched.kept is not None:
+        weighed = evidence_step(searched.kept, selections, cross_check, designs, fitting, settings.strong_candidates)
+        family = family_step(weighed.kept, fitting, settings.families)
+        dropped = dropped + family.dropped
+        progress(f"fitted {family.choice.fitted.family} coefficients {short(family.choice.fitted.priors)}")
+    return Discovery(
+        before, describe(before), selections, cross_check, family.choice.fitted if family else None,
+        family=family.choice if family else None, evidence=weighed.comparisons if weighed else [],
+        added=weighed.added if weighed else [], dropped=dropped, correction_share=naming.correction_share,
+        search=searched.steps, unsupported=searched.unsupported,
+        route="library search" if searched.replaced else "f_phi regression", search_reason=reason, undertrained=unused,
     )  # fmt: skip
-    return named, fitting, designs
 
 
 def verify(
-    named: Discovery, module: Any, data: Measurements, settings: DiscoverySettings, fitting: Fitting, designs: dict
-) -> Discovery:
+    named: Discovery, module: Any, data: Measurements, settings: DiscoverySettings, context: Context, fitting: Fitting,
+    designs: dict,
+) -> Discovery:  # fmt: skip
     """On the test part, which no fit saw: the gap table of f_p, the grey-box and the augmented physics, and for named
     terms their intervals, the disagreement maps before and after, the paired check and the test of which is nearer."""
-    physics, n = module.physics, len(data.test)
-    sources = {"f_p": simulate_from_priors(physics, n, settings.seed, "gap-f_p"), "greybox": generated(module, n, settings.seed)}
+    physics, n, seeds = module.physics, len(data.test), context.seeds
+    sources = {"f_p": simulate_from_priors(physics, n, seeds, "gap-f_p"), "greybox": generated(module, n, seeds)}
     found: dict[str, Any] = {}
     if named.found:  # each solve gets a model of its own, as each counts its solves (otgb.physics.solvers)
-        found["final_terms"] = final_regression(named.selections, designs, named.fitted.candidates, settings)
+        found["final_terms"] = final_regression(named.selections, designs, named.fitted.candidates, settings, seeds)
         found["intervals"] = fitted_intervals(fitting, named.fitted)
         shown = rounded(found["intervals"].centre) if found["intervals"] else "none (the fit is not at a minimum)"
         progress(f"intervals: {shown}")
-        sources["augmented"] = simulate_candidate(named.fitted.model(physics), n, settings.seed, "gap-augmented")
-        found["before_on_test"] = locate_step(physics, data.test, settings, "f_p-test")
-        found["after"] = locate_step(named.fitted.model(physics), data.test, settings, "augmented")
+        sources["augmented"] = simulate_candidate(named.fitted.model(physics), n, seeds, "gap-augmented")
+        found["before_on_test"] = locate_step(physics, data.test, settings, context, "f_p-test")
+        found["after"] = locate_step(named.fitted.model(physics), data.test, settings, context, "augmented")
         found["paired_after"] = paired_after(named.fitted, physics, data, settings.alpha)
     progress("verifying on the test part")
-    result = replace(named, gap=gap_step(sources, data.test, settings), draws=sources, **found)
+    result = replace(named, gap=gap_step(sources, data.test, settings, seeds), draws=sources, **found)
     if not result.found:
         return result
-    result = replace(result, closer=closer_step(result.fitted.model(physics), physics, data.test, settings))
+    result = replace(result, closer=closer_step(result.fitted.model(physics), physics, data.test, settings, seeds))
     return replace(result, sentence_after=sentence_after(result))
 
 
 def search_reason(
-    physics: PhysicsModel, kept: FittedTerms | None, truncated: bool, val: Tensor, settings: DiscoverySettings, unused: bool
-) -> str | None:
+    physics: PhysicsModel, kept: FittedTerms | None, truncated: bool, val: Tensor, settings: DiscoverySettings,
+    context: Context, unused: bool,
+) -> str | None:  # fmt: skip
     """Why the library search runs, or None: f_phi's terms were not used (``unused``: an undertrained grey-box), its
     route named nothing, was truncated (:func:`add_step`), terms fixed in space were asked for (a correction network
     that convolves over the field hardly shows them), or the physics it augmented still disagrees with the validation
@@ -171,7 +174,7 @@ def search_reason(
             "terms fixed in space were asked for (discover.position_degree), so they are searched for directly, "
             "not only along f_phi's route"
         )
-    if locate_step(kept.model(physics), val, settings, "augmented-check").any_significant:
+    if locate_step(kept.model(physics), val, settings, context, "augmented-check").any_significant:
         return "the physics augmented along f_phi's route still disagrees with the validation measurements"
     return None
 
@@ -222,7 +225,7 @@ UNDERTRAINED_REPEATS = 5  # simulation draws per held-out score of the grey-box 
 UNDERTRAINED_DRAWS = 256  # simulated trajectories per draw, at least: a draw as small as a small validation part is noise
 
 
-def undertrained(module: Any, heldout: Tensor, settings: DiscoverySettings) -> dict[str, float] | None:
+def undertrained(module: Any, heldout: Tensor, seeds: Seeds) -> dict[str, float] | None:
     """The grey-box's and f_p's held-out discrepancy when the grey-box does not beat f_p by two standard errors
     (:func:`otgb.discovery.scores.beats`): its correction is then no evidence, and the naming relies on the
     library search. None when the grey-box is better.
@@ -231,9 +234,10 @@ def undertrained(module: Any, heldout: Tensor, settings: DiscoverySettings) -> d
     by the correction, not by the luck of the draws; what the few validation trajectories leave uncertain remains.
     """
     physics = module.physics
-    n, m, seed = len(heldout), max(len(heldout), UNDERTRAINED_DRAWS), settings.seed
-    greybox = sample_scores(lambda r: generated(module, m, seed + 100 + r), heldout, UNDERTRAINED_REPEATS)
-    alone = sample_scores(lambda r: simulate_from_priors(physics, m, seed + 100 + r, GREYBOX), heldout, UNDERTRAINED_REPEATS)
+    n, m = len(heldout), max(len(heldout), UNDERTRAINED_DRAWS)
+    greybox = sample_scores(lambda r: generated(module, m, seeds.undertrained_draw(r)), heldout, UNDERTRAINED_REPEATS)
+    draw_f_p = lambda r: simulate_from_priors(physics, m, seeds.undertrained_draw(r), GREYBOX)  # noqa: E731
+    alone = sample_scores(draw_f_p, heldout, UNDERTRAINED_REPEATS)
     if beats(greybox, alone):
         return None
     gain, error = difference(greybox, alone)
