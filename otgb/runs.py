@@ -170,16 +170,31 @@ def cpu_model() -> str:
     return next((line.split(":", 1)[1].strip() for line in lines if line.startswith("model name")), "")
 
 
-def run_otgb(args: Sequence[str], log: Path, cwd: Path | None = None) -> float:
-    """``otgb <args>`` as a separate process (in ``cwd``), its output appended to ``log``; its wall time in seconds. A
-    failure exits the calling script with one line naming the command and the log."""
+@dataclass(frozen=True)
+class Finished:
+    """How an ``otgb`` process ended: its exit status and its wall time in seconds."""
+
+    returncode: int
+    seconds: float
+
+
+def launch_otgb(args: Sequence[str], log: Path, cwd: Path | None = None) -> Finished:
+    """``otgb <args>`` as a separate process (in ``cwd``), its output appended to ``log``; how it ended, failed or not
+    (a benchmark that goes on to its next case records a failure)."""
     started = time.perf_counter()
     Path(log).parent.mkdir(parents=True, exist_ok=True)
     with open(log, "a") as handle:
         done = subprocess.run([sys.executable, "-m", "otgb.cli", *args], cwd=cwd, stdout=handle, stderr=subprocess.STDOUT)
-    if done.returncode != 0:
-        raise SystemExit(f"otgb {args[0]} failed (exit {done.returncode}); its output: {log}")
-    return time.perf_counter() - started
+    return Finished(done.returncode, time.perf_counter() - started)
+
+
+def run_otgb(args: Sequence[str], log: Path, cwd: Path | None = None) -> float:
+    """:func:`launch_otgb`'s wall time in seconds; a failure exits the calling script with one line naming the command
+    and the log."""
+    finished = launch_otgb(args, log, cwd)
+    if finished.returncode != 0:
+        raise SystemExit(f"otgb {args[0]} failed (exit {finished.returncode}); its output: {log}")
+    return finished.seconds
 
 
 def fit_and_test(folder: Path, args: Sequence[str], checkpoint: str = "best") -> dict:

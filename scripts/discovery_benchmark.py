@@ -17,9 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +27,7 @@ from otgb.data import generate_measured
 from otgb.discovery.prior_text import distribution_text
 from otgb.physics import AdvectionDiffusion, Constant, LibraryTerm, Pendulum, ReactionDiffusion, Uniform
 from otgb.reports import write_between
-from otgb.runs import machine, newest
+from otgb.runs import launch_otgb, machine, newest
 
 ROOT = Path(__file__).parents[1]
 PENDULUM = ["--data.simulation_budget=32000", "--trainer.val_check_interval=250"]
@@ -146,12 +143,11 @@ def discover(case: str, seed: int, noise: float, folder: Path) -> None:
         "--discover.fit_cache=null",  # timed: every fit made, also when a stopped benchmark runs the case again
         *overrides,
     ]
-    start = time.time()
-    with open(folder / "discover.log", "w") as log:
-        done = subprocess.run([sys.executable, "-m", "otgb.cli", *args], cwd=folder, stdout=log, stderr=subprocess.STDOUT)
-    wall = time.time() - start
-    (folder / "wall_time.json").write_text(json.dumps({"seconds": wall, "returncode": done.returncode, "machine": machine()}))
-    print(f"{folder.name}: exit {done.returncode} in {wall / 60:.1f} min")
+    (folder / "discover.log").unlink(missing_ok=True)  # the log of this attempt only
+    done = launch_otgb(args, folder / "discover.log", cwd=folder)
+    timing = {"seconds": done.seconds, "returncode": done.returncode, "machine": machine()}
+    (folder / "wall_time.json").write_text(json.dumps(timing))
+    print(f"{folder.name}: exit {done.returncode} in {done.seconds / 60:.1f} min")
 
 
 def latest_report(folder: Path) -> dict | None:
@@ -165,9 +161,8 @@ def round_two(folder: Path) -> None:
     second = folder / "round2"
     second.mkdir(exist_ok=True)
     print(f"{folder.name}: second round on {augmented}")
-    with open(second / "discover.log", "w") as log:
-        args = ["discover", "--config", str(augmented), "--trainer.enable_progress_bar=false"]
-        subprocess.run([sys.executable, "-m", "otgb.cli", *args], cwd=second, stdout=log, stderr=subprocess.STDOUT)
+    (second / "discover.log").unlink(missing_ok=True)
+    launch_otgb(["discover", "--config", str(augmented), "--trainer.enable_progress_bar=false"], second / "discover.log", second)
 
 
 def correction_after(folder: Path, overrides: list[str]) -> None:
@@ -176,9 +171,8 @@ def correction_after(folder: Path, overrides: list[str]) -> None:
     augmented = sorted(folder.glob("runs/*/version_*/augmented.yaml"))[-1]
     refit = folder / "refit"
     refit.mkdir(exist_ok=True)
-    with open(refit / "fit.log", "w") as log:
-        args = ["fit", "--config", str(augmented), "--trainer.enable_progress_bar=false", *overrides]
-        subprocess.run([sys.executable, "-m", "otgb.cli", *args], cwd=refit, stdout=log, stderr=subprocess.STDOUT)
+    (refit / "fit.log").unlink(missing_ok=True)
+    launch_otgb(["fit", "--config", str(augmented), "--trainer.enable_progress_bar=false", *overrides], refit / "fit.log", refit)
     shares = {}
     for name, root in (("f_p", folder), ("augmented", refit)):
         found = sorted(root.glob("runs/*/version_*/components.json"))

@@ -242,7 +242,7 @@ def solve_designs(field, x0: torch.Tensor, args: Callable, substeps: int, n_inte
     n_steps = n_intervals * substeps
 
     def looped(step):
-        return lambda: solvers._stepwise_solve(field, x0, args(), "rk4", h, substeps, n_intervals, step=step)
+        return lambda: solvers.stepwise_solve(field, x0, args(), "rk4", h, substeps, n_intervals, step=step)
 
     def steps_in_block(field, y, h, args):
         states = []
@@ -263,13 +263,13 @@ def solve_designs(field, x0: torch.Tensor, args: Callable, substeps: int, n_inte
 
     times, step = torch.arange(n_intervals + 1, dtype=torch.float32) * h * substeps, {"step_size": h}
     device = x0.device.type
-    python_loop = torch.compile(solvers._whole_solve, dynamic=True, fullgraph=True)
-    compiled_loop = solvers._compiled_whole_solve(device)
+    python_loop = torch.compile(solvers.whole_solve, dynamic=True, fullgraph=True)
+    compiled_loop = solvers.compiled_whole_solve(device)
     return {
         "torchdiffeq": lambda: odeint(lambda _, y: field(y, *args()), x0, times, method="rk4", options=step).movedim(0, 1),
         "eager loop": looped(solvers.STEPS["rk4"]),
         "compiled step, Python wrapper": looped(torch.compile(solvers.STEPS["rk4"], dynamic=True, fullgraph=True)),
-        "compiled step": looped(solvers._compiled_step("rk4", device)),
+        "compiled step": looped(solvers.compiled_step("rk4", device)),
         f"compiled block of {block} steps": blocked,
         "compiled scan, Python wrapper": lambda: python_loop(field, x0, args(), "rk4", h, substeps, n_intervals),
         "compiled scan": lambda: compiled_loop(field, x0, args(), "rk4", h, substeps, n_intervals),
@@ -281,7 +281,7 @@ def cuda_graph_designs(field, x0: torch.Tensor, args: Callable, substeps: int, n
     step (``compiled step``) is replayed so already."""
     from otgb.physics import solvers
 
-    loop = torch.compile(solvers._whole_solve, mode="reduce-overhead", dynamic=True, fullgraph=True)
+    loop = torch.compile(solvers.whole_solve, mode="reduce-overhead", dynamic=True, fullgraph=True)
     return {"compiled scan, CUDA graphs": lambda: loop(field, x0, args(), "rk4", h, substeps, n_intervals)}
 
 
@@ -350,11 +350,11 @@ class LibraryConvNet(PaperConvNet):
 
 
 class LibraryConvJudge(PaperConvClassifier):
-    def _autocast(self, device: torch.device) -> torch.autocast:
+    def autocast(self, device: torch.device) -> torch.autocast:
         """ "auto" as for otgb's other judges (PaperConvClassifier's base), not float32 for the fused loops."""
-        return super(PaperConvClassifier, self)._autocast(device)
+        return super(PaperConvClassifier, self).autocast(device)
 
-    def _network(self, n_features: int) -> torch.nn.Module:
+    def network(self, n_features: int) -> torch.nn.Module:
         return LibraryConvNet(n_features)
 
 
@@ -366,9 +366,9 @@ class TorchOpsNet(PaperConvNet):
 
 
 class TorchOpsJudge(PaperConvClassifier):
-    _autocast = LibraryConvJudge._autocast
+    autocast = LibraryConvJudge.autocast
 
-    def _network(self, n_features: int) -> torch.nn.Module:
+    def network(self, n_features: int) -> torch.nn.Module:
         return TorchOpsNet(n_features)
 
 

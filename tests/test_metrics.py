@@ -200,7 +200,7 @@ def test_auto_precision_uses_bfloat16_only_where_it_is_native(generator, monkeyp
     for native in (False, True):
         monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda native=native: native)
         monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: False)
-        with classifier._autocast(torch.device("cpu")):
+        with classifier.autocast(torch.device("cpu")):
             assert torch.is_autocast_enabled("cpu") == native
     p = torch.randn(20, 2, generator=generator)
     with pytest.raises(ValueError, match="precision='16-mixed', expected one of"):
@@ -360,10 +360,10 @@ def test_auto_precision_of_the_paper_judge_is_float32_only_where_its_loops_compi
     other judges) where they did not compile."""
     monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: True)
     monkeypatch.setattr(fused_judge, "usable", lambda: True)
-    with PaperConvClassifier(precision="auto")._autocast(torch.device("cpu")):
+    with PaperConvClassifier(precision="auto").autocast(torch.device("cpu")):
         assert not torch.is_autocast_enabled("cpu")
     monkeypatch.setattr(fused_judge, "usable", lambda: False)
-    with PaperConvClassifier(precision="auto")._autocast(torch.device("cpu")):
+    with PaperConvClassifier(precision="auto").autocast(torch.device("cpu")):
         assert torch.is_autocast_enabled("cpu")
 
 

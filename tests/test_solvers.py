@@ -131,9 +131,9 @@ def test_auto_solves_eagerly_until_a_models_field_has_been_solved_often(monkeypa
     compiled_solves = []
 
     def recording_solve(device_type):
-        return lambda *args: compiled_solves.append(1) or solvers._whole_solve(*args)
+        return lambda *args: compiled_solves.append(1) or solvers.whole_solve(*args)
 
-    monkeypatch.setattr(solvers, "_compiled_whole_solve", recording_solve)
+    monkeypatch.setattr(solvers, "compiled_whole_solve", recording_solve)
     counts, pendulum = [], Pendulum()
     with torch.no_grad(), records_of("otgb.solvers") as records:
         for _ in range(4):
@@ -150,8 +150,8 @@ def test_auto_solves_eagerly_until_a_models_field_has_been_solved_often(monkeypa
 
 def test_a_small_state_is_solved_as_one_compiled_loop_and_a_field_step_by_step(monkeypatch):
     calls = []
-    monkeypatch.setattr(solvers, "_compiled_whole_solve", lambda d: lambda *a: calls.append("whole") or solvers._whole_solve(*a))
-    monkeypatch.setattr(solvers, "_compiled_step", lambda m, d: lambda *a: calls.append("step") or solvers.STEPS[m](*a))
+    monkeypatch.setattr(solvers, "compiled_whole_solve", lambda d: lambda *a: calls.append("whole") or solvers.whole_solve(*a))
+    monkeypatch.setattr(solvers, "compiled_step", lambda m, d: lambda *a: calls.append("step") or solvers.STEPS[m](*a))
     with torch.no_grad():
         _simulate(Pendulum(), "compiled")
         assert calls == ["whole"]
@@ -303,7 +303,7 @@ def test_the_solve_designs_are_recorded_under_their_label_with_the_machine(tmp_p
 
 def test_compiled_gradients_that_differ_from_the_eager_loop_make_the_field_run_eagerly_with_one_line(monkeypatch):
     """As torch 2.11's compiled loop did (right trajectories, parameter gradients near zero): caught on the first solve."""
-    monkeypatch.setattr(solvers, "_compiled_whole_solve", lambda d: lambda *args: solvers._whole_solve(*args).detach())
+    monkeypatch.setattr(solvers, "compiled_whole_solve", lambda d: lambda *args: solvers.whole_solve(*args).detach())
     greybox = _pendulum_greybox()
     reference = _forward_backward(greybox, "torchdiffeq", 8)
     with records_of("otgb.solvers", level=logging.WARNING) as records:

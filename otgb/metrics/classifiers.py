@@ -54,14 +54,14 @@ class _TorchClassifier(ClassifierMixin, BaseEstimator):
 
     tol = 0.0
 
-    def _network(self, n_features: int) -> nn.Module:
+    def network(self, n_features: int) -> nn.Module:
         raise NotImplementedError
 
     def _held_out_score(self, logits: Tensor, y: Tensor) -> float:
         """Higher is better: minus the log loss (the MLP overrides it with the accuracy)."""
         return -float(nn.functional.binary_cross_entropy_with_logits(logits, y))
 
-    def _autocast(self, device: torch.device) -> torch.autocast:
+    def autocast(self, device: torch.device) -> torch.autocast:
         """The autocast context of ``precision`` on ``device`` (disabled for "32-true")."""
         enabled = self.precision == "bf16-mixed" or (self.precision == "auto" and native_bf16(device))
         return torch.autocast(device.type, dtype=torch.bfloat16, enabled=enabled)
@@ -87,7 +87,7 @@ class _TorchClassifier(ClassifierMixin, BaseEstimator):
         g = torch.Generator().manual_seed(self.random_state)
         with _GLOBAL_RNG, torch.random.fork_rng(devices=[]):  # folds training in threads share torch's global generator
             torch.manual_seed(self.random_state)
-            net = self._network(features.shape[1]).to(self.device)
+            net = self.network(features.shape[1]).to(self.device)
         x = torch.as_tensor(features, dtype=torch.float32, device=self.device)
         y = torch.as_tensor(labels, dtype=torch.float32, device=self.device)
         order = torch.randperm(len(x), generator=g).to(self.device)
@@ -120,13 +120,13 @@ class _TorchClassifier(ClassifierMixin, BaseEstimator):
     def _set_gradients(self, net: nn.Module, x: Tensor, y: Tensor, batch: Tensor) -> None:
         """The parameters' ``.grad``: the gradient of the mean log loss of the logits of the rows ``x[batch]`` against
         their labels ``y[batch]``."""
-        with self._autocast(x.device):
+        with self.autocast(x.device):
             logits = net(x[batch])
         nn.functional.binary_cross_entropy_with_logits(logits.float(), y[batch]).backward()
 
     @torch.no_grad()
     def _logits(self, net: nn.Module, x: Tensor) -> Tensor:
-        with self._autocast(x.device):
+        with self.autocast(x.device):
             return torch.cat([net(chunk).float() for chunk in x.split(1024)])
 
     def decision_function(self, features: np.ndarray) -> np.ndarray:
@@ -217,7 +217,7 @@ class MLPClassifier(_TorchClassifier):
         self.validation_fraction, self.random_state, self.device = validation_fraction, random_state, device
         self.precision = precision
 
-    def _network(self, n_features: int) -> nn.Module:
+    def network(self, n_features: int) -> nn.Module:
         return _MLP(n_features, tuple(self.hidden))
 
     def _parameter_groups(self, net: nn.Module, batch_size: int) -> list[dict]:
@@ -311,7 +311,7 @@ class ConvClassifier(_TorchClassifier):
         self.validation_fraction, self.random_state, self.device = validation_fraction, random_state, device
         self.precision = precision
 
-    def _network(self, n_features: int) -> nn.Module:
+    def network(self, n_features: int) -> nn.Module:
         return _ConvNet(tuple(self.trajectory_shape), self.cond_dim, self.channels, self.pooled)
 
 
@@ -394,21 +394,21 @@ class PaperConvClassifier(_TorchClassifier):
         self.tol, self.validation_fraction, self.random_state, self.device = tol, validation_fraction, random_state, device
         self.precision = precision
 
-    def _network(self, n_features: int) -> nn.Module:
+    def network(self, n_features: int) -> nn.Module:
         return PaperConvNet(n_features)
 
     def _set_gradients(self, net: nn.Module, x: Tensor, y: Tensor, batch: Tensor) -> None:
         """On the fused loops where they run: the loss and its gradients in one pass over the batch's rows, read in place."""
         parameters = tuple(net.parameters())
-        with self._autocast(x.device):
+        with self.autocast(x.device):
             fused = isinstance(net, PaperConvNet) and net.fused(x, parameters)
         if not fused:
             return super()._set_gradients(net, x, y, batch)
         fused_judge.set_log_loss_gradients(x, y, batch, parameters)
 
-    def _autocast(self, device: torch.device) -> torch.autocast:
+    def autocast(self, device: torch.device) -> torch.autocast:
         """ "auto" on a CPU is float32 where the fused loops run (measured faster than torch's operations on a 2-core
         CPU; not measured against bfloat16 on a CPU that multiplies it natively)."""
         if self.precision == "auto" and device.type == "cpu" and fused_judge.usable():
             return torch.autocast("cpu", enabled=False)
-        return super()._autocast(device)
+        return super().autocast(device)

@@ -158,11 +158,12 @@ def _compile(function: Callable, device_type: str) -> Callable:
 
 
 @functools.cache
-def _compiled_step(method: str, device_type: str) -> Callable:
+def compiled_step(method: str, device_type: str) -> Callable:
+    """The step of ``method`` compiled for ``device_type`` (the ``compiled`` solver's step on a GPU)."""
     return _compile(STEPS[method], device_type)
 
 
-def _whole_solve(
+def whole_solve(
     field: Field, initial_state: Tensor, args: Sequence[Tensor], method: str, step_size: float, substeps: int, n_intervals: int
 ) -> Tensor:
     """States (B, n_intervals + 1, *state): ``substeps`` steps per interval, the loop over intervals as torch's ``scan``."""
@@ -178,8 +179,9 @@ def _whole_solve(
 
 
 @functools.cache
-def _compiled_whole_solve(device_type: str) -> Callable:
-    return _compile(_whole_solve, device_type)
+def compiled_whole_solve(device_type: str) -> Callable:
+    """:func:`whole_solve` compiled for ``device_type`` (the ``compiled`` solver on a CPU)."""
+    return _compile(whole_solve, device_type)
 
 
 # --- the solve ---------------------------------------------------------------------------
@@ -200,21 +202,21 @@ def integrate(
     compiled = _compiles(solver, key, getattr(field, "__self__", field))
     arguments = (initial_state, args, method, step_size, substeps, n_times - 1)
     if not compiled:
-        return _stepwise_solve(field, *arguments)
+        return stepwise_solve(field, *arguments)
     device = initial_state.device.type
     _announce_compile(key, field, solver)
     if device != "cuda" and initial_state[0].numel() <= WHOLE_SOLVE_MAX_STATE and n_times > 1:
-        fast = functools.partial(_fallback(key, _compiled_whole_solve(device), _stepwise_solve), field)
+        fast = functools.partial(_fallback(key, compiled_whole_solve(device), stepwise_solve), field)
     else:
-        fast = functools.partial(_stepwise_solve, field, step=_fallback(key, _compiled_step(method, device), STEPS[method]))
+        fast = functools.partial(stepwise_solve, field, step=_fallback(key, compiled_step(method, device), STEPS[method]))
     if torch.is_grad_enabled() and key not in _gradients_checked:
         _check_against_eager(key, field, fast, arguments)
         if key in _not_compilable:
-            return _stepwise_solve(field, *arguments)
+            return stepwise_solve(field, *arguments)
     return fast(*arguments)
 
 
-def _stepwise_solve(
+def stepwise_solve(
     field: Field,
     initial_state: Tensor,
     args: Sequence[Tensor],
@@ -224,7 +226,7 @@ def _stepwise_solve(
     n_intervals: int,
     step: Callable | None = None,
 ) -> Tensor:
-    """:func:`_whole_solve` as a Python loop over ``step`` (default: the method's eager step)."""
+    """:func:`whole_solve` as a Python loop over ``step`` (default: the method's eager step)."""
     eager = STEPS[method]
     step = step or eager
     states, y = [initial_state], initial_state
@@ -263,7 +265,7 @@ def _check_against_eager(key: tuple, field: Field, fast: Callable[..., Tensor], 
     fast_gradients = (
         torch.autograd.grad((states * weights).sum(), inputs, allow_unused=True) if states.requires_grad else [None] * len(inputs)
     )
-    eager_gradients = torch.autograd.grad((_stepwise_solve(field, *copies) * weights).sum(), inputs, allow_unused=True)
+    eager_gradients = torch.autograd.grad((stepwise_solve(field, *copies) * weights).sum(), inputs, allow_unused=True)
     largest = max((float(g.abs().max()) for g in eager_gradients if g is not None), default=0.0)
     difference = max(_relative_difference(a, b, 1e-2 * largest) for a, b in zip(fast_gradients, eager_gradients))
     if difference > GRADIENT_TOLERANCE:
