@@ -1614,6 +1614,29 @@ def test_workflow_names_a_source_fixed_in_space_when_position_terms_are_asked_fo
     assert result.gap["augmented"]["c2st"] < 0.7 < result.gap["f_p"]["c2st"]
 
 
+@pytest.mark.parametrize("varying", [True, False], ids=["varying", "constant"])
+def test_a_drag_that_varies_is_found_with_its_spread_and_a_constant_one_is_not_called_varying(varying):
+    """A quadratic drag U(-0.75, -0.25) on 1000 trajectories: the family step keeps a family that varies, its spread's
+    95 % interval excludes zero and holds the truth (on one simulated sample per fit its half-width shrank to zero);
+    the same drag constant at -0.5: the constant is kept, with its interval, and the families are not claimed."""
+    pendulum, drag = Pendulum(), Candidate("velocity*|velocity|", "velocity")
+    truth = Uniform(-0.75, -0.25) if varying else Constant(-0.5)
+    dgp = pendulum.with_hidden_effect([LibraryTerm(drag.feature, drag.component, truth)])
+    fitting = Fitting(pendulum, _draws(dgp, 1000, 21), _draws(dgp, 250, 22), 50, 512, 0)
+    choice = family_step(fitting([drag], [-0.5]), fitting, FAMILIES).choice
+    intervals = fitted_intervals(fitting, choice.fitted)
+    low, high = intervals.centre[0]
+    assert low < -0.5 < high, intervals
+    if varying:
+        assert choice.fitted.family in ("uniform", "two_point", "normal") and not choice.rejected, choice
+        width_low, width_high = intervals.width[0]
+        assert 0 < width_low, intervals
+        if choice.fitted.family == "uniform":
+            assert width_low < 0.25 < width_high, intervals
+    else:
+        assert choice.fitted.family == "constant" and intervals.width is None, choice
+
+
 @pytest.mark.slow
 def test_a_friction_that_varies_is_recovered_as_a_distribution():
     pendulum = Pendulum()

@@ -202,6 +202,8 @@ def family_section(report: dict[str, Any]) -> list[str]:
             f"The {family} fit scored no better than the constant, which its family contains (zero width): "
             "it was taken at zero width."
         )
+    for family, reason in report.get("family_rejected", {}).items():
+        lines.append(f"The {family} family scored best on the training part but is not kept: {reason}.")
     for t in report["terms"]:
         if t["spread_interval"]:
             low, high = t["spread_interval"]

@@ -95,7 +95,7 @@ def fitted_intervals(fitting: Fitting, fitted: FittedTerms) -> Intervals | None:
 
     if fitting.cache is None:
         return compute()
-    model = {k: v for k, v in fitted.as_record().items() if k in ("family", "candidates", "priors", "scales")}
+    model = {k: v for k, v in fitted.as_record().items() if k in ("family", "candidates", "priors", "scales", "samples")}
     inputs = {"intervals_of": model, "batch": fitting.batch, "solver": current_solver()}
     key = fitting.cache.key(fitting.physics, fitting.train, fitting.val, seed=fitting.seed, **inputs)
     stored = fitting.cache.record(key, lambda: {"intervals": None if (found := compute()) is None else asdict(found)})
@@ -106,15 +106,15 @@ def sandwich_covariance(
     base: PhysicsModel, fitted: FittedTerms, p: Tensor, measured: Tensor, batch: int, seed: int
 ) -> Tensor | None:
     """H^-1 Var(grad L) H^-1 at p (module docstring), or None."""
-    sample = FitSample.draw(base, measured, fitted.family, len(fitted.candidates), batch, seed)
+    sample = FitSample.draw(base, measured, fitted.family, len(fitted.candidates), batch, seed, fitted.samples)
     steps = STEP * _sizes(fitted, p)
     variants = torch.cat([p[None], p + torch.diag(steps), p - torch.diag(steps)]).requires_grad_()  # (1 + 2P, P)
     targets = sample.targets.double()
-    V, n = len(variants), len(sample.x0)
+    V, n, samples = len(variants), len(sample.x0), sample.samples
 
-    def losses(simulated: Tensor) -> Tensor:  # the sum over the variants of these rows of each one's discrepancy
-        grouped = simulated.unflatten(0, (-1, n))
-        return batched_discrepancy(grouped, targets.expand(len(grouped), *targets.shape)).sum()
+    def losses(simulated: Tensor) -> Tensor:  # the sum over the variants of these rows of each one's mean discrepancy
+        grouped = simulated.unflatten(0, (-1, n // samples))  # one group per variant and sample
+        return batched_discrepancy(grouped, targets.expand(len(grouped), *targets.shape)).sum() / samples
 
     simulate = _simulator(base, fitted, variants, sample)
     total, simulated = backward_in_chunks(simulate, V * n, losses, chunk_size(simulate, V * n), groups=V)
@@ -131,7 +131,7 @@ def sandwich_covariance(
     hessian = (hessian + hessian.T) / 2
     if not bool(torch.linalg.eigvalsh(hessian).min() > 0):
         return None
-    a, b = _influences(simulated[1 : 1 + P], simulated[1 + P :], targets, steps)
+    a, b = _influences(simulated[1 : 1 + P], simulated[1 + P :], targets, steps, samples)
     variance = _covariance(a) / len(a) + _covariance(b) / len(b)
     inverse = torch.linalg.inv(hessian)
     return inverse @ variance @ inverse
@@ -167,20 +167,24 @@ def _simulator(base: PhysicsModel, fitted: FittedTerms, variants: Tensor, sample
     return simulate
 
 
-def _pair_terms(s: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+def _pair_terms(s: Tensor, y: Tensor, samples: int = 1) -> tuple[Tensor, Tensor]:
     """For simulated s (n, T, *obs) and measured y (m, T, *obs): each measured trajectory's terms (twice its mean
     distance to the simulated ones) (m,), and each simulated one's (twice its mean distance to the measured minus
-    twice its mean distance to the other simulated ones) (n,), over the discrepancy's parts (:func:`row_terms`)."""
-    n = len(s)
-    return row_terms(s, y), row_terms(y, s) - row_terms(s, s) * n / (n - 1)
+    twice its mean distance to the other simulated ones) (n,), over the discrepancy's parts (:func:`row_terms`). Where
+    s holds ``samples`` independent samples (a fit's mean over them, :data:`otgb.discovery.refine.SPREAD_SAMPLES`), a
+    simulated trajectory's terms are within its own sample and a measured one's are averaged over the samples."""
+    blocks = s.chunk(samples)
+    measured = torch.stack([row_terms(block, y) for block in blocks]).mean(0)
+    simulated = [row_terms(y, block) - row_terms(block, block) * len(block) / (len(block) - 1) for block in blocks]
+    return measured, torch.cat(simulated)
 
 
-def _influences(plus: Tensor, minus: Tensor, targets: Tensor, steps: Tensor) -> tuple[Tensor, Tensor]:
+def _influences(plus: Tensor, minus: Tensor, targets: Tensor, steps: Tensor, samples: int = 1) -> tuple[Tensor, Tensor]:
     """a (m, P) and b (n, P): the central-difference derivatives of each trajectory's terms in p."""
     a, b = [], []
     for k in range(len(steps)):
-        measured_plus, simulated_plus = _pair_terms(plus[k], targets)
-        measured_minus, simulated_minus = _pair_terms(minus[k], targets)
+        measured_plus, simulated_plus = _pair_terms(plus[k], targets, samples)
+        measured_minus, simulated_minus = _pair_terms(minus[k], targets, samples)
         a.append((measured_plus - measured_minus) / (2 * steps[k]))
         b.append((simulated_plus - simulated_minus) / (2 * steps[k]))
     return torch.stack(a, 1), torch.stack(b, 1)

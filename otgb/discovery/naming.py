@@ -13,10 +13,10 @@ from torch import Tensor
 from otgb.discovery.draws import acting_components, at_most, greybox_draws
 from otgb.discovery.evidence import Comparison, moves_with, weigh
 from otgb.discovery.families import centre, varies
-from otgb.discovery.intervals import fitted_intervals
+from otgb.discovery.intervals import Intervals, fitted_intervals
 from otgb.discovery.library import Candidate, build_library
 from otgb.discovery.log import progress
-from otgb.discovery.refine import FittedTerms, Fitting
+from otgb.discovery.refine import SPREAD_SAMPLES, FittedTerms, Fitting
 from otgb.discovery.regression import Selection, describe_terms, design_matrix, regress, subset_coefficients
 from otgb.discovery.scores import beats, difference, discrepancies
 from otgb.discovery.seeds import Seeds
@@ -198,14 +198,18 @@ def evidence_step(
 
 
 def choose_prior(constant: FittedTerms, fitting: Fitting, families: tuple[str, ...]) -> FamilyChoice:
-    """Each prior family of ``families`` for the constant fit's terms, fitted from its optimum; the choice on the
-    training measurements (:mod:`otgb.discovery.variation`)."""
+    """Each prior family of ``families`` for the constant fit's terms, fitted from its optimum on
+    :data:`~otgb.discovery.refine.SPREAD_SAMPLES` simulated samples (the constant too, so that the families differ by
+    their spread, not by how many draws placed their centres); the choice as :mod:`otgb.discovery.variation` makes it."""
     start = [p.value for p in constant.priors]
 
     def refit(family: str) -> FittedTerms:
-        return fitting(constant.candidates, start, family, natural_scales=False)
+        return fitting(constant.candidates, start, family, natural_scales=False, samples=SPREAD_SAMPLES)
 
-    return choose_family_of(fitting.physics, constant, fitting.train, families, refit, fitting.seed)
+    def interval(fitted: FittedTerms) -> Intervals | None:
+        return fitted_intervals(fitting, fitted)
+
+    return choose_family_of(fitting.physics, constant, fitting.train, families, refit, fitting.seed, interval)
 
 
 def prune(current: FittedTerms, fitting: Fitting) -> FittedTerms:

@@ -122,6 +122,7 @@ def _family_dict(result: Discovery) -> dict[str, Any]:
         if family
         else {},
         "family_stopped_short": family.stopped_short if family else [],
+        "family_rejected": family.rejected if family else {},
     }
 
 

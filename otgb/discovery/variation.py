@@ -8,7 +8,10 @@ fit that scores worse than the constant stopped short of the optimum its family 
 cannot be worse at zero width); it is then taken at zero width, where it ties the constant, and
 the report says so. The simplest family that no richer family beats by two standard errors
 (:func:`otgb.discovery.scores.beats`) is chosen, and every family's difference to it is
-reported with its standard error.
+reported with its standard error. A family that varies is kept only where the 95 % interval of
+every term's spread excludes zero (:mod:`otgb.discovery.intervals`) and it scores lower than the
+constant on the validation part, which no fit saw; otherwise the constant is chosen and the
+report says why (:attr:`FamilyChoice.rejected`).
 
 When the constant is chosen, :func:`excluded_spread` says how wide a spread the data still
 allow: per term, the smallest half-width (uniform; standard deviation for a normal) around the
@@ -25,6 +28,7 @@ from dataclasses import dataclass, field
 from torch import Tensor
 
 from otgb.discovery.families import CONSTANT, FAMILIES, SPREAD_FAMILIES, prior, varies
+from otgb.discovery.intervals import Intervals
 from otgb.discovery.refine import FAMILY_REPEATS, MIN_WIDTH, FittedTerms
 from otgb.discovery.scores import Scores, beats, difference, discrepancies
 from otgb.physics.base import PhysicsModel
@@ -45,6 +49,7 @@ class FamilyChoice:
     differences: dict[str, tuple[float, float]]  # per family: its score minus the chosen one's, and its standard error
     stopped_short: list[str] = field(default_factory=list)  # families whose fit ended worse than the constant
     excluded_spread: list[float | None] | None = None  # constant chosen: per term, the smallest spread the data exclude
+    rejected: dict[str, str] = field(default_factory=dict)  # a family the scores chose, and why it was not kept
 
 
 def choose_family(fits: list[FittedTerms], scores: dict[str, Scores]) -> FittedTerms:
@@ -58,11 +63,15 @@ def choose_family(fits: list[FittedTerms], scores: dict[str, Scores]) -> FittedT
 
 
 def choose_prior(
-    physics: PhysicsModel, constant: FittedTerms, measured: Tensor, families: tuple[str, ...], refit: Callable, seed: int
-) -> FamilyChoice:
-    """Each family of ``families`` for ``constant``'s terms (``refit(family)`` fits one from the constant's optimum),
-    scored on ``measured``; the nested check, the choice, and the spread the data allow if the constant is chosen."""
+    physics: PhysicsModel, constant: FittedTerms, measured: Tensor, families: tuple[str, ...], refit: Callable, seed: int,
+    interval: Callable[[FittedTerms], Intervals | None] | None = None,
+) -> FamilyChoice:  # fmt: skip
+    """Each family of ``families`` for ``constant``'s terms (``refit(family)`` fits one from the constant's optimum,
+    the constant itself again too), scored on ``measured``; the nested check, the choice (a family that varies kept
+    only as :func:`unsupported_spread` allows, with ``interval`` the 95 % intervals of a fit), and the spread the data
+    allow if the constant is chosen."""
     score = lambda f: discrepancies(physics, f.candidates, f.priors, measured, seed, FAMILY_REPEATS)  # noqa: E731
+    constant = refit(CONSTANT)  # on the families' samples
     fits, scores, stopped_short = [constant], {CONSTANT: score(constant)}, []
     for family in filter(varies, families):
         richer = refit(family)
@@ -72,15 +81,35 @@ def choose_prior(
             richer, scores[family] = at_zero_width(richer, constant), scores[CONSTANT]
         fits.append(richer)
     fits = [f for f in fits if f.family in families] or [constant]
-    chosen = choose_family(fits, scores)
+    chosen, rejected = choose_family(fits, scores), {}
+    if varies(chosen.family) and interval is not None and (reason := unsupported_spread(chosen, constant, interval)):
+        chosen, rejected = constant, {chosen.family: reason}
     differences = {f.family: difference(scores[chosen.family], scores[f.family]) for f in fits}
     choice = FamilyChoice(chosen, {f.family: scores[f.family].mean for f in fits}, differences, stopped_short)
+    choice.rejected = rejected
     if not varies(chosen.family):
         spread_family = next((f for f in SPREAD_FAMILIES if f in families), SPREAD_FAMILIES[0])
         choice.excluded_spread = [
             excluded_spread(physics, constant, k, spread_family, measured, seed) for k in range(len(constant.candidates))
         ]
     return choice
+
+
+def unsupported_spread(
+    richer: FittedTerms, constant: FittedTerms, interval: Callable[[FittedTerms], Intervals | None]
+) -> str | None:
+    """Why the spread of ``richer`` (a family that varies) is not supported, or None where it is: the 95 % interval of
+    every term's spread excludes zero, and ``richer`` scores lower than ``constant`` on the validation part."""
+    intervals = interval(richer)
+    if intervals is None or intervals.width is None:
+        return "its spread has no 95 % interval (the fit is not at a minimum of the discrepancy)"
+    held = [low <= 0 for low, _ in intervals.width]
+    if any(held):
+        names = [c.feature for c, holds in zip(richer.candidates, held) if holds]
+        return f"the 95 % interval of the spread of {', '.join(names)} holds zero"
+    if richer.heldout.mean >= constant.heldout.mean:
+        return "it fits the validation part no better than the constant"
+    return None
 
 
 def at_zero_width(richer: FittedTerms, constant: FittedTerms) -> FittedTerms:
