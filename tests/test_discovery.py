@@ -53,7 +53,6 @@ from otgb.discovery.verdict import (
     OUTCOMES,
     OUTSIDE_THE_LIBRARY,
     beside_f_p,
-    c2st_tells_apart,
     confirmed,
     flags,
     low_power,
@@ -65,7 +64,7 @@ from otgb.discovery.verdict import (
     undertrained_text,
     verdict,
 )
-from otgb.discovery.verify import paired_after
+from otgb.discovery.verify import c2st_tells_apart, paired_after
 from otgb.discovery.workflow import locate_step, replaces, run, undertrained
 from otgb.errors import InputError
 from otgb.metrics.energy import batched_energy
@@ -1187,6 +1186,29 @@ def test_workflow_names_quadratic_drag_and_closes_the_gap():
     assert result.gap["augmented"]["c2st"] < 0.7 < result.gap["f_p"]["c2st"]
 
 
+def test_a_restoring_force_weaker_than_f_ps_is_a_recalibration_of_omega_not_a_missing_term(tmp_path):
+    """Measurements of a pendulum whose omega is drawn from U(0.608, 2.432), the config's U(0.785, 3.14) scaled by
+    sqrt(0.6) (a restoring force 40 % weaker): the answer is f_p with omega's prior refitted, its bounds' intervals
+    holding the truth, no term; report.json, report.md and augmented.yaml carry the new prior."""
+    f_p, truth = Pendulum(), Uniform(0.608, 2.432)
+    dgp = Pendulum(omega=truth)
+    data = Measurements(_draws(dgp, 1000, 1), _draws(dgp, 333, 2), _draws(dgp, 333, 3))
+    result = _located_and_run(_knowing(f_p, lambda state: 0 * state[:, 1:2]), f_p, data, DiscoverySettings(**FAST))
+    assert result.recalibrated and not result.found and result.explained, result.recalibration
+    (omega,) = result.recalibration.parameters
+    (low_a, low_b), (high_a, high_b) = omega.bounds_intervals()
+    assert low_a < truth.low < low_b and high_a < truth.high < high_b, omega
+    assert verdict(result, f_p)[0].startswith("miscalibration") and "f_p is complete" in verdict(result, f_p)[0]
+    samples = {"measured": data.test, **{k: v for k, v in result.draws.items() if k != "greybox"}}
+    report = write_report(tmp_path, result, f_p, {}, samples)
+    assert report["terms"] == [] and report["recalibrated"][0]["parameter"] == "omega"
+    assert report["recalibrated"][0]["config_prior"] == {"kind": "uniform", "low": 0.785, "high": 3.14}
+    assert "## Recalibrated priors" in (tmp_path / "report.md").read_text()
+    config = {"data": {"physics": {"class_path": "otgb.physics.Pendulum", "init_args": {}}}, "trainer": {}}
+    base = augmented_config(config, f_p, result)["data"]["physics"]["init_args"]["base"]
+    assert base["init_args"]["omega"] == {"class_path": "otgb.physics.Uniform", "init_args": omega.prior.init_args}
+
+
 @pytest.mark.slow
 def test_search_names_the_effect_a_mean_only_correction_missed(tmp_path):
     pendulum = Pendulum()
@@ -1819,7 +1841,7 @@ def test_progress_lines_give_coefficients_to_four_significant_digits():
 def test_the_next_round_keeps_the_measurements_noise():
     data = {"physics": {"class_path": "P"}, "measured_path": "m.npz", "measurement_noise": 0.03}
     config = {"discover": {"seed": 2}, "data": data, "trainer": {}}
-    next_round = augmented_config(config, Pendulum(), SimpleNamespace(found=False))
+    next_round = augmented_config(config, Pendulum(), SimpleNamespace(found=False, recalibrated=False))
     assert next_round["data"]["measurement_noise"] == 0.03 and "discover" not in next_round
 
 

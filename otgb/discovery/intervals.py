@@ -25,6 +25,7 @@ of the truth is measured on fresh files by ``scripts/interval_coverage.py`` (doc
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
 import torch
@@ -108,20 +109,35 @@ def sandwich_covariance(
     """H^-1 Var(grad L) H^-1 at p (module docstring), or None."""
     sample = FitSample.draw(base, measured, fitted.family, len(fitted.candidates), batch, seed, fitted.samples)
     steps = STEP * _sizes(fitted, p)
+    simulator = lambda variants: _simulator(base, fitted, variants, sample)  # noqa: E731
+    covariance = sandwich(p, steps, simulator, sample.targets.double(), len(sample.x0), sample.samples)
+    if covariance is None:
+        return None
+    if isinstance(covariance, int):  # trajectories of a perturbed model diverged
+        diverged("interval", term_names(fitted.candidates), covariance, (1 + 2 * len(p)) * len(sample.x0), None)
+        return None
+    return covariance
+
+
+def sandwich(
+    p: Tensor, steps: Tensor, simulator: Callable[[Tensor], Simulate], targets: Tensor, n: int, samples: int = 1
+) -> Tensor | int | None:
+    """H^-1 Var(grad L) H^-1 at p of a fit's discrepancy L (module docstring), from central differences of ``steps``:
+    ``simulator(variants)`` gives the trajectories of the flattened (variant, trajectory) grid, n (``samples`` samples)
+    per variant, compared with ``targets``. The number of diverged trajectories where any diverged; None where the
+    loss is not finite or the Hessian not positive definite (not at a minimum)."""
     variants = torch.cat([p[None], p + torch.diag(steps), p - torch.diag(steps)]).requires_grad_()  # (1 + 2P, P)
-    targets = sample.targets.double()
-    V, n, samples = len(variants), len(sample.x0), sample.samples
+    V = len(variants)
 
     def losses(simulated: Tensor) -> Tensor:  # the sum over the variants of these rows of each one's mean discrepancy
         grouped = simulated.unflatten(0, (-1, n // samples))  # one group per variant and sample
         return batched_discrepancy(grouped, targets.expand(len(grouped), *targets.shape)).sum() / samples
 
-    simulate = _simulator(base, fitted, variants, sample)
+    simulate = simulator(variants)
     total, simulated = backward_in_chunks(simulate, V * n, losses, chunk_size(simulate, V * n), groups=V)
     finite = torch.isfinite(simulated.flatten(1)).all(1)
     if not bool(finite.all()):
-        diverged("interval", term_names(fitted.candidates), int((~finite).sum()), V * n, None)
-        return None
+        return int((~finite).sum())
     if not bool(torch.isfinite(total)):
         return None
     gradients = variants.grad  # row v: grad L at variants[v]

@@ -30,6 +30,7 @@ def markdown(report: dict[str, Any], facts: dict[str, Any]) -> str:
         *([""] if len(report["verdict_parts"]) > 1 else []),
         *grey_box_elsewhere(facts),
         *_named_terms(report),
+        *_recalibrated(report),
         *_gap_section(report),
         "## Where f_p and the measurements disagree",
         "",
@@ -64,6 +65,24 @@ def markdown(report: dict[str, Any], facts: dict[str, Any]) -> str:
         "",
     ]
     return "\n".join(lines) + "\n"
+
+
+def _recalibrated(report: dict[str, Any]) -> list[str]:
+    """f_p's refitted priors, a line each, where the answer is a recalibration: the config's prior, the fitted one and
+    the 95 % intervals of its bounds (a uniform prior) or of its centre."""
+    if not report.get("recalibrated"):
+        return []
+    lines = ["## Recalibrated priors", "", "| parameter | config's prior | fitted prior | 95 % intervals |", "|---|---|---|---|"]
+    for r in report["recalibrated"]:
+        if r["bounds_intervals"]:
+            (a, b), (c, d) = r["bounds_intervals"]
+            shown = f"low [{a:.4g}, {b:.4g}], high [{c:.4g}, {d:.4g}]"
+        else:
+            shown = f"centre [{r['interval'][0]:.4g}, {r['interval'][1]:.4g}]" if r["interval"] else "- (not at a minimum)"
+        before, after = (distribution_text(r[key]) if r[key]["kind"] != "constant" else f"{r[key]['value']:.4g}"
+                         for key in ("config_prior", "prior"))  # fmt: skip
+        lines.append(f"| {r['parameter']} | {before} | {after} | {shown} |")
+    return [*lines, ""]
 
 
 def _named_terms(report: dict[str, Any]) -> list[str]:

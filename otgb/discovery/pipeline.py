@@ -73,7 +73,7 @@ def with_pointwise_errors(result: Discovery, session: Session) -> Discovery:
     process = session.datamodule.source.pointwise_process
     if process is None:
         return result
-    augmented = result.fitted.model(session.physics) if result.found else None
+    augmented = result.model(session.physics) if result.explained else None
     with DivergenceLog() as log:
         pointwise = pointwise_errors(session.module, process, augmented, session.datamodule.test_set, session.context.seeds.root)
     return replace(result, pointwise=pointwise, diverged=result.diverged + log.records)

@@ -5,19 +5,24 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from otgb.physics.priors import Prior
+from otgb.physics.priors import Constant, Prior
 
 
 def prior_dict(prior: Prior) -> dict[str, Any]:
     """A prior as a config entry (class_path / init_args)."""
-    return {"class_path": f"otgb.physics.{type(prior).__name__}", "init_args": dict(prior.init_args)}
+    return {"class_path": f"otgb.physics.{prior.kind}", "init_args": dict(prior.init_args)}
 
 
 def distribution(prior: Prior) -> dict[str, Any] | None:
     """``null`` for a constant coefficient, else the prior's kind and parameters."""
     if prior.is_constant:
         return None
-    return {"kind": type(prior).__name__.lower(), **prior.init_args}
+    return {"kind": prior.kind.lower(), **prior.init_args}
+
+
+def prior_text(prior: Prior) -> str:
+    """A prior as a person reads it: a constant's value, else :func:`distribution_text`."""
+    return f"{prior.value:.4g}" if isinstance(prior, Constant) else distribution_text(distribution(prior))
 
 
 def distribution_text(distribution: dict[str, Any] | None) -> str:

@@ -12,10 +12,13 @@ from otgb.discovery.evidence import Comparison
 from otgb.discovery.intervals import Intervals
 from otgb.discovery.locate import DisagreementMap
 from otgb.discovery.paired import PairedCheck
+from otgb.discovery.recalibration import Recalibration
 from otgb.discovery.refine import FittedTerms
 from otgb.discovery.regression import SelectedTerm, Selection
 from otgb.discovery.search import SearchStep, Unsupported
 from otgb.discovery.variation import FamilyChoice
+from otgb.physics.augmented import Augmented
+from otgb.physics.base import PhysicsModel
 
 
 @dataclass(frozen=True)
@@ -48,7 +51,20 @@ class Discovery:
     search_reason: str | None = None  # why the library search ran (None: it did not)
     diverged: list[dict] = field(default_factory=list)  # solves that diverged, per step and model (otgb.discovery.log)
     undertrained: dict[str, float] | None = None  # the grey-box's and f_p's held-out energy when it is no better
+    recalibration: Recalibration | None = None  # f_p's theta priors refitted (otgb.discovery.recalibration)
+    recalibrated: bool = False  # whether the answer is f_p with those priors (no term named, they beat f_p alone)
 
     @property
     def found(self) -> bool:
+        """Whether terms were named."""
         return self.fitted is not None and len(self.fitted.candidates) > 0
+
+    @property
+    def explained(self) -> bool:
+        """Whether the answer changes f_p: terms named, or its priors recalibrated."""
+        return self.found or self.recalibrated
+
+    def model(self, physics: PhysicsModel) -> Augmented:
+        """The answer's model: f_p (its priors recalibrated where that is the answer) plus the named terms."""
+        base = self.recalibration.physics if self.recalibrated else physics
+        return self.fitted.model(base) if self.found else Augmented(base, [])

@@ -31,6 +31,8 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
         "verdict": "; ".join(parts),
         "verdict_parts": parts,
         "terms": _term_dicts(result, physics),
+        "recalibrated": _recalibrated_dicts(result) if result.recalibrated else [],
+        "recalibration": _recalibration_evidence(result),
         "ambiguous": _ambiguous(result, physics),
         "evidence": [_comparison_dict(c, physics) for c in result.evidence],
         "added_by_evidence": result.added,
@@ -110,6 +112,32 @@ def _search_step_dict(step: Any) -> dict[str, Any]:
         "validation_trajectories": len(step.fitted.heldout.rows),
         "alternatives": [[{"feature": c.feature, "component": c.component} for c in a] for a in step.alternatives],
     }
+
+
+def _recalibrated_dicts(result: Discovery) -> list[dict[str, Any]]:
+    """Each refitted prior of f_p: the parameter, the fitted prior (its kind and parameters) and the config's, and
+    the 95 % intervals of its centre, of its width (where it varies) and of a uniform prior's bounds."""
+    records = []
+    for r in result.recalibration.parameters:
+        bounds = r.bounds_intervals()
+        records.append({
+            "parameter": r.parameter,
+            "prior": {"kind": r.prior.kind.lower(), **r.prior.init_args},
+            "config_prior": {"kind": r.before.kind.lower(), **dict(r.before.init_args)},
+            "interval": list(r.centre_interval) if r.centre_interval else None,
+            "width_interval": list(r.width_interval) if r.width_interval else None,
+            "bounds_intervals": [list(b) for b in bounds] if bounds else None,
+        })  # fmt: skip
+    return records
+
+
+def _recalibration_evidence(result: Discovery) -> dict[str, Any] | None:
+    """How far below f_p alone's the recalibrated f_p's validation score lies, and whether it is the answer."""
+    if result.recalibration is None:
+        return None
+    below, error = result.recalibration.below_f_p
+    return {"below_f_p": below, "standard_error": error, "adopted": result.recalibrated,
+            "kept_as_given": result.recalibration.kept_as_given}  # fmt: skip
 
 
 def _family_dict(result: Discovery) -> dict[str, Any]:
@@ -216,6 +244,9 @@ def augmented_config(config: dict[str, Any], physics: PhysicsModel, result: Disc
     earlier = []
     if isinstance(physics, Augmented):
         physics_entry, earlier = physics_entry["init_args"]["base"], physics_entry["init_args"]["terms"]
+    if result.recalibrated:  # f_p's refitted priors replace the config's
+        physics_entry = {**physics_entry, "init_args": dict(physics_entry.get("init_args") or {})}
+        physics_entry["init_args"].update({r.parameter: prior_dict(r.prior) for r in result.recalibration.parameters})
     new = [
         {"class_path": "otgb.physics.LibraryTerm",
          "init_args": {"feature": c.feature, "component": c.component, "coefficient": prior_dict(p)}}

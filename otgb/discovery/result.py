@@ -108,9 +108,16 @@ class DiscoveryResult:
         return [NamedTerm.from_report(term) for term in self.report["terms"]]
 
     @property
+    def recalibrated(self) -> list[dict]:
+        """f_p's refitted priors (report.json's ``recalibrated``): per parameter its name, the config's prior and the
+        fitted one, with 95 % intervals; empty where the answer is not a recalibration."""
+        return self.report["recalibrated"]
+
+    @property
     def augmented_physics(self) -> Augmented | None:
-        """f_p with the named terms added, or None where none was named."""
-        return self.discovery.fitted.model(self.physics) if self.found else None
+        """The answer's model (f_p with the named terms added, its priors recalibrated where that is the answer), or
+        None where it changes nothing."""
+        return self.discovery.model(self.physics) if self.discovery.explained else None
 
     @property
     def gap(self) -> dict[str, dict[str, float]]:
@@ -128,7 +135,7 @@ class DiscoveryResult:
         run_dir = Path(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         write_report(run_dir, self.discovery, self.physics, self.facts, self.samples, self.components)
-        if self.found:
+        if self.discovery.explained:
             config = copy.deepcopy(self.config)
             # the next round reads these measurements from a file (for generated ones, not the DGP: it would add the
             # named terms twice; for an array given from Python, a copy beside the report)

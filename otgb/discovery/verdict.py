@@ -10,6 +10,7 @@ from otgb.discovery.library import fixed_in_space, implausible, term_name
 from otgb.discovery.locate import DisagreementMap, describe
 from otgb.discovery.record import Discovery
 from otgb.discovery.scores import term_names
+from otgb.discovery.verify import c2st_tells_apart
 from otgb.physics.base import PhysicsModel
 
 OUTSIDE_THE_LIBRARY = (
@@ -36,7 +37,7 @@ def outcome(result: Discovery) -> str:
     not confirmed"; "partly found" names the terms that came closest, not the missing effect itself."""
     if not result.before.any_significant:
         return "nothing detected"
-    if not result.found:
+    if not result.explained:
         return "nothing found"
     if not closer_on_test(result):
         return "named, not confirmed"
@@ -56,14 +57,16 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
         return nothing_found(result, physics)
     blind = test_part_blind(result) if kind == "named, not confirmed" and closed_on_test(result) else None
     answer = answer_named(result, physics, kind, blind)
-    parts = [*answer, *preferences(result, physics), *flags(result, physics), *([] if blind else low_power(result))]
+    parts = [*answer, *recalibration_alike(result), *preferences(result, physics), *flags(result, physics)]
+    parts += [] if blind else low_power(result)
     if named := named_divergences(result):
         worst = max(named, key=lambda d: d["diverged"] / d["of"])
         parts.append(
             f"the named model's solve diverged in {len(named)} step(s), at worst on {worst['diverged']} of {worst['of']} "
             f"simulated trajectories ({worst['what']}): some inputs blow up with these coefficients"
         )
-    return parts + undertrained_note(result, "the terms come from the library search")
+    so = "the terms come from the library search" if result.found else "f_p's priors were refitted"
+    return parts + undertrained_note(result, so)
 
 
 def nothing_found(result: Discovery, physics: PhysicsModel) -> list[str]:
@@ -94,11 +97,12 @@ def named_terms_text(result: Discovery, physics: PhysicsModel) -> str:
 def answer_named(result: Discovery, physics: PhysicsModel, kind: str, blind: str | None) -> list[str]:
     """The answer's parts where terms were named: the outcome ``kind`` with its numbers and the sentence after the fix
     (``blind``: why the test part cannot confirm anything, where it cannot tell even f_p from the measurements)."""
-    names = named_terms_text(result, physics)
-    removes, closes = ("removes", "closes") if len(kept_terms(result)) == 1 else ("remove", "close")
+    names = named_terms_text(result, physics) if result.found else result.recalibration.answer_text()
+    what = "missing effect" if result.found else "miscalibration"  # terms named, or f_p's priors refitted
+    removes, closes = ("removes", "closes") if len(kept_terms(result)) <= 1 else ("remove", "close")
     if blind:
         return [
-            f"missing effect named, not confirmed: {names}, but the {len(result.draws['f_p'])} test trajectories cannot "
+            f"{what} named, not confirmed: {names}, but the {len(result.draws['f_p'])} test trajectories cannot "
             f"tell even f_p from the measurements ({blind}), nor the augmented physics as nearer to them than f_p "
             f"({closer_clause(result)}), so their agreeing with the augmented physics confirms nothing: more "
             "measurements are needed to confirm it"
@@ -112,32 +116,39 @@ def answer_named(result: Discovery, physics: PhysicsModel, kind: str, blind: str
             else ""
         )
         return [
-            f"missing effect named, not confirmed: {names} fit the validation part better than f_p alone, but on the "
+            f"{what} named, not confirmed: {names} fit the validation part better than f_p alone, but on the "
             f"{tested(result)} test trajectories, which no fit saw, the augmented physics is not significantly nearer "
             f"to the measurements than f_p alone ({versus}{closer_clause(result)})",
             result.sentence_after,
-            outside_the_library(result, physics),
+            *([outside_the_library(result, physics)] if result.found else []),
         ]
     if kind == "gap closed":
         return [
-            f"missing effect found, the gap is closed as far as the test part can tell: {names} {removes} "
+            f"{what} found, the gap is closed as far as the test part can tell: {names} {removes} "
             f"{share_removed(result)}, and no test tells the augmented physics from them",
             result.sentence_after,
         ]
     if kind == "found, not exactly":  # the distributions agree, the recorded inputs do not
         return [
-            f"missing effect found, not exactly: {names} {removes} {share_removed(result)} and the distribution tests "
+            f"{what} found, not exactly: {names} {removes} {share_removed(result)} and the distribution tests "
             "see no difference on the test part, but solved on its recorded inputs the augmented physics misses the "
             "measurements by more than their noise: the coefficients (fitted to distributions) or the terms' form are "
             "off",
             result.sentence_after,
         ]
     return [
-        f"missing effect partly found: {names} {closes} {share_removed(result)}",
+        f"{what} partly found: {names} {closes} {share_removed(result)}",
         result.sentence_after,
         "no library term fits exactly, these are the best approximation",
-        outside_the_library(result, physics),
+        *([outside_the_library(result, physics)] if result.found else []),
     ]
+
+
+def recalibration_alike(result: Discovery) -> list[str]:
+    """Where terms were named and f_p with recalibrated priors also beats f_p alone, but neither beats the other on
+    the validation part: that the measurements cannot tell a missing term from priors that are off."""
+    said = result.recalibration.alike(result.fitted.heldout) if result.found and result.recalibration else None
+    return [said] if said else []
 
 
 def closest_unkept(result: Discovery) -> list[str]:
@@ -207,7 +218,7 @@ def tested(result: Discovery) -> int:
 def confirmed(result: Discovery) -> bool:
     """Whether the test part confirms the named terms: the augmented physics is nearer to it than f_p alone and no test
     tells it from the measurements."""
-    return bool(result.found and closer_on_test(result) and closed_on_test(result))
+    return bool(result.explained and closer_on_test(result) and closed_on_test(result))
 
 
 def closer_clause(result: Discovery) -> str:
@@ -273,7 +284,7 @@ def low_power(result: Discovery) -> list[str]:
 def closest_alternatives(result: Discovery) -> list:
     """Per named term, the alternative closest to it on the validation measurements (evidence records)."""
     closest = []
-    for candidate in result.fitted.candidates:
+    for candidate, _ in kept_terms(result):
         mine = [c for c in result.evidence if c.replaced == candidate and math.isfinite(c.difference)]
         if mine:
             closest.append(min(mine, key=lambda c: abs(c.standard_errors)))
@@ -384,13 +395,3 @@ def undertrained_text(gain: float, error: float, n: int, greybox: float, alone: 
             "data.simulation_budget (or give a longer-trained --ckpt_path)"
         )
     return f"{judged}. Its correction is not used to name terms: the naming relies on the library search"
-
-
-def c2st_tells_apart(gap: dict[str, dict[str, float]], source: str) -> str | None:
-    """Where the gap table's C2ST tells ``source``'s draws from the test measurements, its accuracy above 0.5 by more
-    than two of the Reference's standard deviations (half the test measurements against the other half, repeated),
-    the numbers that say so; else None (also where either figure is missing or not finite)."""
-    judged, reference = gap.get(source, {}), gap.get("reference", {})
-    if "c2st" not in judged or "c2st_std" not in reference or not judged["c2st"] - 0.5 > 2 * reference["c2st_std"]:
-        return None
-    return f"C2ST {judged['c2st']:.2f}, the Reference's {reference['c2st']:.2f} +- {reference['c2st_std']:.2f}"

@@ -73,3 +73,13 @@ def paired_after(fitted: FittedTerms, physics: PhysicsModel, data: Measurements,
     check = paired_check(model, data.test, x0, torch.cat([theta, coefficients], dim=1), data.noise, **names)
     check.significant = check.pvalue < alpha
     return check
+
+
+def c2st_tells_apart(gap: dict[str, dict[str, float]], source: str) -> str | None:
+    """Where the gap table's C2ST tells ``source``'s draws from the test measurements, its accuracy above 0.5 by more
+    than two of the Reference's standard deviations (half the test measurements against the other half, repeated),
+    the numbers that say so; else None (also where either figure is missing or not finite)."""
+    judged, reference = gap.get(source, {}), gap.get("reference", {})
+    if "c2st" not in judged or "c2st_std" not in reference or not judged["c2st"] - 0.5 > 2 * reference["c2st_std"]:
+        return None
+    return f"C2ST {judged['c2st']:.2f}, the Reference's {reference['c2st']:.2f} +- {reference['c2st_std']:.2f}"

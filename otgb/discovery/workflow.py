@@ -46,6 +46,7 @@ from otgb.discovery.naming import (
     strong_candidates,
 )
 from otgb.discovery.paired import PairedCheck
+from otgb.discovery.recalibration import Recalibration, recalibrate
 from otgb.discovery.record import Discovery
 from otgb.discovery.refine import FittedTerms, Fitting
 from otgb.discovery.scores import beats, difference, sample_scores
@@ -118,13 +119,39 @@ def name_and_add(
         family = family_step(weighed.kept, fitting, settings.families)
         dropped = dropped + family.dropped
         progress(f"fitted {family.choice.fitted.family} coefficients {short(family.choice.fitted.priors)}")
+    recalibration = recalibrate_step(fitting)
+    terms = family.choice.fitted if family else None
+    recalibrated = recalibration is not None and answers_instead(recalibration, terms)
+    if recalibrated and terms is not None:
+        progress("the recalibrated f_p fits the validation part better than f_p plus the terms: the terms are set aside")
+        dropped = dropped + [{"feature": c.feature, "component": c.component} for c in terms.candidates]
+        terms, family, weighed = None, None, None
     return Discovery(
-        before, describe(before), selections, cross_check, family.choice.fitted if family else None,
+        before, describe(before), selections, cross_check, terms,
         family=family.choice if family else None, evidence=weighed.comparisons if weighed else [],
         added=weighed.added if weighed else [], dropped=dropped, correction_share=naming.correction_share,
         search=searched.steps, unsupported=searched.unsupported,
         route="library search" if searched.replaced else "f_phi regression", search_reason=reason, undertrained=unused,
+        recalibration=recalibration, recalibrated=recalibrated,
     )  # fmt: skip
+
+
+def answers_instead(recalibration: Recalibration, terms: FittedTerms | None) -> bool:
+    """Whether f_p with recalibrated priors is the answer: it fits the validation part better than f_p alone by two
+    standard errors, and better than f_p plus the named terms (if any) by two. Where neither of those two beats the
+    other, the terms stay and the verdict says that the measurements cannot tell them from a recalibration."""
+    return recalibration.beats_f_p and (terms is None or beats(recalibration.heldout, terms.heldout))
+
+
+def recalibrate_step(fitting: Fitting) -> Recalibration | None:
+    """f_p's theta priors refitted to the training part and scored on the validation part
+    (:mod:`otgb.discovery.recalibration`)."""
+    recalibration = recalibrate(fitting.physics, fitting.train, fitting.val, fitting.steps, fitting.batch, fitting.seed)
+    if recalibration is not None:
+        below, error = recalibration.below_f_p
+        priors = ", ".join(f"{r.parameter} {r.prior!r}" for r in recalibration.parameters)
+        progress(f"recalibrated f_p's priors: {priors}; {below:+.3g} +- {error:.2g} below f_p alone on the validation part")
+    return recalibration
 
 
 def verify(
@@ -136,20 +163,22 @@ def verify(
     physics, n, seeds = module.physics, len(data.test), context.seeds
     sources = {"f_p": simulate_from_priors(physics, n, seeds, "gap-f_p"), "greybox": generated(module, n, seeds)}
     found: dict[str, Any] = {}
-    if named.found:  # each solve gets a model of its own, as each counts its solves (otgb.physics.solvers)
+    if named.found:
         found["final_terms"] = final_regression(named.selections, designs, named.fitted.candidates, settings, seeds)
         found["intervals"] = fitted_intervals(fitting, named.fitted)
         shown = rounded(found["intervals"].centre) if found["intervals"] else "none (the fit is not at a minimum)"
         progress(f"intervals: {shown}")
-        sources["augmented"] = simulate_candidate(named.fitted.model(physics), n, seeds, "gap-augmented")
+    if named.explained:  # each solve gets a model of its own, as each counts its solves (otgb.physics.solvers)
+        sources["augmented"] = simulate_candidate(named.model(physics), n, seeds, "gap-augmented")
         found["before_on_test"] = locate_step(physics, data.test, settings, context, "f_p-test")
-        found["after"] = locate_step(named.fitted.model(physics), data.test, settings, context, "augmented")
+        found["after"] = locate_step(named.model(physics), data.test, settings, context, "augmented")
+    if named.found:
         found["paired_after"] = paired_after(named.fitted, physics, data, settings.alpha)
     progress("verifying on the test part")
     result = replace(named, gap=gap_step(sources, data.test, settings, seeds), draws=sources, **found)
-    if not result.found:
+    if not result.explained:
         return result
-    result = replace(result, closer=closer_step(result.fitted.model(physics), physics, data.test, settings, seeds))
+    result = replace(result, closer=closer_step(result.model(physics), physics, data.test, settings, seeds))
     return replace(result, sentence_after=sentence_after(result))
 
 

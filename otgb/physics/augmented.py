@@ -20,6 +20,7 @@ the improved physics.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from contextlib import AbstractContextManager
 
@@ -89,6 +90,10 @@ class Augmented(PhysicsModel):
     @property
     def priors(self) -> dict[str, Prior]:
         return {**self.base.priors, **{term.name: term.priors["coefficient"] for term in self.added}}
+
+    def with_priors(self, priors: dict[str, Prior]) -> Augmented:
+        """The base model's priors replaced (:meth:`PhysicsModel.with_priors`), the same terms added."""
+        return Augmented(self.base.with_priors(priors), copy.deepcopy(list(self.added)))
 
     def add_correction(self, dstate: Tensor, correction: Tensor) -> Tensor:
         return self.base.add_correction(dstate, correction)

@@ -277,6 +277,16 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
             model.init_args["step_size"] = model.step_size
         return model
 
+    def with_priors(self, priors: dict[str, Prior]) -> PhysicsModel:
+        """A copy of this model whose parameters or state components named in ``priors`` draw from those priors (a
+        recalibrated model, :mod:`otgb.discovery.recalibration`); its recorded arguments show them."""
+        unknown = sorted(set(priors) - {*self.theta_names, *self.state_names})
+        if unknown:
+            raise InputError(f"{type(self).__name__}.with_priors: {unknown} are not among its parameters or states")
+        model = copy.deepcopy(self)
+        model.init_args = {**model.init_args, **{name: check_prior(self, name, p) for name, p in priors.items()}}
+        return model
+
     def _checked_step(self, step_size: float) -> float:
         """A solver step that is positive and divides the observation interval dt."""
         if not (_is_number(step_size) and step_size > 0) or abs(self.dt / step_size - round(self.dt / step_size)) > 1e-6:

@@ -36,6 +36,12 @@ class Prior(RecordsInitArgs, ABC):
     def is_constant(self) -> bool:
         return False
 
+    @property
+    def kind(self) -> str:
+        """The prior's class as configs name it (``Uniform``, ``Normal``, ...), also for a class's default instance
+        (a lazily built subclass of it)."""
+        return next(c.__name__ for c in type(self).__mro__ if c.__module__ == __name__)
+
     def sample(self, n: int, generator: torch.Generator) -> Tensor:
         if self.is_constant:
             return self.quantile(torch.zeros(n))

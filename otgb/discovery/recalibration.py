@@ -1,0 +1,241 @@
+"""Recalibration: are f_p's parameters' priors off, rather than (or beside) a term missing?
+
+A physicist's first question of a disagreement is whether the model is wrong or its parameters are. Here the
+priors of theta are refitted, each in the family the config gave it, by the distribution matching that fits the
+coefficients (:mod:`otgb.discovery.refine`): with theta_k = c_k + w_k s_k for fixed standard draws s_k (U(-1, 1) for
+a uniform prior U(c - w, c + w), N(0, 1) for a normal N(c, w^2); a constant is c), the centres and widths minimise
+the mean discrepancy of :data:`~otgb.discovery.refine.SPREAD_SAMPLES` simulated samples to the training part (a
+prior's width is a spread, which one sample's noise hides). The fit is scored on the validation part, and its 95 %
+intervals are the sandwich of :mod:`otgb.discovery.intervals`. Priors of other kinds (a choice of values) are kept
+as they are and said so.
+
+f_p with the recalibrated priors is then weighed against f_p alone and against f_p plus the named terms on the
+validation part (:mod:`otgb.discovery.verdict` words it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from otgb.discovery.chunked import Simulate, backward_in_chunks, chunk_size
+from otgb.discovery.discrepancy import Target, discrepancy_and_rows
+from otgb.discovery.families import CONSTANT, NORMAL, UNIFORM, centre, prior, standard_noise, varies
+from otgb.discovery.intervals import STEP, Z95, sandwich, spread
+from otgb.discovery.prior_text import prior_text
+from otgb.discovery.refine import DIVERGED_LOSS, SPREAD_SAMPLES
+from otgb.discovery.scores import Scores, clears, difference, discrepancies
+from otgb.physics.base import PhysicsModel
+from otgb.physics.priors import Constant, Normal, Prior, Uniform
+
+REFITTED = ((Constant, CONSTANT), (Uniform, UNIFORM), (Normal, NORMAL))  # the priors a recalibration refits
+
+
+def family_of(given: Prior | None) -> str | None:
+    """The family a recalibration refits ``given`` in, or None where it keeps it as given."""
+    return next((family for kind, family in REFITTED if isinstance(given, kind)), None)
+
+
+@dataclass(frozen=True)
+class Recalibrated:
+    """One parameter's refitted prior: its name, the config's prior and the fitted one (same family), and the 95 %
+    intervals of its centre and (where it varies) its half-width or standard deviation; None where they could not be
+    computed."""
+
+    parameter: str
+    before: Prior
+    prior: Prior
+    centre_interval: tuple[float, float] | None
+    width_interval: tuple[float, float] | None
+
+    def text(self) -> str:
+        """The fitted prior with its 95 % intervals, as the verdict says it."""
+        if (bounds := self.bounds_intervals()) is not None:
+            (low_a, low_b), (high_a, high_b) = bounds
+            return f"{prior_text(self.prior)} (95 %: low in [{low_a:.4g}, {low_b:.4g}], high in [{high_a:.4g}, {high_b:.4g}])"
+        if self.centre_interval is not None:
+            low, high = self.centre_interval
+            return f"{prior_text(self.prior)} (95 % interval of its centre [{low:.4g}, {high:.4g}])"
+        return f"{prior_text(self.prior)} (no interval: the fit is not at a minimum)"
+
+    def bounds_intervals(self) -> tuple[tuple[float, float], tuple[float, float]] | None:
+        """A uniform prior's (low, high) intervals, from its centre's and half-width's (their ends combined: a bound
+        is the centre minus or plus the half-width)."""
+        if not isinstance(self.prior, Uniform) or self.centre_interval is None or self.width_interval is None:
+            return None
+        (c_low, c_high), (w_low, w_high) = self.centre_interval, self.width_interval
+        return (c_low - w_high, c_high - w_low), (c_low + w_low, c_high + w_high)
+
+
+@dataclass(frozen=True)
+class Recalibration:
+    """f_p with its refitted priors: each parameter's record, the recalibrated model, its validation scores and how
+    far below f_p alone's they lie, with that difference's standard error (common random numbers)."""
+
+    parameters: list[Recalibrated]
+    physics: PhysicsModel
+    heldout: Scores
+    below_f_p: tuple[float, float]
+    kept_as_given: list[str]  # parameters whose prior's kind is not refitted
+
+    @property
+    def beats_f_p(self) -> bool:
+        """Whether the recalibrated f_p fits the validation part better than f_p alone by two standard errors."""
+        return clears(*self.below_f_p)
+
+    def answer_text(self) -> str:
+        """The verdict's answer where this recalibration is it: each refitted prior against the config's."""
+        return (
+            "f_p is complete, its parameters' priors are off: the recalibrated f_p, where "
+            + "; ".join(f"{r.parameter}'s prior should be {r.text()}, not {prior_text(r.before)}" for r in self.parameters)
+            + ","
+        )
+
+    def alike(self, terms: Scores) -> str | None:
+        """Where this recalibration beats f_p alone, and f_p plus named terms (their validation ``terms`` scores) and
+        it do not beat one another by two standard errors: the verdict's part that says so; else None."""
+        gap, error = difference(terms, self.heldout)
+        if not self.beats_f_p or clears(gap, error) or clears(-gap, error):
+            return None
+        priors = ", ".join(f"{r.parameter} {prior_text(r.prior)}" for r in self.parameters)
+        return (
+            f"the validation part cannot tell these terms from f_p with recalibrated priors ({priors}; "
+            f"{gap / error if error > 0 else 0:+.1f} standard errors): the model may lack physics, or its parameters' "
+            "priors may be off"
+        )
+
+
+class ThetaPriors(torch.nn.Module):
+    """Differentiable priors of theta: per parameter a centre moved in units of its size and (families that vary) a
+    width through a softplus, started at the config's prior."""
+
+    def __init__(self, priors: list[Prior]) -> None:
+        super().__init__()
+        self.families = [family_of(p) for p in priors]
+        init = torch.tensor([centre(p) for p in priors], dtype=torch.float64)
+        widths = torch.tensor([spread(p) if varies(f) else 1.0 for p, f in zip(priors, self.families)], dtype=torch.float64)
+        self.register_buffer("init", init)
+        self.register_buffer("scale", torch.where(init.abs() > 0, init.abs(), torch.ones_like(init)))
+        self.register_buffer("init_width", widths)
+        self.shift = torch.nn.Parameter(torch.zeros_like(init))
+        self.log_width = torch.nn.Parameter(torch.zeros_like(init))  # width = init_width * exp(log_width)
+        self.register_buffer("varying", torch.tensor([varies(f) for f in self.families]))
+
+    @property
+    def centre(self) -> Tensor:
+        return self.init + self.scale * self.shift
+
+    @property
+    def width(self) -> Tensor:
+        return torch.where(self.varying, self.init_width * torch.exp(self.log_width), torch.zeros_like(self.init))
+
+    def draw(self, noise: Tensor) -> Tensor:
+        """theta (n, k) for standard draws ``noise`` (n, k)."""
+        return self.centre + self.width * noise
+
+    def priors(self) -> list[Prior]:
+        return [prior(f, c, w) for f, c, w in zip(self.families, self.centre.tolist(), self.width.tolist())]
+
+
+def recalibrate(physics: PhysicsModel, train: Tensor, val: Tensor, steps: int, batch: int, seed: int) -> Recalibration | None:
+    """f_p's theta priors refitted to ``train`` (module docstring), scored on ``val``; None where no parameter's prior
+    is of a kind it refits or the fit diverged."""
+    own = getattr(physics, "base", physics).theta_names  # f_p's parameters, not an augmented model's coefficients
+    names = [n for n in own if family_of(physics.priors.get(n)) is not None]
+    if not names:
+        return None
+    theta_priors = ThetaPriors([physics.priors[n] for n in names])
+    sample = _sample(physics, names, theta_priors.families, train, batch * SPREAD_SAMPLES, seed)
+    if not _fit(physics, names, theta_priors, sample, steps):
+        return None
+    fitted = dict(zip(names, theta_priors.priors()))
+    recalibrated = physics.with_priors(fitted)
+    intervals = _intervals(physics, names, theta_priors, sample)
+    records = [
+        Recalibrated(n, physics.priors[n], fitted[n], *(intervals[i] if intervals else (None, None))) for i, n in enumerate(names)
+    ]
+    heldout = discrepancies(recalibrated, [], [], val, seed)
+    below = difference(heldout, discrepancies(physics, [], [], val, seed))
+    kept = [n for n in own if n not in names]
+    return Recalibration(records, recalibrated, heldout, below, kept)
+
+
+@dataclass(frozen=True)
+class _Sample:
+    targets: Tensor
+    x0: Tensor
+    theta: Tensor  # the config's draws, whose columns of the refitted parameters are replaced
+    noise: Tensor  # (n, k) standard draws of the refitted parameters
+
+
+def _sample(physics: PhysicsModel, names: list[str], families: list[str], measured: Tensor, n: int, seed: int) -> _Sample:
+    g = torch.Generator().manual_seed(seed)
+    targets = measured[torch.randperm(len(measured), generator=g)[:n]].float()
+    x0, theta = physics.sample_initial_state(n, g), physics.sample_theta(n, g)
+    noise = torch.stack([standard_noise(f, (n,), g) for f in families], 1)
+    return _Sample(targets, x0, theta, noise)
+
+
+def _simulate(physics: PhysicsModel, names: list[str], sample: _Sample, theta_of_rows) -> Simulate:
+    columns = [physics.theta_names.index(n) for n in names]
+
+    def simulate(rows: slice) -> Tensor:
+        theta = sample.theta[rows].clone().double()
+        index = torch.arange(len(sample.x0))[rows]
+        theta[:, columns] = theta_of_rows(index)
+        return physics.observe(physics.solve(physics.vector_field, sample.x0[rows], theta.float()))
+
+    return simulate
+
+
+def _fit(physics: PhysicsModel, names: list[str], theta_priors: ThetaPriors, sample: _Sample, steps: int) -> bool:
+    """L-BFGS on the mean discrepancy of the samples; whether it ended at finite priors."""
+    target, n = Target.of(sample.targets), len(sample.x0)
+    simulate = _simulate(physics, names, sample, lambda index: theta_priors.draw(sample.noise[index].double()))
+    size = chunk_size(simulate, n)
+    optimiser = torch.optim.LBFGS(
+        theta_priors.parameters(), lr=1, max_iter=steps, max_eval=2 * steps, line_search_fn="strong_wolfe"
+    )
+
+    def closure() -> Tensor:
+        optimiser.zero_grad()
+        mean_of_samples = lambda simulated: discrepancy_and_rows(simulated, target)[0] / SPREAD_SAMPLES  # noqa: E731
+        loss, _ = backward_in_chunks(simulate, n, mean_of_samples, size, groups=SPREAD_SAMPLES)
+        return loss if torch.isfinite(loss) else torch.tensor(DIVERGED_LOSS)
+
+    optimiser.step(closure)
+    return bool(torch.isfinite(theta_priors.centre).all() and torch.isfinite(theta_priors.width).all())
+
+
+def _intervals(
+    physics: PhysicsModel, names: list[str], theta_priors: ThetaPriors, sample: _Sample
+) -> list[tuple[tuple[float, float], tuple[float, float] | None]] | None:
+    """Per parameter the 95 % intervals of its centre and (where it varies) its width; None where the sandwich
+    cannot be computed."""
+    varying = theta_priors.varying.tolist()
+    p = torch.cat([theta_priors.centre, theta_priors.width[theta_priors.varying]]).detach()
+    k, n = len(names), len(sample.x0)
+    sizes = torch.cat([theta_priors.scale, theta_priors.width[theta_priors.varying].detach().clamp_min(1e-12)])
+    where_width = [i for i, v in enumerate(varying) if v]
+
+    def simulator(variants: Tensor) -> Simulate:
+        def theta_of_rows(index: Tensor) -> Tensor:
+            variant, row = variants[index // n], index % n
+            width = torch.zeros(len(index), k, dtype=variants.dtype)
+            width[:, where_width] = variant[:, k:]
+            return variant[:, :k] + width * sample.noise[row].double()
+
+        grid = _Sample(sample.targets, sample.x0.repeat(len(variants), *[1] * (sample.x0.dim() - 1)),
+                       sample.theta.repeat(len(variants), 1), sample.noise.repeat(len(variants), 1))  # fmt: skip
+        simulate = _simulate(physics, names, grid, theta_of_rows)
+        return lambda rows: simulate(rows).double()
+
+    covariance = sandwich(p, STEP * sizes, simulator, sample.targets.double(), n, SPREAD_SAMPLES)
+    if covariance is None or isinstance(covariance, int):
+        return None
+    errors = covariance.diagonal().clamp_min(0).sqrt()
+    low, high = (p - Z95 * errors).tolist(), (p + Z95 * errors).tolist()
+    widths = iter(zip(low[k:], high[k:]))
+    return [((low[i], high[i]), next(widths) if varying[i] else None) for i in range(k)]
