@@ -187,7 +187,7 @@ def _pair_terms(s: Tensor, y: Tensor, samples: int = 1) -> tuple[Tensor, Tensor]
     """For simulated s (n, T, *obs) and measured y (m, T, *obs): each measured trajectory's terms (twice its mean
     distance to the simulated ones) (m,), and each simulated one's (twice its mean distance to the measured minus
     twice its mean distance to the other simulated ones) (n,), over the discrepancy's parts (:func:`row_terms`). Where
-    s holds ``samples`` independent samples (a fit's mean over them, :data:`otgb.discovery.refine.SPREAD_SAMPLES`), a
+    s holds ``samples`` independent samples (a fit's mean over them, ``discover.spread_samples``), a
     simulated trajectory's terms are within its own sample and a measured one's are averaged over the samples."""
     blocks = s.chunk(samples)
     measured = torch.stack([row_terms(block, y) for block in blocks]).mean(0)

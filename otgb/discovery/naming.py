@@ -16,7 +16,7 @@ from otgb.discovery.families import centre, varies
 from otgb.discovery.intervals import Intervals, fitted_intervals
 from otgb.discovery.library import Candidate, build_library
 from otgb.discovery.log import progress
-from otgb.discovery.refine import SPREAD_SAMPLES, FittedTerms, Fitting
+from otgb.discovery.refine import FittedTerms, Fitting
 from otgb.discovery.regression import Selection, describe_terms, design_matrix, regress, subset_coefficients
 from otgb.discovery.scores import beats, difference, discrepancies
 from otgb.discovery.seeds import Seeds
@@ -104,7 +104,8 @@ def fitting_for(
     natural = {c: _natural_scale(c, design) for design in designs.values() for c in design.candidates}
     train, val = (at_most(part, settings.score_rows, context.seeds) for part in (data.train, data.val))
     steps = (settings.fit_steps, settings.fit_batch, context.seeds.root)
-    return Fitting(physics, train, val, *steps, natural, context.cache, context.device)
+    fits = {"cache": context.cache, "device": context.device, "spread_samples": settings.spread_samples}
+    return Fitting(physics, train, val, *steps, natural, **fits)
 
 
 def _natural_scale(candidate: Candidate, design: Any) -> float:
@@ -199,12 +200,12 @@ def evidence_step(
 
 def choose_prior(constant: FittedTerms, fitting: Fitting, families: tuple[str, ...]) -> FamilyChoice:
     """Each prior family of ``families`` for the constant fit's terms, fitted from its optimum on
-    :data:`~otgb.discovery.refine.SPREAD_SAMPLES` simulated samples (the constant too, so that the families differ by
+    ``discover.spread_samples`` simulated samples (the constant too, so that the families differ by
     their spread, not by how many draws placed their centres); the choice as :mod:`otgb.discovery.variation` makes it."""
     start = [p.value for p in constant.priors]
 
     def refit(family: str) -> FittedTerms:
-        return fitting(constant.candidates, start, family, natural_scales=False, samples=SPREAD_SAMPLES)
+        return fitting(constant.candidates, start, family, natural_scales=False, samples=fitting.spread_samples)
 
     def interval(fitted: FittedTerms) -> Intervals | None:
         return fitted_intervals(fitting, fitted)

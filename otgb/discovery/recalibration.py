@@ -4,7 +4,7 @@ A physicist's first question of a disagreement is whether the model is wrong or 
 priors of theta are refitted, each in the family the config gave it, by the distribution matching that fits the
 coefficients (:mod:`otgb.discovery.refine`): with theta_k = c_k + w_k s_k for fixed standard draws s_k (U(-1, 1) for
 a uniform prior U(c - w, c + w), N(0, 1) for a normal N(c, w^2); a constant is c), the centres and widths minimise
-the mean discrepancy of :data:`~otgb.discovery.refine.SPREAD_SAMPLES` simulated samples to the training part (a
+the mean discrepancy of ``discover.spread_samples`` simulated samples to the training part (a
 prior's width is a spread, which one sample's noise hides). The fit is scored on the validation part, and its 95 %
 intervals are the sandwich of :mod:`otgb.discovery.intervals`. Priors of other kinds (a choice of values) are kept
 as they are and said so.
@@ -25,7 +25,7 @@ from otgb.discovery.discrepancy import Target, discrepancy_and_rows
 from otgb.discovery.families import CONSTANT, NORMAL, UNIFORM, centre, prior, standard_noise, varies
 from otgb.discovery.intervals import STEP, Z95, sandwich, spread
 from otgb.discovery.prior_text import prior_text
-from otgb.discovery.refine import DIVERGED_LOSS, SPREAD_SAMPLES
+from otgb.discovery.refine import DIVERGED_LOSS
 from otgb.discovery.scores import Scores, clears, difference, discrepancies
 from otgb.physics.base import PhysicsModel
 from otgb.physics.priors import Constant, Normal, Prior, Uniform
@@ -139,15 +139,19 @@ class ThetaPriors(torch.nn.Module):
         return [prior(f, c, w) for f, c, w in zip(self.families, self.centre.tolist(), self.width.tolist())]
 
 
-def recalibrate(physics: PhysicsModel, train: Tensor, val: Tensor, steps: int, batch: int, seed: int) -> Recalibration | None:
-    """f_p's theta priors refitted to ``train`` (module docstring), scored on ``val``; None where no parameter's prior
-    is of a kind it refits or the fit diverged."""
+def recalibrate(
+    physics: PhysicsModel, train: Tensor, val: Tensor, steps: int, batch: int, seed: int, samples: int = 1
+) -> Recalibration | None:
+    """f_p's theta priors refitted to ``train`` (module docstring) on ``samples`` simulated samples of ``batch`` (one
+    where no refitted prior varies), scored on ``val``; None where no parameter's prior is of a kind it refits or the
+    fit diverged."""
     own = getattr(physics, "base", physics).theta_names  # f_p's parameters, not an augmented model's coefficients
     names = [n for n in own if family_of(physics.priors.get(n)) is not None]
     if not names:
         return None
     theta_priors = ThetaPriors([physics.priors[n] for n in names])
-    sample = _sample(physics, names, theta_priors.families, train, batch * SPREAD_SAMPLES, seed)
+    samples = samples if any(map(varies, theta_priors.families)) else 1
+    sample = _sample(physics, names, theta_priors.families, train, batch * samples, seed, samples)
     if not _fit(physics, names, theta_priors, sample, steps):
         return None
     fitted = dict(zip(names, theta_priors.priors()))
@@ -168,14 +172,17 @@ class _Sample:
     x0: Tensor
     theta: Tensor  # the config's draws, whose columns of the refitted parameters are replaced
     noise: Tensor  # (n, k) standard draws of the refitted parameters
+    samples: int = 1  # independent samples of equal size, one after the other
 
 
-def _sample(physics: PhysicsModel, names: list[str], families: list[str], measured: Tensor, n: int, seed: int) -> _Sample:
+def _sample(
+    physics: PhysicsModel, names: list[str], families: list[str], measured: Tensor, n: int, seed: int, samples: int
+) -> _Sample:
     g = torch.Generator().manual_seed(seed)
     targets = measured[torch.randperm(len(measured), generator=g)[:n]].float()
     x0, theta = physics.sample_initial_state(n, g), physics.sample_theta(n, g)
     noise = torch.stack([standard_noise(f, (n,), g) for f in families], 1)
-    return _Sample(targets, x0, theta, noise)
+    return _Sample(targets, x0, theta, noise, samples)
 
 
 def _simulate(physics: PhysicsModel, names: list[str], sample: _Sample, theta_of_rows) -> Simulate:
@@ -201,8 +208,8 @@ def _fit(physics: PhysicsModel, names: list[str], theta_priors: ThetaPriors, sam
 
     def closure() -> Tensor:
         optimiser.zero_grad()
-        mean_of_samples = lambda simulated: discrepancy_and_rows(simulated, target)[0] / SPREAD_SAMPLES  # noqa: E731
-        loss, _ = backward_in_chunks(simulate, n, mean_of_samples, size, groups=SPREAD_SAMPLES)
+        mean_of_samples = lambda simulated: discrepancy_and_rows(simulated, target)[0] / sample.samples  # noqa: E731
+        loss, _ = backward_in_chunks(simulate, n, mean_of_samples, size, groups=sample.samples)
         return loss if torch.isfinite(loss) else torch.tensor(DIVERGED_LOSS)
 
     optimiser.step(closure)
@@ -228,11 +235,11 @@ def _intervals(
             return variant[:, :k] + width * sample.noise[row].double()
 
         grid = _Sample(sample.targets, sample.x0.repeat(len(variants), *[1] * (sample.x0.dim() - 1)),
-                       sample.theta.repeat(len(variants), 1), sample.noise.repeat(len(variants), 1))  # fmt: skip
+                       sample.theta.repeat(len(variants), 1), sample.noise.repeat(len(variants), 1), sample.samples)  # fmt: skip
         simulate = _simulate(physics, names, grid, theta_of_rows)
         return lambda rows: simulate(rows).double()
 
-    covariance = sandwich(p, STEP * sizes, simulator, sample.targets.double(), n, SPREAD_SAMPLES)
+    covariance = sandwich(p, STEP * sizes, simulator, sample.targets.double(), n, sample.samples)
     if covariance is None or isinstance(covariance, int):
         return None
     errors = covariance.diagonal().clamp_min(0).sqrt()

@@ -43,17 +43,12 @@ FAMILY_REPEATS = 20  # simulation draws per score of a prior family on the train
 # backtracks (from an infinite value its cubic interpolation gives NaN, and every parameter becomes NaN).
 DIVERGED_LOSS = 1e10
 MIN_WIDTH = 1e-6  # a prior's smallest width, in units of its coefficient's scale
-# Independent simulated samples a fit of a family that varies averages its discrepancy over. A spread changes the
+# Independent simulated samples a fit of a family that varies averages its discrepancy over, by default
+# (``discover.spread_samples``). A spread changes the
 # discrepancy at second order in its width, by less than one fixed sample's own noise: fitted on one sample of 1024
 # (a pendulum drag varying as U(-0.75, -0.25), 2000 measured trajectories), the half-width came out 0.06, 0.20 or
 # 0.30 with the sample's seed, and 0 from the constant's optimum; on the mean over 4 samples, 0.27, 0.26 and 0.24.
 SPREAD_SAMPLES = 4
-
-
-def samples_of(family: str) -> int:
-    """How many simulated samples of ``batch`` trajectories a fit of ``family`` averages over by default (a constant
-    compared with the families that vary is fitted on as many as they are, :mod:`otgb.discovery.variation`)."""
-    return SPREAD_SAMPLES if varies(family) else 1
 
 
 @dataclass
@@ -67,7 +62,7 @@ class FittedTerms:
     loss: list[float]
     start: list[float] = field(default_factory=list)  # where the fit started (refits for intervals start there too)
     scales: list[float] | None = None  # the coefficients' natural sizes the fit moved them in
-    samples: int = 1  # simulated samples the fit averaged its discrepancy over (:data:`SPREAD_SAMPLES`)
+    samples: int = 1  # simulated samples the fit averaged its discrepancy over (``discover.spread_samples``)
 
     @property
     def heldout_energy(self) -> float:
@@ -186,7 +181,7 @@ def fit(
     The simulated sample is held fixed during the fit (``batch`` trajectories, their inputs
     from the priors and the coefficients' noise drawn once; against at most ``batch`` measured
     ones; with ``samples`` > 1, the mean discrepancy of that many such samples against as many
-    measured ones, :data:`SPREAD_SAMPLES` for a family that varies), so the discrepancy is a
+    measured ones, ``discover.spread_samples`` for a family that varies), so the discrepancy is a
     smooth deterministic function of the prior's parameters and L-BFGS (``steps`` iterations,
     strong-Wolfe line search) can follow the narrow valleys that correlated terms make. Where its
     last step leaves the prior's parameters non-finite (a line search that ran into coefficients
@@ -259,16 +254,17 @@ class Fitting:
     cache: FitCache | None = None  # finished fits on disk (:mod:`otgb.discovery.fit_cache`)
     device: torch.device = CPU  # where the fits run; the CPU from the first fit that fails elsewhere (:meth:`fit_on_device`)
     fallback: str | None = None  # why the fits moved to the CPU
+    spread_samples: int = SPREAD_SAMPLES  # simulated samples of a fit of a family that varies
 
     def __call__(
         self, candidates: list[Candidate], init: list[float], family: str = CONSTANT, natural_scales: bool = True,
         samples: int | None = None,
     ) -> FittedTerms:  # fmt: skip
         """The fitted prior of ``family`` for ``candidates`` started at ``init``, on ``samples`` simulated samples
-        (default :func:`samples_of` the family); without ``natural_scales`` each coefficient moves in units of its
-        start's size. Read from the cache where it holds this fit."""
+        (default: ``spread_samples`` for a family that varies, else one); without ``natural_scales`` each coefficient
+        moves in units of its start's size. Read from the cache where it holds this fit."""
         scales = [float(self.natural[c]) for c in candidates] if natural_scales and self.natural else None
-        init, samples = [float(v) for v in init], samples or samples_of(family)
+        init, samples = [float(v) for v in init], samples or (self.spread_samples if varies(family) else 1)
 
         def run() -> FittedTerms:
             data = (self.train, self.val, self.steps, self.batch, self.seed)

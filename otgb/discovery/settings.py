@@ -14,6 +14,7 @@ from torch import Tensor
 from otgb.discovery.families import FAMILIES
 from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.library import MAX_DEGREE
+from otgb.discovery.refine import SPREAD_SAMPLES
 from otgb.discovery.seeds import Seeds
 from otgb.errors import InputError
 from otgb.physics.base import PhysicsModel
@@ -41,6 +42,11 @@ class DiscoverySettings:
         fit_batch: Simulated (and at most as many measured) trajectories of each distribution-matching fit; its
             memory stays bounded at any size (the gradient is taken a chunk of trajectories at a time).
         families: Prior families tried for the coefficients, simplest first.
+        spread_samples: Independent simulated samples (of ``fit_batch`` trajectories each) whose mean discrepancy a fit
+            of a family that varies, and of f_p's recalibrated priors, minimises: a spread changes the discrepancy by
+            less than one sample's noise. Each such fit costs this many times a constant's.
+        recalibrate: Whether f_p's parameters' priors are also refitted and weighed against f_p alone and the named
+            terms (:mod:`otgb.discovery.recalibration`).
         c2st_classifier: The C2ST judge of the gap table ("auto", "mlp" or "conv").
         seed: Seed of every draw of the workflow.
         fit_cache: A folder where each finished coefficient fit is stored and from which a run that asks for the same
@@ -65,6 +71,8 @@ class DiscoverySettings:
         fit_steps: int = 50,
         fit_batch: int = 1024,
         families: tuple[str, ...] = FAMILIES,
+        spread_samples: int = SPREAD_SAMPLES,
+        recalibrate: bool = True,
         c2st_classifier: str = "auto",
         seed: int = 0,
         fit_cache: str | None = "auto",
@@ -78,6 +86,8 @@ class DiscoverySettings:
             raise InputError(
                 "discover: need n_trajectories >= 10, n_bootstrap >= 1, fit_steps >= 1, fit_batch >= 2, strong_candidates >= 0"
             )
+        if isinstance(spread_samples, bool) or not (isinstance(spread_samples, int) and spread_samples >= 1):
+            raise InputError(f"discover.spread_samples={spread_samples!r} is invalid; expected a whole number >= 1")
         if isinstance(position_degree, bool) or not (isinstance(position_degree, int) and 0 <= position_degree <= MAX_DEGREE):
             raise InputError(f"discover.position_degree={position_degree!r} is invalid; expected a whole number 0..{MAX_DEGREE}")
         unknown = [f for f in families if f not in FAMILIES]
@@ -89,6 +99,7 @@ class DiscoverySettings:
         self.position_degree = position_degree
         self.strong_candidates, self.fit_steps, self.fit_batch = strong_candidates, fit_steps, fit_batch
         self.families, self.c2st_classifier, self.seed = tuple(families), c2st_classifier, seed
+        self.spread_samples, self.recalibrate = spread_samples, bool(recalibrate)
         self.fit_cache = fit_cache
         self.cache = None if fit_cache in (None, "auto") else FitCache(fit_cache)  # refuses a file before any work
         self._frozen = True

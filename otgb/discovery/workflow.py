@@ -119,7 +119,7 @@ def name_and_add(
         family = family_step(weighed.kept, fitting, settings.families)
         dropped = dropped + family.dropped
         progress(f"fitted {family.choice.fitted.family} coefficients {short(family.choice.fitted.priors)}")
-    recalibration = recalibrate_step(fitting)
+    recalibration = recalibrate_step(fitting) if settings.recalibrate else None
     terms = family.choice.fitted if family else None
     recalibrated = recalibration is not None and answers_instead(recalibration, terms)
     if recalibrated and terms is not None:
@@ -146,7 +146,8 @@ def answers_instead(recalibration: Recalibration, terms: FittedTerms | None) -> 
 def recalibrate_step(fitting: Fitting) -> Recalibration | None:
     """f_p's theta priors refitted to the training part and scored on the validation part
     (:mod:`otgb.discovery.recalibration`)."""
-    recalibration = recalibrate(fitting.physics, fitting.train, fitting.val, fitting.steps, fitting.batch, fitting.seed)
+    data = (fitting.train, fitting.val, fitting.steps, fitting.batch, fitting.seed, fitting.spread_samples)
+    recalibration = recalibrate(fitting.physics, *data)
     if recalibration is not None:
         below, error = recalibration.below_f_p
         priors = ", ".join(f"{r.parameter} {r.prior!r}" for r in recalibration.parameters)
