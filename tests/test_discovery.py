@@ -162,6 +162,12 @@ def test_a_fields_coordinates_are_features_and_a_source_fixed_in_space_is_a_term
         DiscoverySettings(position_degree=4)
 
 
+@pytest.mark.parametrize("samples", [0, 2.5, True])
+def test_a_spread_samples_that_is_not_a_whole_number_of_at_least_one_is_refused_in_one_line(samples):
+    with pytest.raises(InputError, match=rf"discover.spread_samples={samples!r} is invalid; expected a whole number >= 1"):
+        DiscoverySettings(spread_samples=samples)
+
+
 def test_on_a_field_whose_library_held_no_term_fixed_in_space_the_verdict_says_how_to_offer_them():
     nothing = Discovery(before=SimpleNamespace(any_significant=True), sentence_before="they differ")
     assert outside_the_library(nothing, Pendulum()) == OUTSIDE_THE_LIBRARY, "no grid, no position"
