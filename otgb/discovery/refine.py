@@ -185,9 +185,8 @@ def fit(
     smooth deterministic function of the prior's parameters and L-BFGS (``steps`` iterations,
     strong-Wolfe line search) can follow the narrow valleys that correlated terms make. Where its
     last step leaves the prior's parameters non-finite (a line search that ran into coefficients
-    whose solves diverge), the fit keeps the best iterate it evaluated.
-    It runs on ``device``; its draws are made on the CPU, the same on every device.
-    """
+    whose solves diverge), the fit keeps the best iterate it evaluated. It runs on ``device``; its
+    draws are made on the CPU, the same on every device."""
     prior = CoefficientPrior(family, init, scales).to(device)
     terms = [LibraryTerm(c.feature, c.component, Constant(v)) for c, v in zip(candidates, init)]
     sample = FitSample.draw(base, measured, family, len(candidates), batch, seed, samples).to(device)
@@ -218,13 +217,20 @@ def fit(
     if losses and not prior_is_finite(prior):
         restore(prior, best)
     if not losses or not prior_is_finite(prior):
-        diverged(f"fit ({family})", term_names(candidates), n, n)
-        priors = [Constant(v) for v in init]
-        failed = Scores.diverged(HELDOUT_REPEATS)
-        return FittedTerms(family, list(candidates), priors, failed, losses, list(init), scales, samples)
+        return _diverged_fit(family, candidates, init, losses, scales, samples, n)
     priors = prior.priors()
     scored = discrepancies(base, candidates, priors, heldout, seed, device=device) if score else Scores([])
     return FittedTerms(family, list(candidates), priors, scored, losses, list(init), scales, samples)
+
+
+def _diverged_fit(
+    family: str, candidates: list[Candidate], init: list[float], losses: list[float], scales: list[float] | None,
+    samples: int, n: int,
+) -> FittedTerms:  # fmt: skip
+    """The record of a fit whose model diverged (logged): its start's constants, scored as diverged."""
+    diverged(f"fit ({family})", term_names(candidates), n, n)
+    priors, failed = [Constant(v) for v in init], Scores.diverged(HELDOUT_REPEATS)
+    return FittedTerms(family, list(candidates), priors, failed, losses, list(init), scales, samples)
 
 
 @torch.no_grad()
