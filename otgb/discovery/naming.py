@@ -45,13 +45,14 @@ class Naming:
 def name_step(module: Any, settings: DiscoverySettings, seeds: Seeds) -> Naming:
     """Regress f_phi on the library, per component."""
     physics = module.physics
-    draws = greybox_draws(module, settings.n_trajectories, seeds)
+    library = settings.library
+    draws = greybox_draws(module, library.n_trajectories, seeds)
     selections, designs = [], {}
     for component in acting_components(physics):
         index = physics.state_names.index(component)
-        candidates = build_library(physics, [component], settings.theta_products, settings.position_degree)
+        candidates = build_library(physics, [component], library.theta_products, library.position_degree)
         design = design_matrix(physics, candidates, draws["states"], draws["theta"], draws["correction"][:, :, index], seeds.root)
-        selections.append(regress(design, component, settings.n_bootstrap, seeds.root))
+        selections.append(regress(design, component, library.n_bootstrap, seeds.root))
         designs[component] = design
     share = float(draws["correction"].pow(2).mean().sqrt() / draws["physics"].pow(2).mean().sqrt().clamp_min(1e-12))
     return Naming(selections, designs, draws, share)
@@ -102,9 +103,9 @@ def fitting_for(
     """The run's :class:`otgb.discovery.refine.Fitting`: the settings' steps, batch and seed, and each library
     candidate's natural scale, the slope at which its term alone would be as large as f_phi on its component."""
     natural = {c: _natural_scale(c, design) for design in designs.values() for c in design.candidates}
-    train, val = (at_most(part, settings.score_rows, context.seeds) for part in (data.train, data.val))
-    steps = (settings.fit_steps, settings.fit_batch, context.seeds.root)
-    fits = {"cache": context.cache, "device": context.device, "spread_samples": settings.spread_samples}
+    train, val = (at_most(part, settings.fits.score_rows, context.seeds) for part in (data.train, data.val))
+    steps = (settings.fits.steps, settings.fits.batch, context.seeds.root)
+    fits = {"cache": context.cache, "device": context.device, "spread_samples": settings.fits.spread_samples}
     return Fitting(physics, train, val, *steps, natural, **fits)
 
 
@@ -274,7 +275,7 @@ def final_regression(
         mine = [c for c in kept if c.component == selection.component]
         if mine:
             inclusion = {Candidate(f, selection.component): p for f, p in selection.inclusion.items()}
-            terms += describe_terms(designs[selection.component], mine, inclusion, settings.n_bootstrap, seeds.root)
+            terms += describe_terms(designs[selection.component], mine, inclusion, settings.library.n_bootstrap, seeds.root)
     return terms
 
 

@@ -101,9 +101,9 @@ def build(args: list[str], parser: dict[str, Any] | None = None) -> Session:
 
 def refuse_position_terms_without_a_grid(settings: DiscoverySettings, physics: PhysicsModel) -> None:
     """``discover.position_degree`` asks for terms fixed in space: only a field with a free coordinate name has them."""
-    if settings.position_degree and not getattr(physics, "coordinate_names", ()):
+    if settings.library.position_degree and not getattr(physics, "coordinate_names", ()):
         raise InputError(
-            f"discover.position_degree={settings.position_degree}: {type(physics).__name__} has no grid coordinate to "
+            f"discover.position_degree={settings.library.position_degree}: {type(physics).__name__} has no grid coordinate to "
             "offer; terms fixed in space need a field (otgb.physics.FieldModel) whose s, x or y is not a state or "
             "parameter name: expected 0"
         )

@@ -20,8 +20,43 @@ from otgb.errors import InputError
 from otgb.physics.base import PhysicsModel
 
 
+@dataclass(frozen=True)
+class PermutationSettings:
+    """The permutation tests' settings: the disagreement maps and the test of which model is nearer."""
+
+    n_permutations: int
+    alpha: float
+    regions_per_axis: int
+    locate_rows: int
+
+
+@dataclass(frozen=True)
+class LibrarySettings:
+    """How f_phi is named: its draws, the bootstrap, the candidate library and the candidates cross-checked."""
+
+    n_trajectories: int
+    n_bootstrap: int
+    theta_products: bool
+    position_degree: int
+    strong_candidates: int
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    """How coefficients, their prior families and f_p's recalibrated priors are fitted and scored."""
+
+    steps: int
+    batch: int
+    score_rows: int
+    families: tuple[str, ...]
+    spread_samples: int
+    recalibrate: bool
+
+
 class DiscoverySettings:
-    """Settings of ``otgb discover`` (the ``discover:`` section of its config).
+    """Settings of ``otgb discover`` (the ``discover:`` section of its config), validated once and frozen, in groups:
+    ``tests`` (:class:`PermutationSettings`), ``library`` (:class:`LibrarySettings`), ``fits`` (:class:`FitSettings`), and
+    the gap table's judge, the seed and the fit cache.
 
     Args:
         n_permutations: Label permutations per p-value of the disagreement map and of the test of which model is nearer.
@@ -93,14 +128,10 @@ class DiscoverySettings:
         unknown = [f for f in families if f not in FAMILIES]
         if unknown or not families:
             raise InputError(f"discover.families={list(families)}: expected a non-empty list among {list(FAMILIES)}")
-        self.n_permutations, self.alpha, self.regions_per_axis = n_permutations, alpha, regions_per_axis
-        self.locate_rows, self.score_rows = locate_rows, score_rows
-        self.n_trajectories, self.n_bootstrap, self.theta_products = n_trajectories, n_bootstrap, theta_products
-        self.position_degree = position_degree
-        self.strong_candidates, self.fit_steps, self.fit_batch = strong_candidates, fit_steps, fit_batch
-        self.families, self.c2st_classifier, self.seed = tuple(families), c2st_classifier, seed
-        self.spread_samples, self.recalibrate = spread_samples, bool(recalibrate)
-        self.fit_cache = fit_cache
+        self.tests = PermutationSettings(n_permutations, alpha, regions_per_axis, locate_rows)
+        self.library = LibrarySettings(n_trajectories, n_bootstrap, bool(theta_products), position_degree, strong_candidates)
+        self.fits = FitSettings(fit_steps, fit_batch, score_rows, tuple(families), spread_samples, bool(recalibrate))
+        self.c2st_classifier, self.seed, self.fit_cache = c2st_classifier, seed, fit_cache
         self.cache = None if fit_cache in (None, "auto") else FitCache(fit_cache)  # refuses a file before any work
         self._frozen = True
 

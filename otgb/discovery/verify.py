@@ -52,12 +52,13 @@ def closer_step(
     drawn at random) than f_p alone (:mod:`.closer`), on fresh draws of both: ``CLOSER_DRAWS`` per test trajectory, at
     most ``locate_rows`` and at least as many as the test trajectories. None where too few trajectories of either
     model stay finite to test (the augmented physics's divergences are logged and counted against it)."""
-    tested = at_most(test, settings.locate_rows, seeds)
-    n = max(len(tested), min(CLOSER_DRAWS * len(tested), settings.locate_rows))
+    tests = settings.tests
+    tested = at_most(test, tests.locate_rows, seeds)
+    n = max(len(tested), min(CLOSER_DRAWS * len(tested), tests.locate_rows))
     augmented = simulate_candidate(model, n, seeds, "closer-augmented")
     f_p = simulate_from_priors(physics, n, seeds, "closer-f_p")
     try:
-        return closer(augmented, f_p, tested, settings.n_permutations, settings.alpha, seeds.root, n - len(augmented))
+        return closer(augmented, f_p, tested, tests.n_permutations, tests.alpha, seeds.root, n - len(augmented))
     except ValueError:  # too few finite trajectories: the verdict says no test could run
         return None
 

@@ -63,16 +63,17 @@ def locate_step(
     physics: PhysicsModel, measured: Tensor, settings: DiscoverySettings, context: Context, model_name: str = "f_p",
     paired: PairedCheck | None = None,
 ) -> DisagreementMap:  # fmt: skip
-    """The disagreement map between ``measured`` (at most ``settings.locate_rows`` of them, drawn at random) and as many
+    """The disagreement map between ``measured`` (at most ``settings.tests.locate_rows`` of them, drawn at random) and as many
     trajectories of ``physics`` (f_p, or a candidate model whose diverged trajectories are dropped), with f_p's
     ``paired`` check on the measurements' inputs, if any."""
     seeds = context.seeds
-    tested = at_most(measured, settings.locate_rows, seeds)
+    tests = settings.tests
+    tested = at_most(measured, tests.locate_rows, seeds)
     simulate = simulate_candidate if isinstance(physics, Augmented) else simulate_from_priors
     simulated = simulate(physics, len(tested), seeds, model_name)
     result = locate(
         tested, simulated, physics.observation_times(), physics.observed,
-        settings.n_permutations, settings.alpha, settings.regions_per_axis, seeds.root, paired,
+        tests.n_permutations, tests.alpha, tests.regions_per_axis, seeds.root, paired,
     )  # fmt: skip
     result.drawn_from = len(measured) if len(tested) < len(measured) else 0
     return result
@@ -101,7 +102,7 @@ def name_and_add(
         if proposed
         else "f_phi's regression proposes no term"
     )
-    strong = strong_candidates(selections, designs, settings.strong_candidates)
+    strong = strong_candidates(selections, designs, settings.library.strong_candidates)
     cross_check = cross_check_step(strong, fitting)
     progress(f"cross-checked {len(strong)} candidates alone")
     unused = undertrained(module, fitting.val, context.seeds)
@@ -115,11 +116,11 @@ def name_and_add(
     dropped = [] if searched.replaced or route is None else route.dropped
     weighed, family = None, None
     if searched.kept is not None:
-        weighed = evidence_step(searched.kept, selections, cross_check, designs, fitting, settings.strong_candidates)
-        family = family_step(weighed.kept, fitting, settings.families)
+        weighed = evidence_step(searched.kept, selections, cross_check, designs, fitting, settings.library.strong_candidates)
+        family = family_step(weighed.kept, fitting, settings.fits.families)
         dropped = dropped + family.dropped
         progress(f"fitted {family.choice.fitted.family} coefficients {short(family.choice.fitted.priors)}")
-    recalibration = recalibrate_step(fitting) if settings.recalibrate else None
+    recalibration = recalibrate_step(fitting) if settings.fits.recalibrate else None
     terms = family.choice.fitted if family else None
     recalibrated = recalibration is not None and answers_instead(recalibration, terms)
     if recalibrated and terms is not None:
@@ -174,7 +175,7 @@ def verify(
         found["before_on_test"] = locate_step(physics, data.test, settings, context, "f_p-test")
         found["after"] = locate_step(named.model(physics), data.test, settings, context, "augmented")
     if named.found:
-        found["paired_after"] = paired_after(named.fitted, physics, data, settings.alpha)
+        found["paired_after"] = paired_after(named.fitted, physics, data, settings.tests.alpha)
     progress("verifying on the test part")
     result = replace(named, gap=gap_step(sources, data.test, settings, seeds), draws=sources, **found)
     if not result.explained:
@@ -199,7 +200,7 @@ def search_reason(
         )
     if truncated:
         return f"f_phi's route reached {MAX_FORWARD_TERMS} terms and was cut short"
-    if settings.position_degree and getattr(physics, "coordinate_names", ()):
+    if settings.library.position_degree and getattr(physics, "coordinate_names", ()):
         return (
             "terms fixed in space were asked for (discover.position_degree), so they are searched for directly, "
             "not only along f_phi's route"
