@@ -15,6 +15,7 @@ validation part (:mod:`otgb.discovery.verdict` words it).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -109,7 +110,7 @@ class Recalibration:
 
 class ThetaPriors(torch.nn.Module):
     """Differentiable priors of theta: per parameter a centre moved in units of its size and (families that vary) a
-    width through a softplus, started at the config's prior."""
+    width scaled by the exponential of a parameter (it stays positive), started at the config's prior."""
 
     def __init__(self, priors: list[Prior]) -> None:
         super().__init__()
@@ -185,7 +186,9 @@ def _sample(
     return _Sample(targets, x0, theta, noise, samples)
 
 
-def _simulate(physics: PhysicsModel, names: list[str], sample: _Sample, theta_of_rows) -> Simulate:
+def _simulate(physics: PhysicsModel, names: list[str], sample: _Sample, theta_of_rows: Callable[[Tensor], Tensor]) -> Simulate:
+    """The observed trajectories of rows of ``sample``, the refitted parameters' columns of theta from
+    ``theta_of_rows(row indices)``."""
     columns = [physics.theta_names.index(n) for n in names]
 
     def simulate(rows: slice) -> Tensor:
