@@ -12,7 +12,7 @@ sentence; :func:`draw` into a figure.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -25,7 +25,7 @@ DISTANCE_BYTES = 2**29  # the cells' distance matrices held at once, at most (at
 SPREAD_FLOOR = 1e-3  # of the features' RMS spread: a feature (nearly) constant in both samples is not blown up to unit spread
 
 
-@dataclass
+@dataclass(frozen=True)
 class DisagreementMap:
     """Per-cell statistics of two samples, each (T, C, R): time steps, components, regions.
 
@@ -203,7 +203,7 @@ def locate(
     whole_level = alpha / 4 if paired is not None else alpha / 2
     whole_significant = bool(whole_pvalue[0] <= whole_level)
     if paired is not None:
-        paired.significant = paired.pvalue <= whole_level
+        paired = replace(paired, significant=paired.pvalue <= whole_level)
     shape = (steps, channels, len(regions))
     summary = {}
     for side, cells in (("a", cells_a), ("b", cells_b)):

@@ -27,7 +27,7 @@ from otgb.data.measured import simulate_in_chunks
 from otgb.physics.base import PhysicsModel
 
 
-@dataclass
+@dataclass(frozen=True)
 class PairedCheck:
     """f_p on the recorded inputs: its residuals' RMS, the noise's sd, how many values, the chi-square p-value and
     whether it is significant at the level :func:`otgb.discovery.locate.locate` gives it."""

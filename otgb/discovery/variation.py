@@ -40,7 +40,7 @@ SPREAD_BISECTIONS = 2
 SPREAD_REPEATS = 10  # simulation draws per score of a spread (common random numbers: the measured sample dominates)
 
 
-@dataclass
+@dataclass(frozen=True)
 class FamilyChoice:
     """The chosen family's fit, each family's score and difference to it, the fits that stopped short."""
 
@@ -85,14 +85,13 @@ def choose_prior(
     if varies(chosen.family) and interval is not None and (reason := unsupported_spread(chosen, constant, interval)):
         chosen, rejected = constant, {chosen.family: reason}
     differences = {f.family: difference(scores[chosen.family], scores[f.family]) for f in fits}
-    choice = FamilyChoice(chosen, {f.family: scores[f.family].mean for f in fits}, differences, stopped_short)
-    choice.rejected = rejected
+    excluded = None
     if not varies(chosen.family):
         spread_family = next((f for f in SPREAD_FAMILIES if f in families), SPREAD_FAMILIES[0])
-        choice.excluded_spread = [
-            excluded_spread(physics, constant, k, spread_family, measured, seed) for k in range(len(constant.candidates))
-        ]
-    return choice
+        terms = range(len(constant.candidates))
+        excluded = [excluded_spread(physics, constant, k, spread_family, measured, seed) for k in terms]
+    means = {f.family: scores[f.family].mean for f in fits}
+    return FamilyChoice(chosen, means, differences, stopped_short, excluded, rejected)
 
 
 def unsupported_spread(

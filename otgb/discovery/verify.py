@@ -3,6 +3,8 @@ paired check on recorded inputs."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 from torch import Tensor
 
@@ -72,8 +74,7 @@ def paired_after(fitted: FittedTerms, physics: PhysicsModel, data: Measurements,
     coefficients = model.sample_theta(len(theta), torch.Generator())[:, theta.shape[1] :]  # constants: the same each row
     names = {"model": "the augmented physics", "part": "the test part's"}
     check = paired_check(model, data.test, x0, torch.cat([theta, coefficients], dim=1), data.noise, **names)
-    check.significant = check.pvalue < alpha
-    return check
+    return replace(check, significant=check.pvalue < alpha)
 
 
 def c2st_tells_apart(gap: dict[str, dict[str, float]], source: str) -> str | None:

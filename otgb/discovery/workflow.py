@@ -75,8 +75,7 @@ def locate_step(
         tested, simulated, physics.observation_times(), physics.observed,
         tests.n_permutations, tests.alpha, tests.regions_per_axis, seeds.root, paired,
     )  # fmt: skip
-    result.drawn_from = len(measured) if len(tested) < len(measured) else 0
-    return result
+    return replace(result, drawn_from=len(measured) if len(tested) < len(measured) else 0)
 
 
 def run(module: Any, data: Measurements, settings: DiscoverySettings, before: DisagreementMap, context: Context) -> Discovery:
