@@ -1202,7 +1202,7 @@ def test_a_restoring_force_weaker_than_f_ps_is_a_recalibration_of_omega_not_a_mi
     result = _located_and_run(_knowing(f_p, lambda state: 0 * state[:, 1:2]), f_p, data, DiscoverySettings(**FAST))
     assert result.recalibrated and not result.found and result.explained, result.recalibration
     (omega,) = result.recalibration.parameters
-    (low_a, low_b), (high_a, high_b) = omega.bounds_intervals()
+    (low_a, low_b), (high_a, high_b) = omega.bounds_intervals
     assert low_a < truth.low < low_b and high_a < truth.high < high_b, omega
     assert verdict(result, f_p)[0].startswith("miscalibration") and "f_p is complete" in verdict(result, f_p)[0]
     samples = {"measured": data.test, **{k: v for k, v in result.draws.items() if k != "greybox"}}

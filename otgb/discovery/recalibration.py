@@ -42,32 +42,26 @@ def family_of(given: Prior | None) -> str | None:
 @dataclass(frozen=True)
 class Recalibrated:
     """One parameter's refitted prior: its name, the config's prior and the fitted one (same family), and the 95 %
-    intervals of its centre and (where it varies) its half-width or standard deviation; None where they could not be
-    computed."""
+    intervals of its centre, (where it varies) its half-width or standard deviation, and (a uniform prior) its low
+    and high bounds, each from the sandwich covariance (a bound's variance with the centre's and width's covariance);
+    None where they could not be computed."""
 
     parameter: str
     before: Prior
     prior: Prior
     centre_interval: tuple[float, float] | None
     width_interval: tuple[float, float] | None
+    bounds_intervals: tuple[tuple[float, float], tuple[float, float]] | None = None
 
     def text(self) -> str:
         """The fitted prior with its 95 % intervals, as the verdict says it."""
-        if (bounds := self.bounds_intervals()) is not None:
-            (low_a, low_b), (high_a, high_b) = bounds
+        if self.bounds_intervals is not None:
+            (low_a, low_b), (high_a, high_b) = self.bounds_intervals
             return f"{prior_text(self.prior)} (95 %: low in [{low_a:.4g}, {low_b:.4g}], high in [{high_a:.4g}, {high_b:.4g}])"
         if self.centre_interval is not None:
             low, high = self.centre_interval
             return f"{prior_text(self.prior)} (95 % interval of its centre [{low:.4g}, {high:.4g}])"
         return f"{prior_text(self.prior)} (no interval: the fit is not at a minimum)"
-
-    def bounds_intervals(self) -> tuple[tuple[float, float], tuple[float, float]] | None:
-        """A uniform prior's (low, high) intervals, from its centre's and half-width's (their ends combined: a bound
-        is the centre minus or plus the half-width)."""
-        if not isinstance(self.prior, Uniform) or self.centre_interval is None or self.width_interval is None:
-            return None
-        (c_low, c_high), (w_low, w_high) = self.centre_interval, self.width_interval
-        return (c_low - w_high, c_high - w_low), (c_low + w_low, c_high + w_high)
 
 
 @dataclass(frozen=True)
@@ -159,7 +153,8 @@ def recalibrate(
     recalibrated = physics.with_priors(fitted)
     intervals = _intervals(physics, names, theta_priors, sample)
     records = [
-        Recalibrated(n, physics.priors[n], fitted[n], *(intervals[i] if intervals else (None, None))) for i, n in enumerate(names)
+        Recalibrated(n, physics.priors[n], fitted[n], *(intervals[i] if intervals else (None, None, None)))
+        for i, n in enumerate(names)
     ]
     heldout = discrepancies(recalibrated, [], [], val, seed)
     below = difference(heldout, discrepancies(physics, [], [], val, seed))
@@ -219,11 +214,14 @@ def _fit(physics: PhysicsModel, names: list[str], theta_priors: ThetaPriors, sam
     return bool(torch.isfinite(theta_priors.centre).all() and torch.isfinite(theta_priors.width).all())
 
 
+Interval = tuple[float, float]
+
+
 def _intervals(
     physics: PhysicsModel, names: list[str], theta_priors: ThetaPriors, sample: _Sample
-) -> list[tuple[tuple[float, float], tuple[float, float] | None]] | None:
-    """Per parameter the 95 % intervals of its centre and (where it varies) its width; None where the sandwich
-    cannot be computed."""
+) -> list[tuple[Interval, Interval | None, tuple[Interval, Interval] | None]] | None:
+    """Per parameter the 95 % intervals of its centre, (where it varies) its width and (a uniform) its bounds
+    c - w and c + w; None where the sandwich cannot be computed."""
     varying = theta_priors.varying.tolist()
     p = torch.cat([theta_priors.centre, theta_priors.width[theta_priors.varying]]).detach()
     k, n = len(names), len(sample.x0)
@@ -245,7 +243,18 @@ def _intervals(
     covariance = sandwich(p, STEP * sizes, simulator, sample.targets.double(), n, sample.samples)
     if covariance is None or isinstance(covariance, int):
         return None
-    errors = covariance.diagonal().clamp_min(0).sqrt()
-    low, high = (p - Z95 * errors).tolist(), (p + Z95 * errors).tolist()
-    widths = iter(zip(low[k:], high[k:]))
-    return [((low[i], high[i]), next(widths) if varying[i] else None) for i in range(k)]
+
+    def interval(value: Tensor, variance: Tensor) -> Interval:
+        error = float(variance.clamp_min(0).sqrt())
+        return (float(value) - Z95 * error, float(value) + Z95 * error)
+
+    C, records = covariance, []
+    for i in range(k):
+        centre_interval, width_interval, bounds = interval(p[i], C[i, i]), None, None
+        if varying[i]:
+            j = k + where_width.index(i)
+            width_interval = interval(p[j], C[j, j])
+            if theta_priors.families[i] == UNIFORM:  # low = c - w, high = c + w
+                bounds = tuple(interval(p[i] + sign * p[j], C[i, i] + C[j, j] + 2 * sign * C[i, j]) for sign in (-1, 1))
+        records.append((centre_interval, width_interval, bounds))
+    return records

@@ -119,7 +119,7 @@ def _recalibrated_dicts(result: Discovery) -> list[dict[str, Any]]:
     the 95 % intervals of its centre, of its width (where it varies) and of a uniform prior's bounds."""
     records = []
     for r in result.recalibration.parameters:
-        bounds = r.bounds_intervals()
+        bounds = r.bounds_intervals
         records.append({
             "parameter": r.parameter,
             "prior": {"kind": r.prior.kind.lower(), **r.prior.init_args},
