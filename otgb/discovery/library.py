@@ -22,7 +22,8 @@ from dataclasses import dataclass
 from itertools import combinations_with_replacement
 
 from otgb.physics.base import PhysicsModel
-from otgb.physics.features import SPATIAL_1D, SPATIAL_2D
+from otgb.physics.features import SPATIAL_1D, SPATIAL_2D, form_factor
+from otgb.physics.forms import form_named
 
 MAX_DEGREE = 3
 
@@ -104,9 +105,12 @@ def implausible(feature: str, component: str, coefficient: float, model: Physics
 
 
 def signed_kind(feature: str, component: str, model: PhysicsModel) -> str | None:
-    """``friction`` (a velocity's own ``v``, ``v*|v|``, ``v^3``, ``sign(v)``) or ``diffusion`` (a field's own
-    ``lap``, ``d_ss``): the terms whose physical sign :func:`implausible` checks; None for any other term."""
-    v = component
+    """``friction`` (a velocity's own ``v``, ``v*|v|``, ``v^3``, ``sign(v)``, or a friction form of it) or ``diffusion``
+    (a field's own ``lap``, ``d_ss``): the terms whose physical sign :func:`implausible` checks; None for any other."""
+    v, form = component, form_factor(feature)
+    if form is not None:
+        own = form.args == (component,) and component in model.velocity_names
+        return "friction" if own and form_named(form.name).kind == "friction" else None
     if v in model.velocity_names and feature in (v, f"{v}*|{v}|", f"{v}^3", f"sign({v})"):
         return "friction"
     if getattr(model, "spatial_dims", 0) and feature in (f"lap({component})", f"d_ss({component})"):
@@ -115,6 +119,9 @@ def signed_kind(feature: str, component: str, model: PhysicsModel) -> str | None
 
 
 def _named(feature: str, own: str, coefficient: float, model: PhysicsModel) -> str | None:
+    form = form_factor(feature)
+    if form is not None:
+        return form_named(form.name).label(coefficient)
     sign = "negative" if coefficient < 0 else "positive"
     is_velocity = own in model.velocity_names
     field = bool(getattr(model, "spatial_dims", 0))

@@ -107,9 +107,21 @@ def _named_terms(report: dict[str, Any]) -> list[str]:
     else:
         lines.append("\nNo intervals: the fit's discrepancy is not at a minimum there (its Hessian is not positive definite).")
     for t in report["terms"]:
+        if t.get("parameters"):
+            jointly = "95 % intervals from one fit of the form and its coefficient; the coefficient's above holds them fixed"
+            lines.append(f"\n{t['name']}'s parameters ({jointly}): {_parameters(t)}.")
+    for t in report["terms"]:
         if t["flag"]:
             lines.append(f"\n**Flagged:** {t['name']} ({t['coefficient']:+.4g} {code(t['feature'])}) {t['flag']}.")
     return lines + [""]
+
+
+def _parameters(term: dict[str, Any]) -> str:
+    shown = []
+    for p in term["parameters"]:
+        interval = f" [{p['interval'][0]:.4g}, {p['interval'][1]:.4g}]" if p["interval"] else " (no interval)"
+        shown.append(f"{p['name']} = {p['value']:.4g}{interval}")
+    return ", ".join(shown)
 
 
 def _gap_section(report: dict[str, Any]) -> list[str]:

@@ -272,10 +272,11 @@ def final_regression(
     """The regression of f_phi on the kept terms alone, per component (intervals, shares, ambiguity)."""
     terms = []
     for selection in selections:
-        mine = [c for c in kept if c.component == selection.component]
+        design = designs[selection.component]
+        mine = [c for c in kept if c.component == selection.component and c in design.candidates]  # not a form
         if mine:
             inclusion = {Candidate(f, selection.component): p for f, p in selection.inclusion.items()}
-            terms += describe_terms(designs[selection.component], mine, inclusion, settings.library.n_bootstrap, seeds.root)
+            terms += describe_terms(design, mine, inclusion, settings.library.n_bootstrap, seeds.root)
     return terms
 
 

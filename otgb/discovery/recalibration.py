@@ -21,12 +21,12 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from otgb.discovery.chunked import Simulate, backward_in_chunks, chunk_size
-from otgb.discovery.discrepancy import Target, discrepancy_and_rows
+from otgb.discovery.chunked import Simulate
+from otgb.discovery.discrepancy import Target
 from otgb.discovery.families import CONSTANT, NORMAL, UNIFORM, centre, prior, standard_noise, varies
 from otgb.discovery.intervals import STEP, Z95, sandwich, spread
+from otgb.discovery.lbfgs import minimise
 from otgb.discovery.prior_text import prior_text
-from otgb.discovery.refine import DIVERGED_LOSS
 from otgb.discovery.scores import Scores, clears, difference, discrepancies
 from otgb.physics.base import PhysicsModel
 from otgb.physics.priors import Constant, Normal, Prior, Uniform
@@ -196,22 +196,16 @@ def _simulate(physics: PhysicsModel, names: list[str], sample: _Sample, theta_of
 
 
 def _fit(physics: PhysicsModel, names: list[str], theta_priors: ThetaPriors, sample: _Sample, steps: int) -> bool:
-    """L-BFGS on the mean discrepancy of the samples; whether it ended at finite priors."""
-    target, n = Target.of(sample.targets), len(sample.x0)
+    """L-BFGS on the mean discrepancy of the samples (:func:`otgb.discovery.lbfgs.minimise`); whether it ended at
+    finite priors."""
     simulate = _simulate(physics, names, sample, lambda index: theta_priors.draw(sample.noise[index].double()))
-    size = chunk_size(simulate, n)
-    optimiser = torch.optim.LBFGS(
-        theta_priors.parameters(), lr=1, max_iter=steps, max_eval=2 * steps, line_search_fn="strong_wolfe"
-    )
 
-    def closure() -> Tensor:
-        optimiser.zero_grad()
-        mean_of_samples = lambda simulated: discrepancy_and_rows(simulated, target)[0] / sample.samples  # noqa: E731
-        loss, _ = backward_in_chunks(simulate, n, mean_of_samples, size, groups=sample.samples)
-        return loss if torch.isfinite(loss) else torch.tensor(DIVERGED_LOSS)
+    def is_finite() -> bool:
+        return bool(torch.isfinite(theta_priors.centre).all() and torch.isfinite(theta_priors.width).all())
 
-    optimiser.step(closure)
-    return bool(torch.isfinite(theta_priors.centre).all() and torch.isfinite(theta_priors.width).all())
+    target = Target.of(sample.targets)
+    minimise(list(theta_priors.parameters()), simulate, len(sample.x0), target, sample.samples, steps, is_finite)
+    return is_finite()
 
 
 Interval = tuple[float, float]

@@ -9,6 +9,7 @@ from torch import Tensor
 
 from otgb.discovery.closer import Closeness
 from otgb.discovery.evidence import Comparison
+from otgb.discovery.forms import FormStep
 from otgb.discovery.intervals import Intervals
 from otgb.discovery.locate import DisagreementMap
 from otgb.discovery.paired import PairedCheck
@@ -53,6 +54,7 @@ class Discovery:
     undertrained: dict[str, float] | None = None  # the grey-box's and f_p's held-out energy when it is no better
     recalibration: Recalibration | None = None  # f_p's theta priors refitted (otgb.discovery.recalibration)
     recalibrated: bool = False  # whether the answer is f_p with those priors (no term named, they beat f_p alone)
+    forms: FormStep | None = None  # the parametric forms weighed against the linear terms (otgb.discovery.forms)
 
     @property
     def found(self) -> bool:

@@ -25,10 +25,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from otgb.discovery.chunked import backward_in_chunks, chunk_size
-from otgb.discovery.discrepancy import Target, discrepancy_and_rows
+from otgb.discovery.discrepancy import Target
 from otgb.discovery.families import CONSTANT, prior, standard_noise, varies
 from otgb.discovery.fit_cache import FitCache
+from otgb.discovery.lbfgs import minimise
 from otgb.discovery.library import Candidate
 from otgb.discovery.log import diverged, held_divergences, logger, say_again
 from otgb.discovery.scores import CPU, HELDOUT_REPEATS, Scores, discrepancies, on_device, term_names
@@ -39,9 +39,6 @@ from otgb.physics.solvers import current_solver
 from otgb.physics.terms import LibraryTerm
 
 FAMILY_REPEATS = 20  # simulation draws per score of a prior family on the training measurements
-# The loss a fit's L-BFGS sees where the model diverges: finite, so that its strong-Wolfe line search
-# backtracks (from an infinite value its cubic interpolation gives NaN, and every parameter becomes NaN).
-DIVERGED_LOSS = 1e10
 MIN_WIDTH = 1e-6  # a prior's smallest width, in units of its coefficient's scale
 # Independent simulated samples a fit of a family that varies averages its discrepancy over, by default
 # (``discover.spread_samples``). A spread changes the
@@ -192,30 +189,11 @@ def fit(
     sample = FitSample.draw(base, measured, family, len(candidates), batch, seed, samples).to(device)
     model, n = Augmented(on_device(base, device), terms).to(device), len(sample.x0)
     target, x0, theta, noise = Target.of(sample.targets), sample.x0, sample.theta, sample.noise
-    optimiser = torch.optim.LBFGS(prior.parameters(), lr=1, max_iter=steps, max_eval=2 * steps, line_search_fn="strong_wolfe")
-    losses: list[float] = []
-    best: list[Tensor] = []  # the parameters of the lowest finite loss evaluated
 
     def simulate(rows: slice) -> Tensor:
         return model.observe(model.solve(model.vector_field, x0[rows], torch.cat([theta[rows], prior.draw(noise[rows])], 1)))
 
-    size = chunk_size(simulate, n)
-
-    def closure() -> Tensor:
-        optimiser.zero_grad()
-        mean_of_samples = lambda simulated: discrepancy_and_rows(simulated, target)[0] / samples  # noqa: E731
-        loss, _ = backward_in_chunks(simulate, n, mean_of_samples, size, groups=samples)
-        if not torch.isfinite(loss):  # trajectories diverged, or grew so large that their distances overflow
-            return torch.tensor(DIVERGED_LOSS)
-        value = float(loss)
-        if not losses or value < min(losses):
-            best[:] = [p.detach().clone() for p in prior.parameters()]
-        losses.append(value)
-        return loss
-
-    optimiser.step(closure)
-    if losses and not prior_is_finite(prior):
-        restore(prior, best)
+    losses = minimise(list(prior.parameters()), simulate, n, target, samples, steps, lambda: prior_is_finite(prior))
     if not losses or not prior_is_finite(prior):
         return _diverged_fit(family, candidates, init, losses, scales, samples, n)
     priors = prior.priors()
@@ -231,13 +209,6 @@ def _diverged_fit(
     diverged(f"fit ({family})", term_names(candidates), n, n)
     priors, failed = [Constant(v) for v in init], Scores.diverged(HELDOUT_REPEATS)
     return FittedTerms(family, list(candidates), priors, failed, losses, list(init), scales, samples)
-
-
-@torch.no_grad()
-def restore(prior: CoefficientPrior, parameters: list[Tensor]) -> None:
-    """Set ``prior``'s parameters to ``parameters`` (a fit's best iterate)."""
-    for parameter, value in zip(prior.parameters(), parameters):
-        parameter.copy_(value)
 
 
 def prior_is_finite(prior: CoefficientPrior) -> bool:

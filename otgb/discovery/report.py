@@ -11,6 +11,7 @@ import yaml
 from otgb.analysis.components import to_json
 from otgb.analysis.figures import close, components_figure, disagreement_figure, distribution_figure, save
 from otgb.discovery.families import centre
+from otgb.discovery.forms import parameter_records
 from otgb.discovery.library import implausible, term_name
 from otgb.discovery.locate import DisagreementMap
 from otgb.discovery.markdown import markdown
@@ -33,6 +34,7 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
         "terms": _term_dicts(result, physics),
         "recalibrated": _recalibrated_dicts(result) if result.recalibrated else [],
         "recalibration": _recalibration_evidence(result),
+        "forms": _forms_dict(result),
         "ambiguous": _ambiguous(result, physics),
         "evidence": [_comparison_dict(c, physics) for c in result.evidence],
         "added_by_evidence": result.added,
@@ -76,10 +78,12 @@ def _term_dicts(result: Discovery, physics: PhysicsModel) -> list[dict[str, Any]
     regression = {(t.candidate.feature, t.candidate.component): t for t in result.final_terms}
     intervals = result.intervals
     excluded = result.family.excluded_spread if result.family else None
+    adopted = result.forms.adopted if result.forms else None
     terms = []
     for i, (candidate, prior) in enumerate(kept_terms(result)):
         middle = centre(prior)
         found = regression.get((candidate.feature, candidate.component))
+        form = adopted if adopted is not None and adopted.candidate == candidate else None
         terms.append(
             {
                 "name": term_name(candidate, middle, physics),
@@ -96,6 +100,7 @@ def _term_dicts(result: Discovery, physics: PhysicsModel) -> list[dict[str, Any]
                 "distribution": distribution(prior),
                 "excluded_spread": excluded[i] if excluded else None,
                 "flag": implausible(candidate.feature, candidate.component, middle, physics),
+                "parameters": parameter_records(form) if form else [],
             }
         )
     return terms
@@ -129,6 +134,15 @@ def _recalibrated_dicts(result: Discovery) -> list[dict[str, Any]]:
             "bounds_intervals": [list(b) for b in bounds] if bounds else None,
         })  # fmt: skip
     return records
+
+
+def _forms_dict(result: Discovery) -> dict[str, Any] | None:
+    """Why the parametric forms were weighed, each one's fit against the linear terms, and the one adopted."""
+    if result.forms is None or result.forms.reason is None:
+        return None
+    adopted = result.forms.adopted
+    return {"reason": result.forms.reason, "tried": [fit.to_dict() for fit in result.forms.tried],
+            "adopted": adopted.candidate.feature if adopted else None}  # fmt: skip
 
 
 def _recalibration_evidence(result: Discovery) -> dict[str, Any] | None:

@@ -35,6 +35,8 @@ class NamedTerm:
         coefficient: Its fitted coefficient: the centre of its distribution where it varies between trajectories.
         interval: The coefficient's 95 % interval (low, high), or None (report.md says why).
         distribution: None for a constant coefficient, else its family and parameters ({"kind": "uniform", ...}).
+        parameters: A parametric form's own parameters (``rational(velocity;v0=0.8)``: v0), each ``{"name", "value",
+            "interval", "range"}``; empty for a library term.
     """
 
     name: str
@@ -43,11 +45,21 @@ class NamedTerm:
     coefficient: float
     interval: tuple[float, float] | None
     distribution: dict[str, Any] | None
+    parameters: tuple[dict[str, Any], ...] = ()
 
     @classmethod
     def from_report(cls, term: dict[str, Any]) -> NamedTerm:
         interval = None if term["interval"] is None else (float(term["interval"][0]), float(term["interval"][1]))
-        return cls(term["name"], term["feature"], term["component"], float(term["coefficient"]), interval, term["distribution"])
+        parameters = tuple(term.get("parameters") or ())
+        return cls(
+            term["name"],
+            term["feature"],
+            term["component"],
+            float(term["coefficient"]),
+            interval,
+            term["distribution"],
+            parameters,
+        )
 
 
 @dataclass(frozen=True)

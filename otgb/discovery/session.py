@@ -24,6 +24,8 @@ from otgb.discovery.settings import Context, DiscoverySettings
 from otgb.errors import InputError
 from otgb.parser_errors import ConciseParser
 from otgb.physics.base import PhysicsModel
+from otgb.physics.priors import Constant
+from otgb.physics.terms import FormTerm
 from otgb.quiet import quiet_known_harmless
 from otgb.training import MapTraining
 
@@ -88,6 +90,7 @@ def build(args: list[str], parser: dict[str, Any] | None = None) -> Session:
         )
     settings: DiscoverySettings = cli.config_init["discover"]
     refuse_position_terms_without_a_grid(settings, cli.datamodule.physics)
+    refuse_forms_that_do_not_fit(settings, cli.datamodule.physics)
     refuse_written_log_dirs(cli.trainer)  # the report goes into the trainer's log folder
     # the fits' cache beside the run directories; the fits on the grey-box's device where it is a CUDA device
     context = Context.of(settings, Path(cli.trainer.log_dir).parent, cli.trainer.strategy.root_device)
@@ -107,6 +110,17 @@ def refuse_position_terms_without_a_grid(settings: DiscoverySettings, physics: P
             "offer; terms fixed in space need a field (otgb.physics.FieldModel) whose s, x or y is not a state or "
             "parameter name: expected 0"
         )
+
+
+def refuse_forms_that_do_not_fit(settings: DiscoverySettings, physics: PhysicsModel) -> None:
+    """Each declared form's component and variables must be names of f_p (before any training)."""
+    for i, entry in enumerate(settings.fits.forms):
+        parameters = {k: Constant(1.0) for k in entry["ranges"]}
+        term = FormTerm(entry["class_path"], entry["component"], entry["variables"], Constant(0.0), parameters)
+        try:
+            term.check_model(physics)
+        except InputError as error:
+            raise InputError(f"discover.forms[{i}]: {error}") from None
 
 
 class Stopped(KeyboardInterrupt):

@@ -18,6 +18,7 @@ from otgb.discovery.refine import SPREAD_SAMPLES
 from otgb.discovery.seeds import Seeds
 from otgb.errors import InputError
 from otgb.physics.base import PhysicsModel
+from otgb.physics.forms import form_named
 
 
 @dataclass(frozen=True)
@@ -51,6 +52,7 @@ class FitSettings:
     families: tuple[str, ...]
     spread_samples: int
     recalibrate: bool
+    forms: tuple[dict, ...] = ()  # declared parametric forms (:func:`declared_forms`)
 
 
 class DiscoverySettings:
@@ -82,6 +84,9 @@ class DiscoverySettings:
             less than one sample's noise. Each such fit costs this many times a constant's.
         recalibrate: Whether f_p's parameters' priors are also refitted and weighed against f_p alone and the named
             terms (:mod:`otgb.discovery.recalibration`).
+        forms: Parametric forms of your own, weighed like the built-in ones (:mod:`otgb.discovery.forms`), each
+            ``{class_path: a subclass of otgb.physics.forms.Form (or a built-in form's name), component: the state
+            whose rate it adds to, variables: [what it is a function of], ranges: {parameter: [low, high]}}``.
         c2st_classifier: The C2ST judge of the gap table ("auto", "mlp" or "conv").
         seed: Seed of every draw of the workflow.
         fit_cache: A folder where each finished coefficient fit is stored and from which a run that asks for the same
@@ -108,6 +113,7 @@ class DiscoverySettings:
         families: tuple[str, ...] = FAMILIES,
         spread_samples: int = SPREAD_SAMPLES,
         recalibrate: bool = True,
+        forms: list[dict] | None = None,
         c2st_classifier: str = "auto",
         seed: int = 0,
         fit_cache: str | None = "auto",
@@ -130,7 +136,8 @@ class DiscoverySettings:
             raise InputError(f"discover.families={list(families)}: expected a non-empty list among {list(FAMILIES)}")
         self.tests = PermutationSettings(n_permutations, alpha, regions_per_axis, locate_rows)
         self.library = LibrarySettings(n_trajectories, n_bootstrap, bool(theta_products), position_degree, strong_candidates)
-        self.fits = FitSettings(fit_steps, fit_batch, score_rows, tuple(families), spread_samples, bool(recalibrate))
+        fits = (fit_steps, fit_batch, score_rows, tuple(families), spread_samples, bool(recalibrate), declared_forms(forms))
+        self.fits = FitSettings(*fits)
         self.c2st_classifier, self.seed, self.fit_cache = c2st_classifier, seed, fit_cache
         self.cache = None if fit_cache in (None, "auto") else FitCache(fit_cache)  # refuses a file before any work
         self._frozen = True
@@ -139,6 +146,35 @@ class DiscoverySettings:
         if getattr(self, "_frozen", False):
             raise AttributeError(f"DiscoverySettings are frozen once validated: {name} cannot be set")
         super().__setattr__(name, value)
+
+
+def declared_forms(forms: list[dict] | None) -> tuple[dict, ...]:
+    """``discover.forms`` checked: each entry's keys, its form (importable), variables and a range per parameter."""
+    checked = []
+    for i, entry in enumerate(forms or []):
+        where = f"discover.forms[{i}]"
+        keys = {"class_path", "component", "variables", "ranges"}
+        if not isinstance(entry, dict) or set(entry) != keys:
+            got = sorted(entry) if isinstance(entry, dict) else entry
+            raise InputError(f"{where}={got!r} is invalid; expected the keys {sorted(keys)}")
+        form = form_named(entry["class_path"])
+        variables = [entry["variables"]] if isinstance(entry["variables"], str) else list(entry["variables"])
+        ranges = entry["ranges"] if isinstance(entry["ranges"], dict) else {}
+        bad = [k for k in form.parameters if not _is_range(ranges.get(k), k in form.positive)]
+        if bad or set(ranges) != set(form.parameters) or len(variables) != form.arity:
+            raise InputError(
+                f"{where}: {entry['class_path']} takes {form.arity} variable(s) and a range [low, high] (low < high; "
+                f"low > 0 for {list(form.positive)}) for each of {list(form.parameters)}; got variables={variables}, "
+                f"ranges={entry['ranges']!r}"
+            )
+        checked.append({**entry, "variables": variables, "ranges": {k: tuple(map(float, ranges[k])) for k in form.parameters}})
+    return tuple(checked)
+
+
+def _is_range(value: Any, positive: bool) -> bool:
+    if not (isinstance(value, (list, tuple)) and len(value) == 2 and all(isinstance(v, (int, float)) for v in value)):
+        return False
+    return value[0] < value[1] and (value[0] > 0 or not positive)
 
 
 @dataclass(frozen=True)

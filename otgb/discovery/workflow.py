@@ -30,12 +30,14 @@ from typing import Any
 from torch import Tensor
 
 from otgb.discovery.draws import GREYBOX, at_most, generated, simulate_candidate, simulate_from_priors
+from otgb.discovery.forms import FormStep, form_step
 from otgb.discovery.intervals import fitted_intervals
 from otgb.discovery.locate import DisagreementMap, describe, locate
 from otgb.discovery.log import DivergenceLog, progress, rounded, short
 from otgb.discovery.naming import (
     MAX_FORWARD_TERMS,
     Naming,
+    Weighed,
     add_step,
     cross_check_step,
     evidence_step,
@@ -113,10 +115,11 @@ def name_and_add(
     reason = search_reason(physics, kept, truncated, fitting.val, settings, context, not_used)
     searched = search_step(kept, reason, designs, fitting) if reason is not None else Searched(kept)
     dropped = [] if searched.replaced or route is None else route.dropped
-    weighed, family = None, None
+    weighed, family, formed = None, None, None
     if searched.kept is not None:
         weighed = evidence_step(searched.kept, selections, cross_check, designs, fitting, settings.library.strong_candidates)
-        family = family_step(weighed.kept, fitting, settings.fits.families)
+        formed = forms_step(weighed, designs, fitting, settings, context)
+        family = family_step(formed.kept, fitting, settings.fits.families)
         dropped = dropped + family.dropped
         progress(f"fitted {family.choice.fitted.family} coefficients {short(family.choice.fitted.priors)}")
     recalibration = recalibrate_step(fitting) if settings.fits.recalibrate else None
@@ -132,8 +135,19 @@ def name_and_add(
         added=weighed.added if weighed else [], dropped=dropped, correction_share=naming.correction_share,
         search=searched.steps, unsupported=searched.unsupported,
         route="library search" if searched.replaced else "f_phi regression", search_reason=reason, undertrained=unused,
-        recalibration=recalibration, recalibrated=recalibrated,
+        recalibration=recalibration, recalibrated=recalibrated, forms=formed,
     )  # fmt: skip
+
+
+def forms_step(weighed: Weighed, designs: dict, fitting: Fitting, settings: DiscoverySettings, context: Context) -> FormStep:
+    """The parametric forms weighed against the kept linear terms (:mod:`otgb.discovery.forms`), a remainder
+    checked by the disagreement map of the kept model on the validation part."""
+
+    def remainder() -> bool:
+        model = weighed.kept.model(fitting.physics)
+        return locate_step(model, fitting.val, settings, context, "augmented-check").any_significant
+
+    return form_step(weighed.kept, weighed.comparisons, designs, fitting, list(settings.fits.forms), remainder)
 
 
 def answers_instead(recalibration: Recalibration, terms: FittedTerms | None) -> bool:

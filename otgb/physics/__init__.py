@@ -7,7 +7,7 @@ from otgb.physics.pendulum import Pendulum
 from otgb.physics.priors import Choice, Constant, Normal, Prior, Uniform
 from otgb.physics.reaction_diffusion import ReactionDiffusion
 from otgb.physics.solvers import SOLVERS, set_solver
-from otgb.physics.terms import Advection, ConstantDrain, FitzHughNagumoReaction, LibraryTerm, ViscousFriction
+from otgb.physics.terms import Advection, ConstantDrain, FitzHughNagumoReaction, FormTerm, LibraryTerm, ViscousFriction
 
 __all__ = [
     "Advection",
@@ -16,6 +16,7 @@ __all__ = [
     "ConstantDrain",
     "FieldModel",
     "FitzHughNagumoReaction",
+    "FormTerm",
     "LibraryTerm",
     "Normal",
     "ReactionDiffusion",

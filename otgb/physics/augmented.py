@@ -30,19 +30,22 @@ from torch import Tensor, nn
 from otgb.errors import InputError
 from otgb.physics.base import PhysicsModel
 from otgb.physics.priors import Prior, sample_joint
-from otgb.physics.terms import LibraryTerm
+from otgb.physics.terms import FormTerm, LibraryTerm
+
+ADDED_TERMS = (LibraryTerm, FormTerm)  # the kinds of term an augmented model adds
 
 
 class Augmented(PhysicsModel):
     """``base`` plus ``terms``: d(state)/dt = f_base(state, theta) + sum_k c_k feature_k(state).
 
-    theta is (base theta, c_1, ..., c_K); ``theta_names`` appends the terms' names. Everything
+    theta is (base theta, each term's columns: a library term's coefficient c_k, a form's coefficient and
+    parameters); ``theta_names`` appends the terms' ``parameter_names``. Everything
     else (states, observation, grid, initial states, time grid, solver, the correction's slot)
     is the base model's.
 
     Args:
         base: the physics model f_p that is augmented (with no hidden effect of its own).
-        terms: the named terms added to it, each a :class:`otgb.physics.LibraryTerm`.
+        terms: the named terms added to it, each a :class:`otgb.physics.LibraryTerm` or :class:`otgb.physics.FormTerm`.
     """
 
     state_names = None  # per instance: the base model's
@@ -50,9 +53,11 @@ class Augmented(PhysicsModel):
     def __init__(self, base: PhysicsModel, terms: Sequence[LibraryTerm]) -> None:
         if not isinstance(base, PhysicsModel) or len(base.terms) > 0:
             raise InputError(f"Augmented: base={base!r} is invalid; expected a physics model without hidden-effect terms")
-        if isinstance(terms, (str, LibraryTerm)) or not all(isinstance(t, LibraryTerm) for t in terms):
-            raise InputError(f"Augmented: terms={terms!r} is invalid; expected a list of otgb.physics.LibraryTerm")
-        names = [term.name for term in terms]
+        if isinstance(terms, (str, *ADDED_TERMS)) or not all(isinstance(t, ADDED_TERMS) for t in terms):
+            raise InputError(
+                f"Augmented: terms={terms!r} is invalid; expected a list of otgb.physics.LibraryTerm or otgb.physics.FormTerm"
+            )
+        names = [name for term in terms for name in term.parameter_names]
         taken = {*base.theta_names, *base.state_names, *getattr(base, "coordinate_names", ())}
         clash = sorted({n for n in names if names.count(n) > 1} | (set(names) & taken))
         if clash:
@@ -89,7 +94,8 @@ class Augmented(PhysicsModel):
 
     @property
     def priors(self) -> dict[str, Prior]:
-        return {**self.base.priors, **{term.name: term.priors["coefficient"] for term in self.added}}
+        added = {name: prior for term in self.added for name, prior in zip(term.parameter_names, term.priors.values())}
+        return {**self.base.priors, **added}
 
     def with_priors(self, priors: dict[str, Prior]) -> Augmented:
         """The base model's priors replaced (:meth:`PhysicsModel.with_priors`), the same terms added."""
@@ -110,15 +116,16 @@ class Augmented(PhysicsModel):
         if not len(self.added):
             return dstate
         rates, powers = list(dstate.unbind(1)), {}  # per component; each factor's value computed once
-        for k, term in enumerate(self.added):
-            column = self.base.theta_dim + k
-            index = self.base.state_names.index(term.component)
-            rates[index] = rates[index] + term.rate(state, theta[:, column : column + 1], self.base, base_theta, powers)
+        column = self.base.theta_dim
+        for term in self.added:
+            index, width = self.base.state_names.index(term.component), term.n_params
+            rates[index] = rates[index] + term.rate(state, theta[:, column : column + width], self.base, base_theta, powers)
+            column += width
         return torch.stack(rates, dim=1)
 
     def sample_theta(self, n: int, generator: torch.Generator) -> Tensor:
-        """The base model's theta, then one draw of each term's coefficient prior."""
-        coefficients = sample_joint([term.priors["coefficient"] for term in self.added], n, generator)
+        """The base model's theta, then one joint draw of the terms' priors (:func:`otgb.physics.priors.sample_joint`)."""
+        coefficients = sample_joint([prior for term in self.added for prior in term.priors.values()], n, generator)
         return torch.cat([self.base.sample_theta(n, generator), coefficients], dim=1)
 
     def sample_initial_state(self, n: int, generator: torch.Generator) -> Tensor:

@@ -9,7 +9,9 @@ raised to an integer power with ``^``:
 - ``sin(x)``, ``cos(x)``, ``sign(x)``, ``|x|`` of a state name;
 - spatial derivatives of a field's channel (a :class:`FieldModel`): ``d_s(u)`` and
   ``d_ss(u)`` on a 1-D grid, ``d_x(u)``, ``d_y(u)``, ``d_xx(u)``, ``d_yy(u)`` on a 2-D grid,
-  and ``lap(u)``, the Laplacian, on any grid.
+  and ``lap(u)``, the Laplacian, on any grid;
+- a parametric form (:mod:`otgb.physics.forms`) of state names or coordinates with its parameters' values:
+  ``rational(velocity; v0=0.8)``, ``bump(s; centre=0.3, width=0.1)``, ``my_package.Arrhenius(u; energy=2)``.
 
 Examples: ``velocity*|velocity|`` (quadratic drag), ``u^3``, ``u*d_s(u)``, ``omega*velocity``
 (a state times a physics parameter: names of ``theta_names`` are allowed too).
@@ -26,11 +28,13 @@ import torch
 from torch import Tensor
 
 from otgb.errors import InputError
+from otgb.physics.forms import form_named
 
 POINTWISE = {"sin": torch.sin, "cos": torch.cos, "sign": torch.sign}
 SPATIAL_1D = {"d_s": (1, -1), "d_ss": (2, -1)}  # name -> (order, axis)
 SPATIAL_2D = {"d_x": (1, -2), "d_y": (1, -1), "d_xx": (2, -2), "d_yy": (2, -1)}
 _NAME = r"[A-Za-z_]\w*"
+_FORM = re.compile(r"^(?P<form>[A-Za-z_][\w.]*)\((?P<args>[^;()]*);(?P<values>[^;()]*)\)$")
 _ATOM = re.compile(rf"^(?:(?P<func>[a-z_]+)\((?P<arg>{_NAME})\)|\|(?P<abs>{_NAME})\||(?P<name>{_NAME})|(?P<one>1))$")
 
 
@@ -38,12 +42,15 @@ _ATOM = re.compile(rf"^(?:(?P<func>[a-z_]+)\((?P<arg>{_NAME})\)|\|(?P<abs>{_NAME
 class Factor:
     """One factor of a feature: ``op`` applied to the variable ``name``, raised to ``power``.
 
-    ``op`` is "one" (the constant), "var", "abs", a pointwise function or a spatial operator.
+    ``op`` is "one" (the constant), "var", "abs", a pointwise function, a spatial operator or "form" (``name``
+    the form's, ``args`` its variables, ``values`` its parameters' values in the form's order).
     """
 
     op: str
     name: str
     power: int = 1
+    args: tuple[str, ...] = ()
+    values: tuple[float, ...] = ()
 
 
 def parse_feature(feature: str, model: object) -> tuple[Factor, ...]:
@@ -59,9 +66,12 @@ def _parse_factor(text: str, feature: str, model: object) -> Factor:
     if power and not (power.isdigit() and int(power) >= 1):
         raise InputError(f"feature {feature!r}: power {power!r} in {text!r} is invalid; expected a whole number >= 1")
     match = _ATOM.match(base)
-    if match is None:
+    if match is None and _FORM.match(base) is None:
         raise InputError(f"feature {feature!r}: cannot read {text!r}; {_grammar_hint(model)}")
     power = int(power or 1)
+    form = _FORM.match(base)
+    if form is not None:
+        return _form_factor(form, power, feature, model)
     if match["one"]:
         return Factor("one", "", 1)
     if match["abs"]:
@@ -72,6 +82,32 @@ def _parse_factor(text: str, feature: str, model: object) -> Factor:
     if func not in POINTWISE and func not in _spatial_ops(model) and not (func == "lap" and _spatial_ops(model)):
         raise InputError(f"feature {feature!r}: unknown function {func!r}; {_grammar_hint(model)}")
     return Factor(func, name, power)
+
+
+def _form_factor(match: re.Match, power: int, feature: str, model: object) -> Factor:
+    form = form_named(match["form"])
+    args = tuple(_checked_name(a, feature, model) for a in match["args"].split(","))
+    written = dict(item.partition("=")[::2] for item in match["values"].split(",") if item)
+    if len(args) != form.arity or tuple(written) != tuple(form.parameters):
+        raise InputError(
+            f"feature {feature!r}: the form {match['form']!r} takes {form.arity} variable(s) and the parameters "
+            f"{list(form.parameters)} written name=value in that order; got {list(args)} and {list(written)}"
+        )
+    try:
+        values = tuple(float(v) for v in written.values())
+    except ValueError:
+        raise InputError(f"feature {feature!r}: the parameters of {match['form']!r} must be numbers; got {written}") from None
+    return Factor("form", match["form"], power, args, values)
+
+
+def form_factor(feature: str) -> Factor | None:
+    """The form of a feature that is one parametric form (``rational(velocity;v0=0.8)``), its names unchecked;
+    None for any other feature."""
+    match = _FORM.match(feature.replace(" ", ""))
+    if match is None:
+        return None
+    values = tuple(float(item.partition("=")[2]) for item in match["values"].split(",") if item)
+    return Factor("form", match["form"], 1, tuple(match["args"].split(",")), values)
 
 
 def _checked_name(name: str, feature: str, model: object, states_only: bool = False) -> str:
@@ -112,20 +148,27 @@ def evaluate_feature(
     for factor in factors:
         if factor.op == "one":
             return torch.ones_like(state[:, 0])
-        key = (factor.op, factor.name, factor.power)
-        if key not in powers:
-            powers[key] = _atom(factor, state, theta, model) ** factor.power
-        value = powers[key] if value is None else value * powers[key]
+        if factor not in powers:
+            powers[factor] = _atom(factor, state, theta, model) ** factor.power
+        value = powers[factor] if value is None else value * powers[factor]
     return value
 
 
+def variable_values(name: str, state: Tensor, theta: Tensor | None, model: object) -> Tensor:
+    """A state component, a grid coordinate or a physics parameter of ``model`` as (B, *grid)."""
+    if name in model.state_names:
+        return state[:, model.state_names.index(name)]
+    if name in _coordinate_names(model):
+        return model.coordinate(name, state.device, state.dtype).expand_as(state[:, 0])
+    return theta[:, model.theta_names.index(name)].reshape(-1, *([1] * (state.dim() - 2))).expand_as(state[:, 0])
+
+
 def _atom(factor: Factor, state: Tensor, theta: Tensor, model: object) -> Tensor:
-    if factor.name in model.state_names:
-        u = state[:, model.state_names.index(factor.name)]
-    elif factor.name in _coordinate_names(model):
-        u = model.coordinate(factor.name, state.device, state.dtype).expand_as(state[:, 0])
-    else:
-        u = theta[:, model.theta_names.index(factor.name)].reshape(-1, *([1] * (state.dim() - 2))).expand_as(state[:, 0])
+    if factor.op == "form":
+        inputs = [variable_values(name, state, theta, model) for name in factor.args]
+        values = [torch.tensor(v, dtype=state.dtype, device=state.device) for v in factor.values]
+        return form_named(factor.name).shape(inputs, values)
+    u = variable_values(factor.name, state, theta, model)
     if factor.op == "var":
         return u
     if factor.op == "abs":

@@ -9,7 +9,8 @@ from torch import Tensor
 
 from otgb.errors import InputError
 from otgb.physics.base import FieldModel, PhysicsModel, Term
-from otgb.physics.features import evaluate_feature, parse_feature
+from otgb.physics.features import evaluate_feature, parse_feature, variable_values
+from otgb.physics.forms import form_named
 from otgb.physics.priors import Prior
 
 
@@ -135,6 +136,11 @@ class LibraryTerm(Term):
         self.name = name if name is not None else coefficient_name(feature, component)
         self._factors = None
 
+    @property
+    def parameter_names(self) -> list[str]:
+        """Its column of an augmented model's theta: the coefficient."""
+        return [self.name]
+
     def check_model(self, model: PhysicsModel) -> None:
         super().check_model(model)
         if self.component not in model.state_names:
@@ -164,3 +170,59 @@ def coefficient_name(feature: str, component: str) -> str:
     """A parameter name (a Python identifier) for the coefficient of ``feature`` on ``component``."""
     text = re.sub(r"\|(\w+)\|", r"abs_\1", feature.replace("*", "_x_").replace("^", "_pow"))
     return re.sub(r"\W+", "_", f"c_{component}__{text}").strip("_")
+
+
+class FormTerm(Term):
+    """``coefficient * shape(variables; parameters)`` added to d(component)/dt, every parameter drawn from a prior
+    once per trajectory (a hidden effect of a DGP, or the model a fit moves the parameters of).
+
+    Args:
+        form: a built-in form (``saturating``, ``rational``, ``stribeck``, ``power``, ``exponential``, ``bump``,
+            ``bump2``) or the class path of an :class:`otgb.physics.forms.Form`.
+        component: the state component whose rate of change the term adds to.
+        variables: the state components or grid coordinates the shape is a function of.
+        coefficient: prior of the coefficient c.
+        parameters: prior of each of the form's parameters, by name.
+    """
+
+    def __init__(self, form: str, component: str, variables: list[str], coefficient: Prior, parameters: dict[str, Prior]) -> None:
+        shape = form_named(form)
+        variables = [variables] if isinstance(variables, str) else list(variables)
+        names = tuple(shape.parameters)
+        if len(variables) != shape.arity or tuple(parameters) != names:
+            raise InputError(
+                f"FormTerm: the form {form!r} takes {shape.arity} variable(s) and the parameters {list(names)}; "
+                f"got variables={variables} and parameters={list(parameters)}"
+            )
+        super().__init__({"coefficient": coefficient, **parameters})
+        self.form, self.form_name, self.component, self.variables = shape, form, component, variables
+        self.name = f"c_{component}__{form.rpartition('.')[2]}_{'_'.join(variables)}"
+
+    @property
+    def parameter_names(self) -> list[str]:
+        """Its columns of an augmented model's theta: the coefficient, then each parameter."""
+        return [self.name, *(f"{self.name}__{p}" for p in self.form.parameters)]
+
+    def check_model(self, model: PhysicsModel) -> None:
+        super().check_model(model)
+        known = (*model.state_names, *getattr(model, "coordinate_names", ()))
+        wrong = [n for n in self.variables if n not in known]
+        wrong += [] if self.component in model.state_names else [self.component]
+        if wrong:
+            raise InputError(
+                f"FormTerm: {wrong} are not names of {type(model).__name__}; expected the component among "
+                f"{model.state_names} and the variables among {known}"
+            )
+
+    def forward(self, state: Tensor, params: Tensor, model: PhysicsModel, theta: Tensor | None = None) -> Tensor:
+        value = self.rate(state, params, model, theta)
+        index = model.state_names.index(self.component)
+        return torch.stack([value if i == index else torch.zeros_like(value) for i in range(state.shape[1])], dim=1)
+
+    def rate(
+        self, state: Tensor, params: Tensor, model: PhysicsModel, theta: Tensor | None, powers: dict | None = None
+    ) -> Tensor:
+        """What the term adds to d(component)/dt: (B, *grid)."""
+        columns = [params[:, k].reshape(-1, *([1] * (state.dim() - 2))) for k in range(params.shape[1])]
+        inputs = [variable_values(name, state, theta, model) for name in self.variables]
+        return columns[0] * self.form.shape(inputs, columns[1:])
