@@ -24,9 +24,13 @@ For each K_F:
 4. **Intervals**: the sandwich of the fit (:func:`otgb.discovery.intervals.sandwich`) over all of K_F's
    parameters at once, so c's and each form parameter's 95 % intervals account for each other.
 
-K_F replaces K where it fits the validation part better by two standard errors, its parameters lie inside
-their ranges (a saturation speed at the top of its range is a linear friction), each has an interval and none
-of those holds a value at which the form is a library term (a power law's p = 1 or 2); of several, the best fit.
+K_F replaces K where it fits the validation part better by two standard errors, or, having no more parameters
+than the terms it replaces (a saturating friction's c and v0 for viscous plus Coulomb friction), fits it better at
+all: of two models as sparse that the data cannot tell apart, the nearer, as in the library search
+(:func:`otgb.discovery.workflow.replaces`), and the verdict then says that the validation part cannot tell the two
+apart. Its parameters must also lie inside their ranges (a saturation speed at the top of its range is a linear
+friction), each with an interval, none of which holds a value at which the form is a library term (a power law's
+p = 1 or 2). Of several such forms, the best fit is taken; those it cannot be told from are listed.
 """
 
 from __future__ import annotations
@@ -46,10 +50,10 @@ from otgb.discovery.evidence import Comparison
 from otgb.discovery.families import CONSTANT
 from otgb.discovery.intervals import STEP, Z95, sandwich
 from otgb.discovery.lbfgs import minimise
-from otgb.discovery.library import Candidate, fixed_in_space, signed_kind
+from otgb.discovery.library import Candidate, fixed_in_space, signed_kind, term_name
 from otgb.discovery.log import progress
 from otgb.discovery.refine import FitSample, FittedTerms, Fitting
-from otgb.discovery.scores import difference, discrepancies
+from otgb.discovery.scores import beats, clears, difference, discrepancies
 from otgb.physics.augmented import Augmented
 from otgb.physics.forms import FRICTION_FORMS, Range, form_feature, form_named
 from otgb.physics.priors import Constant
@@ -118,6 +122,33 @@ class FormStep:
     reason: str | None = None
     tried: list[FormFit] = field(default_factory=list)
     adopted: FormFit | None = None
+    alike: list[str] = field(default_factory=list)  # the other qualified forms it cannot be told from, by name
+
+    def said(self, physics) -> list[str]:
+        """The verdict's part on the adopted form: what it replaces, by how many standard errors, what it cannot be told
+        from; none where no form was adopted."""
+        fit = self.adopted
+        if fit is None:
+            return []
+        errors = fit.difference / fit.standard_error if fit.standard_error > 0 else math.inf
+        covered = " and ".join(term_name(c, v.value, physics) for c, v in zip(fit.offer.covers, self.replaced_values))
+        label = term_name(fit.candidate, fit.fitted.priors[-1].value, physics)
+        text = f"{label} replaces {covered or 'no linear term'}"
+        if clears(fit.difference, fit.standard_error):
+            text += f": it fits the validation part better by {errors:.1f} standard errors"
+        else:
+            text += (
+                f": the validation part cannot tell the two apart by two standard errors ({errors:+.1f}); of two models "
+                "with as many parameters, the nearer is kept"
+            )
+        return [text + (f"; nor can it tell it from {' or '.join(self.alike)}" if self.alike else "")]
+
+    @property
+    def replaced_values(self) -> list:
+        """The kept model's priors of the terms the adopted form replaced."""
+        return [p for c, p in zip(self.replaced_from.candidates, self.replaced_from.priors) if c in self.adopted.offer.covers]
+
+    replaced_from: FittedTerms | None = None  # the kept linear model the adopted form replaced terms of
 
 
 def offers(physics, kept: FittedTerms, designs: dict, declared: list[dict]) -> list[Offer]:
@@ -193,8 +224,13 @@ def form_step(kept: FittedTerms, comparisons: list[Comparison], designs: dict, f
     if not qualified:
         return FormStep(kept, reason, tried)
     adopted = min(qualified, key=lambda fit: fit.fitted.heldout.mean)
+    alike = [
+        term_name(f.candidate, f.fitted.priors[-1].value, fitting.physics)
+        for f in qualified
+        if f is not adopted and not beats(adopted.fitted.heldout, f.fitted.heldout)
+    ]
     progress(f"forms: {adopted.candidate.feature} replaces {[c.feature for c in adopted.offer.covers]}")
-    return FormStep(adopted.fitted, reason, tried, adopted)
+    return FormStep(adopted.fitted, reason, tried, adopted, alike, kept)
 
 
 def fit_form(offer: Offer, kept: FittedTerms, designs: dict, fitting: Fitting) -> FormFit:
@@ -224,8 +260,10 @@ def _refused(form, offer: Offer, values: dict[str, float], intervals: dict | Non
     outside = [k for k, v in values.items() if not offer.ranges[k][0] <= v <= offer.ranges[k][1]]
     if outside:
         return f"{', '.join(outside)} left the range it is looked for in"
-    if not math.isfinite(gap) or gap <= 2 * error:
-        return "it does not fit the validation part better by two standard errors"
+    as_sparse = len(form.parameters) + 1 <= len(offer.covers)  # no more parameters than the terms it replaces
+    if not math.isfinite(gap) or not (clears(gap, error) or (as_sparse and gap > 0)):
+        more = "" if as_sparse else " (it has more parameters than the terms it replaces)"
+        return f"it does not fit the validation part better by two standard errors{more}"
     if intervals is None:
         return "its parameters have no interval (the fit is not at a minimum)"
     limits = getattr(form, "library_values", {})

@@ -57,7 +57,8 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
         return nothing_found(result, physics)
     blind = test_part_blind(result) if kind == "named, not confirmed" and closed_on_test(result) else None
     answer = answer_named(result, physics, kind, blind)
-    parts = [*answer, *recalibration_alike(result), *preferences(result, physics), *flags(result, physics)]
+    forms = result.forms.said(physics) if result.forms and result.found else []
+    parts = [*answer, *forms, *recalibration_alike(result), *preferences(result, physics), *flags(result, physics)]
     parts += [] if blind else low_power(result)
     if named := named_divergences(result):
         worst = max(named, key=lambda d: d["diverged"] / d["of"])
