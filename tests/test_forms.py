@@ -1,6 +1,11 @@
 """Parametric forms: one shape as a library feature with its parameters written in and as a FormTerm whose parameters
 are drawn; a user's own form by class path; bad input named in one line; discovery weighing them against linear terms."""
 
+import json
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -26,6 +31,7 @@ class Arrhenius(Form):
 
 
 USER_FORM = f"{__name__}.Arrhenius"
+ROOT = Path(__file__).parents[1]
 
 
 def _solve(model, x0, theta):
@@ -154,3 +160,37 @@ def test_a_viscous_friction_is_not_called_saturating():
     step = form_step(kept, [], designs, fitting, [], remainder=lambda: True)
     assert step.reason.startswith("the linear terms leave a remainder") and len(step.tried) == 4
     assert step.adopted is None and step.kept is kept, [f.to_dict() for f in step.tried]
+
+
+def test_a_declared_form_of_ones_own_is_weighed_in_place_of_the_kept_terms_on_its_component():
+    truth = LibraryTerm("velocity", "velocity", Constant(-0.8))
+    fitting, kept, designs = _linear_and_design(truth, [Candidate("velocity", "velocity")], [-0.5])
+    entry = {"class_path": USER_FORM, "component": "velocity", "variables": ["velocity"], "ranges": {"energy": [0.05, 5.0]}}
+    declared = list(DiscoverySettings(forms=[entry]).fits.forms)
+    step = form_step(kept, [], designs, fitting, declared, remainder=lambda: pytest.fail("declared forms are weighed"))
+    assert step.reason == "forms were declared (discover.forms)" and len(step.tried) == 5
+    (mine,) = [f for f in step.tried if f.offer.form == USER_FORM]
+    assert mine.offer.covers == (Candidate("velocity", "velocity"),) and mine.candidate.feature.startswith(f"{USER_FORM}(")
+    assert mine.refused is not None and step.adopted is None, mine.to_dict()  # a constant-like push is no friction
+
+
+@pytest.mark.slow
+def test_discover_names_a_saturating_friction_in_a_file_from_scipy_with_its_coefficient_and_speed(tmp_path):
+    """README's discover command on 1000 trajectories from SciPy's solve_ivp with the friction -0.8 v / (1 + (v / 2)^2)
+    (v0 about half the largest speed): a saturating friction named, c and v0 within 20 %, the gap closed."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from scipy_pendulum import write
+
+    measured = write(tmp_path / "rational.csv", "rational", 0.8, 2.0, 0.0, 1000, 0, 0.02)
+    args = ["discover", "--config", str(ROOT / "configs" / "pendulum.yaml"), "--data.hidden_effect=[]"]
+    args += [f"--data.measured_path={measured}", "--data.measurement_noise=0.02", "--data.simulation_budget=32000"]
+    args += [f"--data.cache_dir={tmp_path / 'cache'}", "--trainer.enable_progress_bar=false"]
+    done = subprocess.run([sys.executable, "-m", "otgb.cli", *args], cwd=tmp_path, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    run_dir = Path(done.stdout.strip().splitlines()[-1].split("report in ")[1])
+    report = json.loads((tmp_path / run_dir / "report.json").read_text())
+    (term,) = report["terms"]
+    assert term["name"].startswith("saturating friction") and report["outcome"] == "gap closed", report["verdict"]
+    (v0,) = term["parameters"]
+    assert abs(term["coefficient"] + 0.8) < 0.16 and abs(v0["value"] - 2.0) < 0.4, term
+    assert "rational(velocity;v0=" in (tmp_path / run_dir / "augmented.yaml").read_text()

@@ -1,0 +1,126 @@
+"""Benchmark of the parametric forms of ``otgb discover`` on files from an independent solver (SciPy, not otgb).
+
+    python scripts/forms_benchmark.py --out results/forms                                # every case, seed 0
+    python scripts/forms_benchmark.py --out results/forms --cases rational --seeds 0 1 2
+    python scripts/forms_benchmark.py --out results/forms --table docs/discovery.md      # gather only
+
+Each case is a pendulum file of 1000 trajectories written by ``scripts/scipy_pendulum.py`` (theta and x0 not
+recorded, the angle with white noise of sd 0.02), given to README's discover command. A saturating friction
+must be named as one, its coefficient and speed within 20 %, the gap closed; a viscous friction, and viscous plus
+Coulomb friction, must not be named as a form. Finished runs (a ``summary.json``, with the run's report.json and report.md
+beside it) are skipped, so an interrupted benchmark resumes; ``--table`` writes the gathered runs between the markers of the page given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from scipy_pendulum import write
+
+from otgb.reports import write_between
+from otgb.runs import launch_otgb, machine, newest
+
+ROOT = Path(__file__).parents[1]
+DISCOVER = ["--data.hidden_effect=[]", "--data.measurement_noise=0.02", "--data.simulation_budget=32000"]
+# name -> (law, c, v0, ratio, what must be named: a form's name, or None for library terms only)
+CASES = {
+    "rational": ("rational", 0.8, 2.0, 0.0, "rational"),  # v0 about half the largest speed (3.9 rad/s)
+    "tanh": ("tanh", 0.8, 1.0, 0.0, "saturating"),
+    "viscous": ("viscous", 0.8, 1.0, 0.0, None),
+    "viscous_coulomb": ("viscous_coulomb", 0.6, 1.0, 0.3, None),
+}
+TRUTH = {  # the coefficient and parameters a named form should have
+    "rational": {"coefficient": -0.8, "v0": 2.0},
+    "tanh": {"coefficient": -0.8, "v0": 1.0},
+}
+
+
+def run_case(case: str, seed: int, out: Path) -> dict:
+    folder = out / f"{case}-seed{seed}"
+    if (folder / "summary.json").exists():
+        print(f"{folder.name}: done")
+        return json.loads((folder / "summary.json").read_text())
+    law, c, v0, ratio, _ = CASES[case]
+    folder.mkdir(parents=True, exist_ok=True)
+    measured = write(folder / "measured.csv", law, c, v0, ratio, 1000, seed, 0.02)
+    args = ["discover", "--config", str(ROOT / "configs" / "pendulum.yaml"), f"--data.measured_path={measured.name}"]
+    args += [*DISCOVER, f"--seed_everything={seed}", f"--data.seed={seed}", f"--discover.seed={seed}"]
+    args += ["--trainer.enable_progress_bar=false", "--discover.fit_cache=null"]
+    (folder / "discover.log").unlink(missing_ok=True)
+    done = launch_otgb(args, folder / "discover.log", cwd=folder)
+    report = newest(folder, "runs/*/version_*/report.json")
+    summary = summarise(case, json.loads(report.read_text()) if report and done.returncode == 0 else None)
+    summary |= {"seconds": done.seconds, "returncode": done.returncode, "machine": machine()}
+    measured.unlink()  # rewritten by the script from its seed; the report keeps what was found
+    for name in ("report.json", "report.md") if report else ():  # kept beside the summary (runs/ is not committed)
+        (folder / name).write_text((report.parent / name).read_text())
+    (folder / "summary.json").write_text(json.dumps(summary, indent=2))
+    print(f"{folder.name}: exit {done.returncode} in {done.seconds / 60:.1f} min: {summary['terms']}")
+    return summary
+
+
+def summarise(case: str, report: dict | None) -> dict:
+    """What the run named (terms, a form's parameters with intervals), its outcome and C2ST, and whether it is right."""
+    if report is None:
+        return {"case": case, "terms": [], "outcome": "failed", "right": False}
+    terms = [
+        {"name": t["name"], "feature": t["feature"], "coefficient": t["coefficient"], "interval": t["interval"],
+         "parameters": t.get("parameters") or []}
+        for t in report["terms"]
+    ]  # fmt: skip
+    forms = [t for t in terms if t["parameters"]]
+    wanted = CASES[case][4]
+    right = report["outcome"] == "gap closed"
+    if wanted is None:
+        right = right and not forms
+    else:
+        right = right and len(forms) == 1 and forms[0]["feature"].startswith(f"{wanted}(") and within(forms[0], TRUTH[case])
+    gap = {k: v["c2st"] for k, v in report["gap"].items()}
+    return {"case": case, "terms": terms, "outcome": report["outcome"], "c2st": gap, "right": right, "verdict": report["verdict"]}
+
+
+def within(term: dict, truth: dict, tolerance: float = 0.2) -> bool:
+    """Whether the named form's coefficient and parameters lie within ``tolerance`` of the truth."""
+    values = {"coefficient": term["coefficient"], **{p["name"]: p["value"] for p in term["parameters"]}}
+    return all(abs(values[k] - v) <= tolerance * abs(v) for k, v in truth.items())
+
+
+def table(out: Path) -> str:
+    header = "| case | seed | named | form's parameters (95 % interval) | outcome | C2ST f_p / augmented / Reference |"
+    rows = [header + " right | min |", "|---|---|---|---|---|---|---|---|"]
+    for path in sorted(out.glob("*-seed*/summary.json")):
+        s = json.loads(path.read_text())
+        named = ", ".join(f"{t['name']} {t['coefficient']:.3g}" for t in s["terms"]) or "nothing"
+        parameters = "; ".join(
+            f"{p['name']} = {p['value']:.3g}" + (f" [{p['interval'][0]:.3g}, {p['interval'][1]:.3g}]" if p["interval"] else "")
+            for t in s["terms"] for p in t["parameters"]
+        ) or "-"  # fmt: skip
+        c2st = " / ".join(f"{s['c2st'][k]:.2f}" for k in ("f_p", "augmented", "reference") if k in s.get("c2st", {}))
+        seed = path.parent.name.rpartition("seed")[2]
+        right, minutes = "yes" if s["right"] else "no", f"{s['seconds'] / 60:.1f}"
+        rows.append(f"| {s['case']} | {seed} | {named} | {parameters} | {s['outcome']} | {c2st} | {right} | {minutes} |")
+    return "\n".join(rows)
+
+
+START, END = "<!-- table: scripts/forms_benchmark.py --table -->", "<!-- end forms table -->"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--cases", nargs="+", choices=sorted(CASES), default=list(CASES))
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0])
+    parser.add_argument("--table", type=Path, help="only gather the finished runs into this Markdown page's markers")
+    args = parser.parse_args()
+    if args.table:
+        write_between(args.table, START, END, table(args.out))
+        return
+    for seed in args.seeds:
+        for case in args.cases:
+            run_case(case, seed, args.out)
+
+
+if __name__ == "__main__":
+    main()
