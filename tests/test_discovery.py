@@ -1216,6 +1216,26 @@ def test_a_restoring_force_weaker_than_f_ps_is_a_recalibration_of_omega_not_a_mi
 
 
 @pytest.mark.slow
+def test_a_weaker_restoring_force_with_a_friction_is_both_a_recalibration_and_a_term(tmp_path):
+    """omega from U(0.608, 2.432) (40 % weaker than the config's prior) and a viscous friction -0.8: neither the
+    friction alone nor the recalibration alone is the answer, the two together are: the friction on f_p with omega's
+    prior refitted beside it, both within their intervals; augmented.yaml carries the prior and the term."""
+    f_p, truth = Pendulum(), Uniform(0.608, 2.432)
+    dgp = Pendulum(omega=truth).with_hidden_effect([LibraryTerm("velocity", "velocity", Constant(-0.8))])
+    data = Measurements(_draws(dgp, 1000, 1), _draws(dgp, 333, 2), _draws(dgp, 333, 3))
+    result = _located_and_run(_knowing(f_p, lambda state: -0.8 * state[:, 1:2]), f_p, data, DiscoverySettings(**FAST))
+    assert result.recalibrated and result.found, (result.recalibration, result.fitted)
+    assert [c.feature for c in result.fitted.candidates] == ["velocity"] and abs(centre(result.fitted.priors[0]) + 0.8) < 0.12
+    (omega,) = result.recalibration.parameters
+    (low_a, low_b), (high_a, high_b) = omega.bounds_intervals
+    assert low_a < truth.low < low_b and high_a < truth.high < high_b, omega
+    assert "recalibrated beside them (omega's prior" in verdict(result, f_p)[0], verdict(result, f_p)[0]
+    config = {"data": {"physics": {"class_path": "otgb.physics.Pendulum", "init_args": {}}}, "trainer": {}}
+    physics = augmented_config(config, f_p, result)["data"]["physics"]["init_args"]
+    assert physics["base"]["init_args"]["omega"]["init_args"] == omega.prior.init_args and len(physics["terms"]) == 1
+
+
+@pytest.mark.slow
 def test_search_names_the_effect_a_mean_only_correction_missed(tmp_path):
     pendulum = Pendulum()
     dgp = pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))])

@@ -88,6 +88,11 @@ class Recalibration:
             + ","
         )
 
+    def beside_text(self) -> str:
+        """Where the answer is named terms on f_p with these priors: what follows the terms' names."""
+        priors = "; ".join(f"{r.parameter}'s prior {r.text()}, not {prior_text(r.before)}" for r in self.parameters)
+        return f", on f_p with its parameters' priors recalibrated beside them ({priors}),"
+
     def alike(self, terms: Scores) -> str | None:
         """Where this recalibration beats f_p alone, and f_p plus named terms (their validation ``terms`` scores) and
         it do not beat one another by two standard errors: the verdict's part that says so; else None."""

@@ -53,7 +53,7 @@ class Discovery:
     diverged: list[dict] = field(default_factory=list)  # solves that diverged, per step and model (otgb.discovery.log)
     undertrained: dict[str, float] | None = None  # the grey-box's and f_p's held-out energy when it is no better
     recalibration: Recalibration | None = None  # f_p's theta priors refitted (otgb.discovery.recalibration)
-    recalibrated: bool = False  # whether the answer is f_p with those priors (no term named, they beat f_p alone)
+    recalibrated: bool = False  # whether the answer holds f_p with those priors (alone, or beneath the named terms)
     forms: FormStep | None = None  # the parametric forms weighed against the linear terms (otgb.discovery.forms)
 
     @property

@@ -99,6 +99,7 @@ def answer_named(result: Discovery, physics: PhysicsModel, kind: str, blind: str
     """The answer's parts where terms were named: the outcome ``kind`` with its numbers and the sentence after the fix
     (``blind``: why the test part cannot confirm anything, where it cannot tell even f_p from the measurements)."""
     names = named_terms_text(result, physics) if result.found else result.recalibration.answer_text()
+    names += result.recalibration.beside_text() if result.found and result.recalibrated else ""
     what = "missing effect" if result.found else "miscalibration"  # terms named, or f_p's priors refitted
     removes, closes = ("removes", "closes") if len(kept_terms(result)) <= 1 else ("remove", "close")
     if blind:
@@ -148,7 +149,8 @@ def answer_named(result: Discovery, physics: PhysicsModel, kind: str, blind: str
 def recalibration_alike(result: Discovery) -> list[str]:
     """Where terms were named and f_p with recalibrated priors also beats f_p alone, but neither beats the other on
     the validation part: that the measurements cannot tell a missing term from priors that are off."""
-    said = result.recalibration.alike(result.fitted.heldout) if result.found and result.recalibration else None
+    alike = result.found and result.recalibration and not result.recalibrated  # not where the answer holds both
+    said = result.recalibration.alike(result.fitted.heldout) if alike else None
     return [said] if said else []
 
 

@@ -30,12 +30,14 @@ from typing import Any
 from torch import Tensor
 
 from otgb.discovery.draws import GREYBOX, at_most, generated, simulate_candidate, simulate_from_priors
+from otgb.discovery.families import centre
 from otgb.discovery.forms import FormStep, form_step
 from otgb.discovery.intervals import fitted_intervals
 from otgb.discovery.locate import DisagreementMap, describe, locate
 from otgb.discovery.log import DivergenceLog, progress, rounded, short
 from otgb.discovery.naming import (
     MAX_FORWARD_TERMS,
+    FamilyStep,
     Naming,
     Weighed,
     add_step,
@@ -51,7 +53,7 @@ from otgb.discovery.paired import PairedCheck
 from otgb.discovery.recalibration import Recalibration, recalibrate
 from otgb.discovery.record import Discovery
 from otgb.discovery.refine import FittedTerms, Fitting
-from otgb.discovery.scores import beats, difference, sample_scores
+from otgb.discovery.scores import beats, difference, discrepancies, sample_scores
 from otgb.discovery.search import SearchStep, Unsupported, search
 from otgb.discovery.seeds import Seeds
 from otgb.discovery.settings import Context, DiscoverySettings, Measurements
@@ -122,13 +124,14 @@ def name_and_add(
         family = family_step(formed.kept, fitting, settings.fits.families)
         dropped = dropped + family.dropped
         progress(f"fitted {family.choice.fitted.family} coefficients {short(family.choice.fitted.priors)}")
-    recalibration = recalibrate_step(fitting) if settings.fits.recalibrate else None
     terms = family.choice.fitted if family else None
-    recalibrated = recalibration is not None and answers_instead(recalibration, terms)
-    if recalibrated and terms is not None:
-        progress("the recalibrated f_p fits the validation part better than f_p plus the terms: the terms are set aside")
+    answer = answer_step(fitting, terms, settings)
+    recalibration, recalibrated = answer.recalibration, answer.recalibrated
+    if terms is not None and answer.terms is None:
         dropped = dropped + [{"feature": c.feature, "component": c.component} for c in terms.candidates]
-        terms, family, weighed = None, None, None
+        family, weighed = None, None
+    terms, family = answer.terms, answer.family or family
+    dropped = dropped + (answer.family.dropped if answer.family else [])
     return Discovery(
         before, describe(before), selections, cross_check, terms,
         family=family.choice if family else None, evidence=weighed.comparisons if weighed else [],
@@ -148,6 +151,58 @@ def forms_step(weighed: Weighed, designs: dict, fitting: Fitting, settings: Disc
         return locate_step(model, fitting.val, settings, context, "augmented-check").any_significant
 
     return form_step(weighed.kept, weighed.comparisons, designs, fitting, list(settings.fits.forms), remainder)
+
+
+@dataclass(frozen=True)
+class Answer:
+    """f_p's recalibration (None: not tried or nothing to refit), whether the answer holds it, and the terms the
+    answer holds (None: none, or set aside for the recalibration)."""
+
+    recalibration: Recalibration | None
+    recalibrated: bool
+    terms: FittedTerms | None
+    family: FamilyStep | None = None  # the terms' prior family chosen again beside the recalibration (None: as before)
+
+
+def answer_step(fitting: Fitting, terms: FittedTerms | None, settings: DiscoverySettings) -> Answer:
+    """Terms, recalibrated priors or both: f_p's priors refitted (:func:`recalibrate_step`) and weighed against f_p
+    alone and the terms (:func:`answers_instead`); where terms are named and the recalibration is not the answer, the
+    two together (:func:`both_step`): a prior refitted alone can move the wrong way to mimic a missing term."""
+    recalibration = recalibrate_step(fitting) if settings.fits.recalibrate else None
+    if recalibration is None:
+        return Answer(None, False, terms)
+    if answers_instead(recalibration, terms):
+        if terms is not None:
+            progress("the recalibrated f_p fits the validation part better than f_p plus the terms: the terms are set aside")
+        return Answer(recalibration, True, None)
+    both = both_step(fitting, recalibration, terms, settings.fits.families) if terms is not None else None
+    return Answer(both[0], True, both[1].choice.fitted, both[1]) if both else Answer(recalibration, False, terms)
+
+
+def both_step(
+    fitting: Fitting, alone: Recalibration, terms: FittedTerms, families: tuple[str, ...]
+) -> tuple[Recalibration, FamilyStep] | None:
+    """f_p's priors refitted with the named terms in (their coefficients' priors held), then the terms refitted on f_p
+    with those priors, their prior family chosen again (a spread can have stood in for the priors' error): the
+    recalibration (its scores those of the two together) and the terms' family step, where the two together fit the
+    validation part better than the terms alone and than the recalibration alone, by two standard errors each; else
+    None."""
+    data = (fitting.train, fitting.val, fitting.steps, fitting.batch, fitting.seed, fitting.spread_samples)
+    beside = recalibrate(terms.model(fitting.physics), *data)
+    if beside is None:
+        return None
+    base = beside.physics.base
+    on_base = replace(fitting, physics=base)
+    constant = on_base(terms.candidates, [centre(p) for p in terms.priors], natural_scales=False)
+    family = family_step(constant, on_base, families)
+    together = family.choice.fitted
+    better, error = difference(together.heldout, terms.heldout)
+    progress(f"f_p's priors recalibrated beside the terms: {better:+.3g} +- {error:.2g} below the terms alone")
+    if not (beats(together.heldout, terms.heldout) and beats(together.heldout, alone.heldout)):
+        return None
+    f_p = discrepancies(fitting.physics, [], [], fitting.val, fitting.seed)
+    both = replace(beside, physics=base, heldout=together.heldout, below_f_p=difference(together.heldout, f_p))
+    return both, family
 
 
 def answers_instead(recalibration: Recalibration, terms: FittedTerms | None) -> bool:
@@ -176,6 +231,8 @@ def verify(
     """On the test part, which no fit saw: the gap table of f_p, the grey-box and the augmented physics, and for named
     terms their intervals, the disagreement maps before and after, the paired check and the test of which is nearer."""
     physics, n, seeds = module.physics, len(data.test), context.seeds
+    if named.recalibrated and named.found:  # the terms were fitted on f_p with its recalibrated priors
+        fitting = replace(fitting, physics=named.recalibration.physics)
     sources = {"f_p": simulate_from_priors(physics, n, seeds, "gap-f_p"), "greybox": generated(module, n, seeds)}
     found: dict[str, Any] = {}
     if named.found:
