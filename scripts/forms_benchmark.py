@@ -7,8 +7,11 @@
 Each case is a pendulum file of 1000 trajectories written by ``scripts/scipy_pendulum.py`` (theta and x0 not
 recorded, the angle with white noise of sd 0.02), given to README's discover command. A saturating friction
 must be named as one, its coefficient and speed within 20 %, the gap closed; a viscous friction, and viscous plus
-Coulomb friction, must not be named as a form. Finished runs (a ``summary.json``, with the run's report.json and report.md
-beside it) are skipped, so an interrupted benchmark resumes; ``--table`` writes the gathered runs between the markers of the page given.
+Coulomb friction, must not be named as a form. "right" is "alike" where another form was named and the verdict
+says that the validation part cannot tell the law's form from it.
+
+Finished runs (a ``summary.json``, with the run's report.json and report.md beside it) are skipped, so an
+interrupted benchmark resumes; ``--table`` writes the gathered runs between the markers of the page given.
 """
 
 from __future__ import annotations
@@ -64,19 +67,20 @@ def run_case(case: str, seed: int, out: Path) -> dict:
 def summarise(case: str, report: dict | None) -> dict:
     """What the run named (terms, a form's parameters with intervals), its outcome and C2ST, and whether it is right."""
     if report is None:
-        return {"case": case, "terms": [], "outcome": "failed", "right": False}
+        return {"case": case, "terms": [], "outcome": "failed", "right": "no"}
     terms = [
         {"name": t["name"], "feature": t["feature"], "coefficient": t["coefficient"], "interval": t["interval"],
          "parameters": t.get("parameters") or []}
         for t in report["terms"]
     ]  # fmt: skip
-    forms = [t for t in terms if t["parameters"]]
-    wanted = CASES[case][4]
-    right = report["outcome"] == "gap closed"
+    forms, alike = [t for t in terms if t["parameters"]], (report.get("forms") or {}).get("alike", [])
+    wanted, closed = CASES[case][4], report["outcome"] == "gap closed"
     if wanted is None:
-        right = right and not forms
-    else:
-        right = right and len(forms) == 1 and forms[0]["feature"].startswith(f"{wanted}(") and within(forms[0], TRUTH[case])
+        right = "yes" if closed and not forms else "no"
+    elif closed and len(forms) == 1 and forms[0]["feature"].startswith(f"{wanted}(") and within(forms[0], TRUTH[case]):
+        right = "yes"
+    else:  # the law's form said to be indistinguishable from the one named
+        right = "alike" if closed and len(forms) == 1 and any(a.startswith(f"{wanted}(") for a in alike) else "no"
     gap = {k: v["c2st"] for k, v in report["gap"].items()}
     return {"case": case, "terms": terms, "outcome": report["outcome"], "c2st": gap, "right": right, "verdict": report["verdict"]}
 
@@ -99,7 +103,7 @@ def table(out: Path) -> str:
         ) or "-"  # fmt: skip
         c2st = " / ".join(f"{s['c2st'][k]:.2f}" for k in ("f_p", "augmented", "reference") if k in s.get("c2st", {}))
         seed = path.parent.name.rpartition("seed")[2]
-        right, minutes = "yes" if s["right"] else "no", f"{s['seconds'] / 60:.1f}"
+        right, minutes = s["right"], f"{s['seconds'] / 60:.1f}"
         rows.append(f"| {s['case']} | {seed} | {named} | {parameters} | {s['outcome']} | {c2st} | {right} | {minutes} |")
     return "\n".join(rows)
 

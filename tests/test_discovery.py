@@ -1201,13 +1201,15 @@ def test_a_restoring_force_weaker_than_f_ps_is_a_recalibration_of_omega_not_a_mi
     data = Measurements(_draws(dgp, 1000, 1), _draws(dgp, 333, 2), _draws(dgp, 333, 3))
     result = _located_and_run(_knowing(f_p, lambda state: 0 * state[:, 1:2]), f_p, data, DiscoverySettings(**FAST))
     assert result.recalibrated and not result.found and result.explained, result.recalibration
-    (omega,) = result.recalibration.parameters
+    omega, *initial = result.recalibration.parameters  # x0 is not recorded: its priors are refitted too
+    assert [r.parameter for r in initial] == ["angle", "velocity"] and omega.moved and not any(r.moved for r in initial)
     (low_a, low_b), (high_a, high_b) = omega.bounds_intervals
     assert low_a < truth.low < low_b and high_a < truth.high < high_b, omega
     assert verdict(result, f_p)[0].startswith("miscalibration") and "f_p is complete" in verdict(result, f_p)[0]
     samples = {"measured": data.test, **{k: v for k, v in result.draws.items() if k != "greybox"}}
     report = write_report(tmp_path, result, f_p, {}, samples)
     assert report["terms"] == [] and report["recalibrated"][0]["parameter"] == "omega"
+    assert "the priors of angle, velocity agree with the config's within their intervals" in report["verdict"]
     assert report["recalibrated"][0]["config_prior"] == {"kind": "uniform", "low": 0.785, "high": 3.14}
     assert "## Recalibrated priors" in (tmp_path / "report.md").read_text()
     config = {"data": {"physics": {"class_path": "otgb.physics.Pendulum", "init_args": {}}}, "trainer": {}}
@@ -1226,7 +1228,7 @@ def test_a_weaker_restoring_force_with_a_friction_is_both_a_recalibration_and_a_
     result = _located_and_run(_knowing(f_p, lambda state: -0.8 * state[:, 1:2]), f_p, data, DiscoverySettings(**FAST))
     assert result.recalibrated and result.found, (result.recalibration, result.fitted)
     assert [c.feature for c in result.fitted.candidates] == ["velocity"] and abs(centre(result.fitted.priors[0]) + 0.8) < 0.12
-    (omega,) = result.recalibration.parameters
+    omega = result.recalibration.parameters[0]
     (low_a, low_b), (high_a, high_b) = omega.bounds_intervals
     assert low_a < truth.low < low_b and high_a < truth.high < high_b, omega
     assert "recalibrated beside them (omega's prior" in verdict(result, f_p)[0], verdict(result, f_p)[0]

@@ -122,7 +122,7 @@ class FormStep:
     reason: str | None = None
     tried: list[FormFit] = field(default_factory=list)
     adopted: FormFit | None = None
-    alike: list[str] = field(default_factory=list)  # the other qualified forms it cannot be told from, by name
+    alike_fits: list[FormFit] = field(default_factory=list)  # the other qualified forms it cannot be told from
 
     def said(self, physics) -> list[str]:
         """The verdict's part on the adopted form: what it replaces, by how many standard errors, what it cannot be told
@@ -141,7 +141,8 @@ class FormStep:
                 f": the validation part cannot tell the two apart by two standard errors ({errors:+.1f}); of two models "
                 "with as many parameters, the nearer is kept"
             )
-        return [text + (f"; nor can it tell it from {' or '.join(self.alike)}" if self.alike else "")]
+        alike = [term_name(f.candidate, f.fitted.priors[-1].value, physics) for f in self.alike_fits]
+        return [text + (f"; nor can it tell it from {' or '.join(alike)}" if alike else "")]
 
     @property
     def replaced_values(self) -> list:
@@ -224,11 +225,7 @@ def form_step(kept: FittedTerms, comparisons: list[Comparison], designs: dict, f
     if not qualified:
         return FormStep(kept, reason, tried)
     adopted = min(qualified, key=lambda fit: fit.fitted.heldout.mean)
-    alike = [
-        term_name(f.candidate, f.fitted.priors[-1].value, fitting.physics)
-        for f in qualified
-        if f is not adopted and not beats(adopted.fitted.heldout, f.fitted.heldout)
-    ]
+    alike = [f for f in qualified if f is not adopted and not beats(adopted.fitted.heldout, f.fitted.heldout)]
     progress(f"forms: {adopted.candidate.feature} replaces {[c.feature for c in adopted.offer.covers]}")
     return FormStep(adopted.fitted, reason, tried, adopted, alike, kept)
 

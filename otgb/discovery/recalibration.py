@@ -28,7 +28,7 @@ from otgb.discovery.intervals import STEP, Z95, sandwich, spread
 from otgb.discovery.lbfgs import minimise
 from otgb.discovery.prior_text import prior_text
 from otgb.discovery.scores import Scores, clears, difference, discrepancies
-from otgb.physics.base import PhysicsModel
+from otgb.physics.base import FieldModel, PhysicsModel
 from otgb.physics.priors import Constant, Normal, Prior, Uniform
 
 REFITTED = ((Constant, CONSTANT), (Uniform, UNIFORM), (Normal, NORMAL))  # the priors a recalibration refits
@@ -52,6 +52,19 @@ class Recalibrated:
     centre_interval: tuple[float, float] | None
     width_interval: tuple[float, float] | None
     bounds_intervals: tuple[tuple[float, float], tuple[float, float]] | None = None
+
+    @property
+    def moved(self) -> bool:
+        """Whether the config's prior lies outside the fitted one's 95 % intervals (a bound of a uniform, the value of
+        a constant, the mean or standard deviation of a normal); True where there are no intervals."""
+        given = self.before
+        if self.bounds_intervals is not None:
+            return not all(low <= v <= high for v, (low, high) in zip((given.low, given.high), self.bounds_intervals))
+        if self.centre_interval is None:
+            return True
+        outside = not self.centre_interval[0] <= centre(given) <= self.centre_interval[1]
+        width = self.width_interval
+        return outside or (width is not None and not width[0] <= spread(given) <= width[1])
 
     def text(self) -> str:
         """The fitted prior with its 95 % intervals, as the verdict says it."""
@@ -81,17 +94,20 @@ class Recalibration:
         return clears(*self.below_f_p)
 
     def answer_text(self) -> str:
-        """The verdict's answer where this recalibration is it: each refitted prior against the config's."""
-        return (
-            "f_p is complete, its parameters' priors are off: the recalibrated f_p, where "
-            + "; ".join(f"{r.parameter}'s prior should be {r.text()}, not {prior_text(r.before)}" for r in self.parameters)
-            + ","
-        )
+        """The verdict's answer where this recalibration is it: each prior the data moved against the config's."""
+        return f"f_p is complete, its parameters' priors are off: the recalibrated f_p, where {self.moved_text()},"
 
     def beside_text(self) -> str:
         """Where the answer is named terms on f_p with these priors: what follows the terms' names."""
-        priors = "; ".join(f"{r.parameter}'s prior {r.text()}, not {prior_text(r.before)}" for r in self.parameters)
-        return f", on f_p with its parameters' priors recalibrated beside them ({priors}),"
+        return f", on f_p with its parameters' priors recalibrated beside them ({self.moved_text()}),"
+
+    def moved_text(self) -> str:
+        """Each prior the data moved (:attr:`Recalibrated.moved`) against the config's, then those they did not."""
+        moved = [r for r in self.parameters if r.moved]
+        said = "; ".join(f"{r.parameter}'s prior should be {r.text()}, not {prior_text(r.before)}" for r in moved)
+        kept = [r.parameter for r in self.parameters if not r.moved]
+        agree = f"the priors of {', '.join(kept)} agree with the config's within their intervals" if kept else ""
+        return "; ".join(part for part in (said, agree) if part)
 
     def alike(self, terms: Scores) -> str | None:
         """Where this recalibration beats f_p alone, and f_p plus named terms (their validation ``terms`` scores) and
@@ -140,13 +156,16 @@ class ThetaPriors(torch.nn.Module):
 
 
 def recalibrate(
-    physics: PhysicsModel, train: Tensor, val: Tensor, steps: int, batch: int, seed: int, samples: int = 1
-) -> Recalibration | None:
-    """f_p's theta priors refitted to ``train`` (module docstring) on ``samples`` simulated samples of ``batch`` (one
-    where no refitted prior varies), scored on ``val``; None where no parameter's prior is of a kind it refits or the
-    fit diverged."""
+    physics: PhysicsModel, train: Tensor, val: Tensor, steps: int, batch: int, seed: int, samples: int = 1,
+    states: bool = False,
+) -> Recalibration | None:  # fmt: skip
+    """f_p's theta priors (and, with ``states``, the priors of its initial state's components, for an ODE whose x0
+    is drawn per component) refitted to ``train`` (module docstring) on ``samples`` simulated samples of ``batch``
+    (one where no refitted prior varies), scored on ``val``; None where no prior is of a kind it refits or the fit
+    diverged."""
     own = getattr(physics, "base", physics).theta_names  # f_p's parameters, not an augmented model's coefficients
-    names = [n for n in own if family_of(physics.priors.get(n)) is not None]
+    components = physics.state_names if states and not isinstance(physics, FieldModel) else ()
+    names = [n for n in (*own, *components) if family_of(physics.priors.get(n)) is not None]
     if not names:
         return None
     theta_priors = ThetaPriors([physics.priors[n] for n in names])
@@ -187,15 +206,23 @@ def _sample(
 
 
 def _simulate(physics: PhysicsModel, names: list[str], sample: _Sample, theta_of_rows: Callable[[Tensor], Tensor]) -> Simulate:
-    """The observed trajectories of rows of ``sample``, the refitted parameters' columns of theta from
-    ``theta_of_rows(row indices)``."""
-    columns = [physics.theta_names.index(n) for n in names]
+    """The observed trajectories of rows of ``sample``, the refitted priors' columns of theta and of x0 from
+    ``theta_of_rows(row indices)`` (one column per name, in ``names``' order)."""
+    in_theta = [i for i, n in enumerate(names) if n in physics.theta_names]
+    in_x0 = [i for i, n in enumerate(names) if n not in physics.theta_names]
+    columns = [physics.theta_names.index(names[i]) for i in in_theta]
+    components = [physics.state_names.index(names[i]) for i in in_x0]
 
     def simulate(rows: slice) -> Tensor:
-        theta = sample.theta[rows].clone().double()
+        theta, x0 = sample.theta[rows].clone().double(), sample.x0[rows]
         index = torch.arange(len(sample.x0))[rows]
-        theta[:, columns] = theta_of_rows(index)
-        return physics.observe(physics.solve(physics.vector_field, sample.x0[rows], theta.float()))
+        values = theta_of_rows(index)
+        theta[:, columns] = values[:, in_theta]
+        if components:
+            x0 = x0.clone().double()
+            x0[:, components] = values[:, in_x0]
+            x0 = x0.float()
+        return physics.observe(physics.solve(physics.vector_field, x0, theta.float()))
 
     return simulate
 

@@ -142,7 +142,8 @@ def _forms_dict(result: Discovery) -> dict[str, Any] | None:
         return None
     adopted = result.forms.adopted
     return {"reason": result.forms.reason, "tried": [fit.to_dict() for fit in result.forms.tried],
-            "adopted": adopted.candidate.feature if adopted else None}  # fmt: skip
+            "adopted": adopted.candidate.feature if adopted else None,
+            "alike": [fit.to_dict()["feature"] for fit in result.forms.alike_fits]}  # fmt: skip
 
 
 def _recalibration_evidence(result: Discovery) -> dict[str, Any] | None:

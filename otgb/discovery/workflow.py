@@ -88,16 +88,18 @@ def run(module: Any, data: Measurements, settings: DiscoverySettings, before: Di
     with DivergenceLog() as log:
         naming = name_step(module, settings, context.seeds)
         fitting = fitting_for(module.physics, data, settings, naming.designs, context)
-        named = name_and_add(module, naming, fitting, settings, before, context)
+        named = name_and_add(module, naming, fitting, settings, before, context, data.train_inputs is None)
         result = verify(named, module, data, settings, context, fitting, naming.designs)
     return replace(result, diverged=log.records)
 
 
 def name_and_add(
-    module: Any, naming: Naming, fitting: Fitting, settings: DiscoverySettings, before: DisagreementMap, context: Context
-) -> Discovery:
+    module: Any, naming: Naming, fitting: Fitting, settings: DiscoverySettings, before: DisagreementMap, context: Context,
+    refit_x0: bool = True,
+) -> Discovery:  # fmt: skip
     """From f_phi's regression ``naming``: cross-check the strong candidates, add along f_phi's route or the library
-    search, weigh the evidence and choose the prior family; the record up to the verification."""
+    search, weigh the evidence and choose the prior family, weigh a recalibration of f_p's priors (those of x0 too,
+    with ``refit_x0``: the measurements do not record it); the record up to the verification."""
     physics, selections, designs = module.physics, naming.selections, naming.designs
     proposed = [f"{c.feature} on d{c.component}/dt: {v:.4g}" for c, v in naming.proposed]
     progress(
@@ -125,7 +127,7 @@ def name_and_add(
         dropped = dropped + family.dropped
         progress(f"fitted {family.choice.fitted.family} coefficients {short(family.choice.fitted.priors)}")
     terms = family.choice.fitted if family else None
-    answer = answer_step(fitting, terms, settings)
+    answer = answer_step(fitting, terms, settings, refit_x0)
     recalibration, recalibrated = answer.recalibration, answer.recalibrated
     if terms is not None and answer.terms is None:
         dropped = dropped + [{"feature": c.feature, "component": c.component} for c in terms.candidates]
@@ -164,23 +166,23 @@ class Answer:
     family: FamilyStep | None = None  # the terms' prior family chosen again beside the recalibration (None: as before)
 
 
-def answer_step(fitting: Fitting, terms: FittedTerms | None, settings: DiscoverySettings) -> Answer:
+def answer_step(fitting: Fitting, terms: FittedTerms | None, settings: DiscoverySettings, refit_x0: bool) -> Answer:
     """Terms, recalibrated priors or both: f_p's priors refitted (:func:`recalibrate_step`) and weighed against f_p
     alone and the terms (:func:`answers_instead`); where terms are named and the recalibration is not the answer, the
     two together (:func:`both_step`): a prior refitted alone can move the wrong way to mimic a missing term."""
-    recalibration = recalibrate_step(fitting) if settings.fits.recalibrate else None
+    recalibration = recalibrate_step(fitting, refit_x0) if settings.fits.recalibrate else None
     if recalibration is None:
         return Answer(None, False, terms)
     if answers_instead(recalibration, terms):
         if terms is not None:
             progress("the recalibrated f_p fits the validation part better than f_p plus the terms: the terms are set aside")
         return Answer(recalibration, True, None)
-    both = both_step(fitting, recalibration, terms, settings.fits.families) if terms is not None else None
+    both = both_step(fitting, recalibration, terms, settings.fits.families, refit_x0) if terms is not None else None
     return Answer(both[0], True, both[1].choice.fitted, both[1]) if both else Answer(recalibration, False, terms)
 
 
 def both_step(
-    fitting: Fitting, alone: Recalibration, terms: FittedTerms, families: tuple[str, ...]
+    fitting: Fitting, alone: Recalibration, terms: FittedTerms, families: tuple[str, ...], refit_x0: bool
 ) -> tuple[Recalibration, FamilyStep] | None:
     """f_p's priors refitted with the named terms in (their coefficients' priors held), then the terms refitted on f_p
     with those priors, their prior family chosen again (a spread can have stood in for the priors' error): the
@@ -188,7 +190,7 @@ def both_step(
     validation part better than the terms alone and than the recalibration alone, by two standard errors each; else
     None."""
     data = (fitting.train, fitting.val, fitting.steps, fitting.batch, fitting.seed, fitting.spread_samples)
-    beside = recalibrate(terms.model(fitting.physics), *data)
+    beside = recalibrate(terms.model(fitting.physics), *data, states=refit_x0)
     if beside is None:
         return None
     base = beside.physics.base
@@ -212,11 +214,11 @@ def answers_instead(recalibration: Recalibration, terms: FittedTerms | None) -> 
     return recalibration.beats_f_p and (terms is None or beats(recalibration.heldout, terms.heldout))
 
 
-def recalibrate_step(fitting: Fitting) -> Recalibration | None:
-    """f_p's theta priors refitted to the training part and scored on the validation part
+def recalibrate_step(fitting: Fitting, refit_x0: bool) -> Recalibration | None:
+    """f_p's theta priors (and x0's, with ``refit_x0``) refitted to the training part and scored on the validation part
     (:mod:`otgb.discovery.recalibration`)."""
     data = (fitting.train, fitting.val, fitting.steps, fitting.batch, fitting.seed, fitting.spread_samples)
-    recalibration = recalibrate(fitting.physics, *data)
+    recalibration = recalibrate(fitting.physics, *data, states=refit_x0)
     if recalibration is not None:
         below, error = recalibration.below_f_p
         priors = ", ".join(f"{r.parameter} {r.prior!r}" for r in recalibration.parameters)
