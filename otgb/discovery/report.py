@@ -91,6 +91,7 @@ def _term_dicts(result: Discovery, physics: PhysicsModel) -> list[dict[str, Any]
                 "component": candidate.component,
                 "coefficient": middle,
                 "interval": list(intervals.centre[i]) if intervals else None,
+                "interval_missing": None if intervals else NO_INTERVAL,
                 "spread_interval": list(intervals.width[i]) if intervals and intervals.width else None,
                 "inclusion_probability": found.inclusion_probability if found else None,
                 "r2_share": found.r2_share if found else None,
@@ -104,6 +105,12 @@ def _term_dicts(result: Discovery, physics: PhysicsModel) -> list[dict[str, Any]
             }
         )
     return terms
+
+
+NO_INTERVAL = (
+    "the sandwich could not be computed: the fit's discrepancy is not at a minimum there (its Hessian is not positive "
+    "definite), or a model perturbed around the fit diverged (report.json's diverged lists it)"
+)
 
 
 def _search_step_dict(step: Any) -> dict[str, Any]:
