@@ -13,6 +13,7 @@ Laws (c > 0 a friction): ``viscous`` -c v; ``rational`` -c v / (1 + (v / v0)^2);
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -29,19 +30,28 @@ LAWS = {
 
 def write(path: Path, law: str, c: float, v0: float, ratio: float, n: int, seed: int, noise: float) -> Path:
     """``n`` trajectories of the pendulum with the friction ``law`` written to the CSV file ``path``."""
-    rng, t, friction = np.random.default_rng(seed), np.arange(50) * 0.1, LAWS[law]
+    friction = LAWS[law]
+    rows = csv_rows(np.random.default_rng(seed), n, lambda _, v: friction(v, c, v0, ratio), noise)
+    path.write_text("\n".join(rows) + "\n")
+    return path
 
-    def field(_, y, omega):
-        return [y[1], -(omega**2) * np.sin(y[0]) + friction(y[1], c, v0, ratio)]
 
-    rows = ["trajectory,t,angle"]
+def csv_rows(rng: np.random.Generator, n: int, force: Callable, noise: float, record: bool = False) -> list[str]:
+    """The CSV rows of ``n`` pendulums with ``force(t, velocity)`` added to d velocity/dt: each trajectory's angle with
+    white noise of sd ``noise`` and, with ``record``, its omega and x0."""
+    t = np.arange(50) * 0.1
+
+    def field(s, y, omega):
+        return [y[1], -(omega**2) * np.sin(y[0]) + force(s, y[1])]
+
+    rows = ["trajectory,t,angle" + (",omega,x0_angle,x0_velocity" if record else "")]
     for i in range(n):
         angle, omega = rng.uniform(-1.57, 1.57), rng.uniform(0.785, 3.14)
         solved = solve_ivp(field, (0, t[-1]), [angle, 0.0], t_eval=t, args=(omega,), rtol=1e-9, atol=1e-11, method="DOP853")
         measured = solved.y[0] + rng.normal(0, noise, len(t))
-        rows += [f"{i},{time:.10g},{value:.9g}" for time, value in zip(t, measured)]
-    path.write_text("\n".join(rows) + "\n")
-    return path
+        inputs = f",{omega:.9g},{angle:.9g},0" if record else ""
+        rows += [f"{i},{time:.10g},{value:.9g}{inputs}" for time, value in zip(t, measured)]
+    return rows
 
 
 def main() -> None:

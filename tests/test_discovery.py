@@ -19,7 +19,6 @@ import pytest
 import torch
 import yaml
 from logcapture import records_of
-from scipy.integrate import solve_ivp
 from torch import nn
 
 from otgb.data import generate_measured
@@ -1520,14 +1519,10 @@ def _run_dir(done: subprocess.CompletedProcess) -> Path:
 def _forced_pendulum(path: Path, n: int = 200, noise: float = 0.05) -> Path:
     """A newcomer's file from their own solver: the pendulum driven by a torque 0.6 cos(2t), an effect that depends on
     time and is in no library; the angle with white noise, each trajectory's omega and x0 recorded (as in a walk)."""
-    rng, t = np.random.default_rng(7), np.arange(50) * 0.1
-    rows = ["trajectory,t,angle,omega,x0_angle,x0_velocity"]
-    field = lambda s, y, omega: [y[1], -(omega**2) * np.sin(y[0]) + 0.6 * np.cos(2.0 * s)]  # noqa: E731
-    for i in range(n):
-        angle, omega = rng.uniform(-1.57, 1.57), rng.uniform(0.785, 3.14)
-        solved = solve_ivp(field, (0, t[-1]), [angle, 0.0], t_eval=t, args=(omega,), rtol=1e-9, atol=1e-11, method="DOP853")
-        measured = solved.y[0] + rng.normal(0, noise, len(t))
-        rows += [f"{i},{time:.10g},{value:.9g},{omega:.9g},{angle:.9g},0" for time, value in zip(t, measured)]
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from scipy_pendulum import csv_rows
+
+    rows = csv_rows(np.random.default_rng(7), n, lambda s, _: 0.6 * np.cos(2.0 * s), noise, record=True)
     path.write_text("\n".join(rows) + "\n")
     return path
 
