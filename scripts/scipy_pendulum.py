@@ -6,7 +6,9 @@ otgb is not told: the file holds ``trajectory``, ``t`` and ``angle`` only (theta
 
     python scripts/scipy_pendulum.py --law rational --c 0.8 --v0 2.0 --n 1000 --seed 0 --out rational.csv
 
-Laws (c > 0 a friction): ``viscous`` -c v; ``rational`` -c v / (1 + (v / v0)^2); ``tanh`` -c v0 tanh(v / v0);
+A restoring force weaker than f_p's: ``--law none --restoring 0.8`` (omega ~ U(0.785, 3.14) sqrt(0.8)).
+
+Laws (c > 0 a friction): ``none``; ``viscous`` -c v; ``rational`` -c v / (1 + (v / v0)^2); ``tanh`` -c v0 tanh(v / v0);
 ``stribeck`` -c sign(v) (1 + ratio exp(-(v / v0)^2)); ``viscous_coulomb`` -c v - ratio sign(v).
 """
 
@@ -20,6 +22,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 LAWS = {
+    "none": lambda v, c, v0, ratio: 0.0 * v,
     "viscous": lambda v, c, v0, ratio: -c * v,
     "rational": lambda v, c, v0, ratio: -c * v / (1 + (v / v0) ** 2),
     "tanh": lambda v, c, v0, ratio: -c * v0 * np.tanh(v / v0),
@@ -28,17 +31,23 @@ LAWS = {
 }
 
 
-def write(path: Path, law: str, c: float, v0: float, ratio: float, n: int, seed: int, noise: float) -> Path:
-    """``n`` trajectories of the pendulum with the friction ``law`` written to the CSV file ``path``."""
+def write(
+    path: Path, law: str, c: float, v0: float, ratio: float, n: int, seed: int, noise: float, restoring: float = 1.0
+) -> Path:
+    """``n`` trajectories of the pendulum with the friction ``law`` and its restoring force scaled by ``restoring``
+    (omega by its square root) written to the CSV file ``path``."""
     friction = LAWS[law]
-    rows = csv_rows(np.random.default_rng(seed), n, lambda _, v: friction(v, c, v0, ratio), noise)
+    rows = csv_rows(np.random.default_rng(seed), n, lambda _, v: friction(v, c, v0, ratio), noise, restoring=restoring)
     path.write_text("\n".join(rows) + "\n")
     return path
 
 
-def csv_rows(rng: np.random.Generator, n: int, force: Callable, noise: float, record: bool = False) -> list[str]:
-    """The CSV rows of ``n`` pendulums with ``force(t, velocity)`` added to d velocity/dt: each trajectory's angle with
-    white noise of sd ``noise`` and, with ``record``, its omega and x0."""
+def csv_rows(
+    rng: np.random.Generator, n: int, force: Callable, noise: float, record: bool = False, restoring: float = 1.0
+) -> list[str]:
+    """The CSV rows of ``n`` pendulums with ``force(t, velocity)`` added to d velocity/dt and omega scaled by
+    sqrt(``restoring``): each trajectory's angle with white noise of sd ``noise`` and, with ``record``, its omega and
+    x0."""
     t = np.arange(50) * 0.1
 
     def field(s, y, omega):
@@ -46,7 +55,7 @@ def csv_rows(rng: np.random.Generator, n: int, force: Callable, noise: float, re
 
     rows = ["trajectory,t,angle" + (",omega,x0_angle,x0_velocity" if record else "")]
     for i in range(n):
-        angle, omega = rng.uniform(-1.57, 1.57), rng.uniform(0.785, 3.14)
+        angle, omega = rng.uniform(-1.57, 1.57), rng.uniform(0.785, 3.14) * np.sqrt(restoring)
         solved = solve_ivp(field, (0, t[-1]), [angle, 0.0], t_eval=t, args=(omega,), rtol=1e-9, atol=1e-11, method="DOP853")
         measured = solved.y[0] + rng.normal(0, noise, len(t))
         inputs = f",{omega:.9g},{angle:.9g},0" if record else ""
@@ -63,9 +72,10 @@ def main() -> None:
     parser.add_argument("--n", type=int, default=1000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--noise", type=float, default=0.02)
+    parser.add_argument("--restoring", type=float, default=1.0, help="the restoring force's scale (omega by its root)")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
-    write(args.out, args.law, args.c, args.v0, args.ratio, args.n, args.seed, args.noise)
+    write(args.out, args.law, args.c, args.v0, args.ratio, args.n, args.seed, args.noise, args.restoring)
 
 
 if __name__ == "__main__":

@@ -1,14 +1,15 @@
-"""Benchmark of the parametric forms of ``otgb discover`` on files from an independent solver (SciPy, not otgb).
+"""Benchmark of ``otgb discover``'s forms and recalibration on files from an independent solver (SciPy, not otgb).
 
-    python scripts/forms_benchmark.py --out results/forms                                # every case, seed 0
-    python scripts/forms_benchmark.py --out results/forms --cases rational --seeds 0 1 2
-    python scripts/forms_benchmark.py --out results/forms --table docs/discovery.md      # gather only
+    python scripts/scipy_benchmark.py --out results/scipy                                # every case, seed 0
+    python scripts/scipy_benchmark.py --out results/scipy --cases rational --seeds 0 1 2
+    python scripts/scipy_benchmark.py --out results/scipy --table docs/discovery.md      # gather only
 
 Each case is a pendulum file of 1000 trajectories written by ``scripts/scipy_pendulum.py`` (theta and x0 not
 recorded, the angle with white noise of sd 0.02), given to README's discover command. A saturating friction
 must be named as one, its coefficient and speed within 20 %, the gap closed; a viscous friction, and viscous plus
-Coulomb friction, must not be named as a form. "right" is "alike" where another form was named and the verdict
-says that the validation part cannot tell the law's form from it.
+Coulomb friction, must not be named as a form; a restoring force 20 % or 40 % weaker than f_p's must be a
+recalibration of omega's prior, both bounds within 5 %, no term named. "right" is "alike" where another form was
+named and the verdict says that the validation part cannot tell the law's form from it.
 
 Finished runs (a ``summary.json``, with the run's report.json and report.md beside it) are skipped, so an
 interrupted benchmark resumes; ``--table`` writes the gathered runs between the markers of the page given.
@@ -27,16 +28,21 @@ from otgb.runs import launch_otgb, machine, newest
 
 ROOT = Path(__file__).parents[1]
 DISCOVER = ["--data.hidden_effect=[]", "--data.measurement_noise=0.02", "--data.simulation_budget=32000"]
-# name -> (law, c, v0, ratio, what must be named: a form's name, or None for library terms only)
+# name -> (law, c, v0, ratio, restoring force's scale, what must be named: a form's name, None for library terms
+# only, or "omega" for a recalibration of omega's prior and no term)
 CASES = {
-    "rational": ("rational", 0.8, 2.0, 0.0, "rational"),  # v0 about half the largest speed (3.9 rad/s)
-    "tanh": ("tanh", 0.8, 1.0, 0.0, "saturating"),
-    "viscous": ("viscous", 0.8, 1.0, 0.0, None),
-    "viscous_coulomb": ("viscous_coulomb", 0.6, 1.0, 0.3, None),
+    "rational": ("rational", 0.8, 2.0, 0.0, 1.0, "rational"),  # v0 about half the largest speed (3.9 rad/s)
+    "tanh": ("tanh", 0.8, 1.0, 0.0, 1.0, "saturating"),
+    "viscous": ("viscous", 0.8, 1.0, 0.0, 1.0, None),
+    "viscous_coulomb": ("viscous_coulomb", 0.6, 1.0, 0.3, 1.0, None),
+    "weaker_20": ("none", 0.0, 1.0, 0.0, 0.8, "omega"),  # omega ~ U(0.702, 2.809)
+    "weaker_40": ("none", 0.0, 1.0, 0.0, 0.6, "omega"),  # omega ~ U(0.608, 2.432)
 }
-TRUTH = {  # the coefficient and parameters a named form should have
+TRUTH = {  # the coefficient and parameters a named form should have, or the bounds of omega's recalibrated prior
     "rational": {"coefficient": -0.8, "v0": 2.0},
     "tanh": {"coefficient": -0.8, "v0": 1.0},
+    "weaker_20": {"low": 0.785 * 0.8**0.5, "high": 3.14 * 0.8**0.5},
+    "weaker_40": {"low": 0.785 * 0.6**0.5, "high": 3.14 * 0.6**0.5},
 }
 
 
@@ -45,9 +51,9 @@ def run_case(case: str, seed: int, out: Path) -> dict:
     if (folder / "summary.json").exists():
         print(f"{folder.name}: done")
         return json.loads((folder / "summary.json").read_text())
-    law, c, v0, ratio, _ = CASES[case]
+    law, c, v0, ratio, restoring, _ = CASES[case]
     folder.mkdir(parents=True, exist_ok=True)
-    measured = write(folder / "measured.csv", law, c, v0, ratio, 1000, seed, 0.02)
+    measured = write(folder / "measured.csv", law, c, v0, ratio, 1000, seed, 0.02, restoring)
     args = ["discover", "--config", str(ROOT / "configs" / "pendulum.yaml"), f"--data.measured_path={measured.name}"]
     args += [*DISCOVER, f"--seed_everything={seed}", f"--data.seed={seed}", f"--discover.seed={seed}"]
     args += ["--trainer.enable_progress_bar=false", "--discover.fit_cache=null"]
@@ -74,20 +80,27 @@ def summarise(case: str, report: dict | None) -> dict:
         for t in report["terms"]
     ]  # fmt: skip
     forms, alike = [t for t in terms if t["parameters"]], (report.get("forms") or {}).get("alike", [])
-    wanted, closed = CASES[case][4], report["outcome"] == "gap closed"
-    if wanted is None:
+    wanted, closed = CASES[case][5], report["outcome"] == "gap closed"
+    omega = next((r["prior"] for r in report.get("recalibrated") or [] if r["parameter"] == "omega"), None)
+    if wanted == "omega":
+        right = "yes" if closed and not terms and omega and within(omega, TRUTH[case], 0.05) else "no"
+    elif wanted is None:
         right = "yes" if closed and not forms else "no"
     elif closed and len(forms) == 1 and forms[0]["feature"].startswith(f"{wanted}(") and within(forms[0], TRUTH[case]):
         right = "yes"
     else:  # the law's form said to be indistinguishable from the one named
         right = "alike" if closed and len(forms) == 1 and any(a.startswith(f"{wanted}(") for a in alike) else "no"
     gap = {k: v["c2st"] for k, v in report["gap"].items()}
-    return {"case": case, "terms": terms, "outcome": report["outcome"], "c2st": gap, "right": right, "verdict": report["verdict"]}
+    recalibrated = [{"parameter": r["parameter"], "prior": r["prior"], "bounds_intervals": r["bounds_intervals"]}
+                    for r in report.get("recalibrated") or []]  # fmt: skip
+    summary = {"case": case, "terms": terms, "recalibrated": recalibrated, "outcome": report["outcome"], "c2st": gap}
+    return summary | {"right": right, "verdict": report["verdict"]}
 
 
-def within(term: dict, truth: dict, tolerance: float = 0.2) -> bool:
-    """Whether the named form's coefficient and parameters lie within ``tolerance`` of the truth."""
-    values = {"coefficient": term["coefficient"], **{p["name"]: p["value"] for p in term["parameters"]}}
+def within(found: dict, truth: dict, tolerance: float = 0.2) -> bool:
+    """Whether a named form's coefficient and parameters (or a recalibrated prior's bounds) lie within ``tolerance``
+    of the truth."""
+    values = {**found, **{p["name"]: p["value"] for p in found.get("parameters", [])}}
     return all(abs(values[k] - v) <= tolerance * abs(v) for k, v in truth.items())
 
 
@@ -96,7 +109,8 @@ def table(out: Path) -> str:
     rows = [header + " right | min |", "|---|---|---|---|---|---|---|---|"]
     for path in sorted(out.glob("*-seed*/summary.json")):
         s = json.loads(path.read_text())
-        named = ", ".join(f"{t['name']} {t['coefficient']:.3g}" for t in s["terms"]) or "nothing"
+        named = ", ".join(f"{t['name']} {t['coefficient']:.3g}" for t in s["terms"])
+        named = ", ".join([named] * bool(named) + [_prior(r) for r in s.get("recalibrated", [])]) or "nothing"
         parameters = "; ".join(
             f"{p['name']} = {p['value']:.3g}" + (f" [{p['interval'][0]:.3g}, {p['interval'][1]:.3g}]" if p["interval"] else "")
             for t in s["terms"] for p in t["parameters"]
@@ -108,7 +122,15 @@ def table(out: Path) -> str:
     return "\n".join(rows)
 
 
-START, END = "<!-- table: scripts/forms_benchmark.py --table -->", "<!-- end forms table -->"
+def _prior(record: dict) -> str:
+    prior = record["prior"]
+    said = ", ".join(f"{k} {v:.4g}" for k, v in prior.items() if k != "kind")
+    bounds = record["bounds_intervals"]
+    shown = f" (95 %: [{bounds[0][0]:.3g}, {bounds[0][1]:.3g}], [{bounds[1][0]:.3g}, {bounds[1][1]:.3g}])" if bounds else ""
+    return f"{record['parameter']}'s prior {prior['kind']} {said}{shown}"
+
+
+START, END = "<!-- table: scripts/scipy_benchmark.py --table -->", "<!-- end forms table -->"
 
 
 def main() -> None:
