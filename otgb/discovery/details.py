@@ -51,6 +51,7 @@ def naming_section(report: dict[str, Any]) -> list[str]:
         lines.append(f"\n**The OT grey-box's correction is not used:** it {said}.")
     lines += diverged_section(report["diverged"])
     lines += evidence_section(report)
+    lines += forms_section(report.get("forms"))
     lines += [
         "",
         "### Cross-check: each strong candidate alone added to f_p",
@@ -251,6 +252,26 @@ def search_section(report: dict) -> list[str]:
         )
         lines += ["", f"Dropped from the search's model, their coefficients' 95 % intervals holding zero: {dropped}."]
     return lines + ["", f"Terms named by: **{report['route']}**." if report["route"] else "Nothing kept."]
+
+
+def forms_section(forms: dict | None) -> list[str]:
+    """The parametric forms weighed against the kept linear terms: why, each one's fit and whether it was taken."""
+    if not forms:
+        return []
+    lines = ["", "### Parametric forms in place of linear terms", "", f"Weighed because {forms['reason']}.", ""]
+    lines += ["| form | replaces | parameters (95 % interval) | better than the linear terms by (± standard error) | taken |"]
+    lines += ["|---|---|---|---|---|"]
+    for fit in forms["tried"]:
+        parameters = ", ".join(
+            f"{p['name']} = {p['value']:.4g}" + (f" [{p['interval'][0]:.4g}, {p['interval'][1]:.4g}]" if p["interval"] else "")
+            for p in fit["parameters"]
+        )  # fmt: skip
+        replaced = ", ".join(code(f) for f in fit["replaces"]) or "-"
+        taken = "yes" if fit["feature"] == forms["adopted"] else "alike" if fit["feature"] in forms.get("alike", []) else "no"
+        why = f": {fit['refused']}" if fit["refused"] else ""
+        better = f"{fit['difference']:.3g} ± {fit['standard_error']:.2g}"
+        lines.append(f"| {code(fit['form'])} | {replaced} | {parameters} | {better} | {taken}{why} |")
+    return lines
 
 
 def pointwise_section(pointwise: dict) -> list[str]:
