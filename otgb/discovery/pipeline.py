@@ -13,17 +13,19 @@ from typing import Any
 import torch
 
 from otgb.analysis.components import component_analysis
-from otgb.discovery.draws import simulate_from_priors
+from otgb.discovery.draws import at_most, simulate_from_priors
 from otgb.discovery.known import pointwise_errors
 from otgb.discovery.locate import DisagreementMap, describe
 from otgb.discovery.log import DivergenceLog, progress, show_on_stderr
 from otgb.discovery.paired import paired_check
+from otgb.discovery.recalibration import Recalibration
 from otgb.discovery.record import Discovery
+from otgb.discovery.refine import Fitting
 from otgb.discovery.result import DiscoveryResult
 from otgb.discovery.session import Session, stopped_by_signals
 from otgb.discovery.settings import Measurements
 from otgb.discovery.verify import gap_step
-from otgb.discovery.workflow import locate_step, run
+from otgb.discovery.workflow import locate_step, recalibrate_step, run, verify_answer
 from otgb.runs import load_weights
 
 
@@ -80,12 +82,31 @@ def with_pointwise_errors(result: Discovery, session: Session) -> Discovery:
 
 
 def nothing_detected(session: Session, data: Measurements, before: DisagreementMap) -> Discovery:
-    """The result where f_p and the measurements show no difference: f_p's gap to the test part beside the
-    Reference's, no grey-box trained."""
-    physics, seeds = session.physics, session.context.seeds
-    with session.context.as_measured(physics, data.noise):
-        draws = {"f_p": simulate_from_priors(physics, len(data.test), seeds, "gap-f_p")}
-    return Discovery(before, describe(before), draws=draws, gap=gap_step(draws, data.test, session.settings, seeds))
+    """The result where the disagreement map shows no difference between f_p and the measurements: no grey-box is
+    trained, but f_p's priors are refitted (the map's cells can miss a prior's shifted bounds, which a fit of two
+    numbers sees); where the recalibrated f_p fits the validation part better than f_p alone by two standard
+    errors, it is the answer and is verified on the test part, else f_p's gap to the test part beside the
+    Reference's."""
+    physics, settings, context = session.physics, session.settings, session.context
+    with context.as_measured(physics, data.noise):
+        draws = {"f_p": simulate_from_priors(physics, len(data.test), context.seeds, "gap-f_p")}
+        recalibration = recalibration_only(physics, data, settings, context) if settings.fits.recalibrate else None
+        if recalibration is not None and recalibration.beats_f_p:
+            named = Discovery(before, describe(before), recalibration=recalibration, recalibrated=True)
+            return verify_answer(named, physics, data.test, settings, context, draws)
+    gap = gap_step(draws, data.test, settings, context.seeds)
+    return Discovery(before, describe(before), draws=draws, gap=gap, recalibration=recalibration)
+
+
+def recalibration_only(physics, data: Measurements, settings, context) -> Recalibration | None:
+    """f_p's priors refitted (:func:`otgb.discovery.workflow.recalibrate_step`) with the run's fit settings, on the
+    training and validation parts (at most ``score_rows`` of each)."""
+    fits, seeds = settings.fits, context.seeds
+    train, val = (at_most(part, fits.score_rows, seeds) for part in (data.train, data.val))
+    fitting = Fitting(physics, train, val, fits.steps, fits.batch, seeds.root, cache=context.cache, device=context.device,
+                      spread_samples=fits.spread_samples)  # fmt: skip
+    progress("f_p's priors are refitted: a shift of their bounds can hide from the disagreement map")
+    return recalibrate_step(fitting, data.train_inputs is None)
 
 
 def facts_of(session: Session) -> dict[str, Any]:

@@ -109,6 +109,14 @@ class Recalibration:
         agree = f"the priors of {', '.join(kept)} agree with the config's within their intervals" if kept else ""
         return "; ".join(part for part in (said, agree) if part)
 
+    def unconfirmed(self) -> str:
+        """Where the recalibration was tried and is not the answer: by how much it fits the validation part better."""
+        below, error = self.below_f_p
+        return (
+            f"f_p with its priors refitted ({', '.join(f'{r.parameter} {prior_text(r.prior)}' for r in self.parameters)}) fits "
+            f"the validation part no better than f_p alone by two standard errors ({below:+.3g} +- {error:.2g})"
+        )
+
     def alike(self, terms: Scores) -> str | None:
         """Where this recalibration beats f_p alone, and f_p plus named terms (their validation ``terms`` scores) and
         it do not beat one another by two standard errors: the verdict's part that says so; else None."""

@@ -35,7 +35,7 @@ def outcome(result: Discovery) -> str:
     """Which of :data:`OUTCOMES` the verdict is (``report.json``'s ``outcome``): named terms are confirmed only where the
     augmented physics is nearer to the test part than f_p alone beyond chance (:func:`closer_on_test`), else "named,
     not confirmed"; "partly found" names the terms that came closest, not the missing effect itself."""
-    if not result.before.any_significant:
+    if not result.before.any_significant and not result.recalibrated:
         return "nothing detected"
     if not result.explained:
         return "nothing found"
@@ -52,7 +52,7 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
     terms. ``report.json``'s ``verdict`` joins them with "; "."""
     kind = outcome(result)
     if kind == "nothing detected":
-        return ["no missing effect detected: " + result.sentence_before]
+        return ["no missing effect detected: " + result.sentence_before, *(r.unconfirmed() for r in [result.recalibration] if r)]
     if kind == "nothing found":
         return nothing_found(result, physics)
     blind = test_part_blind(result) if kind == "named, not confirmed" and closed_on_test(result) else None

@@ -242,17 +242,26 @@ def verify(
         found["intervals"] = fitted_intervals(fitting, named.fitted)
         shown = rounded(found["intervals"].centre) if found["intervals"] else "none (the fit is not at a minimum)"
         progress(f"intervals: {shown}")
-    if named.explained:  # each solve gets a model of its own, as each counts its solves (otgb.physics.solvers)
-        sources["augmented"] = simulate_candidate(named.model(physics), n, seeds, "gap-augmented")
-        found["before_on_test"] = locate_step(physics, data.test, settings, context, "f_p-test")
-        found["after"] = locate_step(named.model(physics), data.test, settings, context, "augmented")
     if named.found:
         found["paired_after"] = paired_after(named.fitted, physics, data, settings.tests.alpha)
+    return verify_answer(replace(named, **found), physics, data.test, settings, context, sources)
+
+
+def verify_answer(
+    named: Discovery, physics: PhysicsModel, test: Tensor, settings: DiscoverySettings, context: Context, sources: dict
+) -> Discovery:  # fmt: skip
+    """On the ``test`` part: the gap table of ``sources`` and, where the answer changes f_p, of its model, the
+    disagreement maps of f_p and of that model, and the test of which is nearer."""
+    found: dict[str, Any] = {}
+    if named.explained:  # each solve gets a model of its own, as each counts its solves (otgb.physics.solvers)
+        sources = {**sources, "augmented": simulate_candidate(named.model(physics), len(test), context.seeds, "gap-augmented")}
+        found["before_on_test"] = locate_step(physics, test, settings, context, "f_p-test")
+        found["after"] = locate_step(named.model(physics), test, settings, context, "augmented")
     progress("verifying on the test part")
-    result = replace(named, gap=gap_step(sources, data.test, settings, seeds), draws=sources, **found)
+    result = replace(named, gap=gap_step(sources, test, settings, context.seeds), draws=sources, **found)
     if not result.explained:
         return result
-    result = replace(result, closer=closer_step(result.model(physics), physics, data.test, settings, seeds))
+    result = replace(result, closer=closer_step(result.model(physics), physics, test, settings, context.seeds))
     return replace(result, sentence_after=sentence_after(result))
 
 
