@@ -1405,6 +1405,7 @@ def test_missing_effect_of_a_physics_model_built_in_python_takes_its_config_and_
     assert not list(tmp_path.iterdir()), "nothing written in the working directory"
     assert result.outcome == "nothing detected" and result.terms == [] and result.augmented_physics is None
     assert repr(result.physics) == repr(physics) and result.to_dict()["found"] is False
+    assert "f_p with its priors refitted (omega U(" in result.verdict and result.recalibrated == []  # tried, no better
     result.write(tmp_path / "report")
     assert (tmp_path / "report" / "report.md").is_file() and not (tmp_path / "report" / "augmented.yaml").exists()
     assert result.config["data"]["physics"]["init_args"]["omega"]["init_args"] == {"low": 1.0, "high": 2.0}
