@@ -26,9 +26,15 @@ LAWS = {
     "viscous": lambda v, c, v0, ratio: -c * v,
     "rational": lambda v, c, v0, ratio: -c * v / (1 + (v / v0) ** 2),
     "tanh": lambda v, c, v0, ratio: -c * v0 * np.tanh(v / v0),
-    "stribeck": lambda v, c, v0, ratio: -c * np.sign(v) * (1 + ratio * np.exp(-((v / v0) ** 2))),
-    "viscous_coulomb": lambda v, c, v0, ratio: -c * v - ratio * np.sign(v),
+    "stribeck": lambda v, c, v0, ratio: -c * _sign(v) * (1 + ratio * np.exp(-((v / v0) ** 2))),
+    "viscous_coulomb": lambda v, c, v0, ratio: -c * v - ratio * _sign(v),
 }
+
+
+def _sign(v):
+    """sign(v) smoothed over |v| < 1e-3 rad/s: a pendulum that comes to rest under dry friction makes an exact sign chatter,
+    and the solver's steps shrink without end."""
+    return np.tanh(v / 1e-3)
 
 
 def write(
