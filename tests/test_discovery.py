@@ -1474,7 +1474,9 @@ def test_discover_negative_control_names_nothing(tmp_path):
     run_dir = Path(done.stdout.strip().splitlines()[-1].split("report in ")[1])
     report = json.loads((tmp_path / run_dir / "report.json").read_text())
     assert report["found"] is False and report["terms"] == [] and report["verdict"].startswith("no missing effect detected")
-    assert done.stdout.strip().splitlines()[-2] == f"otgb discover: {report['verdict']}", "a one-part verdict: one line"
+    answer, tried = report["verdict_parts"]  # the map's answer, then f_p's refitted priors, which fit no better
+    assert done.stdout.strip().splitlines()[-3:-1] == [f"otgb discover: {answer}", f"  {tried}"], "the answer, then its part"
+    assert tried.startswith("f_p with its priors refitted (omega U(") and "fits the validation part no better" in tried
     assert set(report["gap"]) == {"f_p", "reference"} and not (tmp_path / run_dir / "augmented.yaml").exists()
     assert (tmp_path / run_dir / "report.md").read_text().count("figures/") >= 2
     assert not (tmp_path / run_dir / "checkpoints").exists(), "nothing to learn: no training"
