@@ -115,7 +115,7 @@ def table(out: Path) -> str:
             f"{p['name']} = {p['value']:.3g}" + (f" [{p['interval'][0]:.3g}, {p['interval'][1]:.3g}]" if p["interval"] else "")
             for t in s["terms"] for p in t["parameters"]
         ) or "-"  # fmt: skip
-        c2st = " / ".join(f"{s['c2st'][k]:.2f}" for k in ("f_p", "augmented", "reference") if k in s.get("c2st", {}))
+        c2st = " / ".join(f"{s['c2st'][k]:.2f}" if k in s.get("c2st", {}) else "-" for k in ("f_p", "augmented", "reference"))
         seed = path.parent.name.rpartition("seed")[2]
         right, minutes = s["right"], f"{s['seconds'] / 60:.1f}"
         rows.append(f"| {s['case']} | {seed} | {named} | {parameters} | {s['outcome']} | {c2st} | {right} | {minutes} |")
