@@ -123,6 +123,7 @@ class FormStep:
     tried: list[FormFit] = field(default_factory=list)
     adopted: FormFit | None = None
     alike_fits: list[FormFit] = field(default_factory=list)  # the other qualified forms it cannot be told from
+    replaced_from: FittedTerms | None = None  # the kept linear model the adopted form replaced terms of
 
     def said(self, physics) -> list[str]:
         """The verdict's part on the adopted form: what it replaces, by how many standard errors, what it cannot be told
@@ -148,8 +149,6 @@ class FormStep:
     def replaced_values(self) -> list:
         """The kept model's priors of the terms the adopted form replaced."""
         return [p for c, p in zip(self.replaced_from.candidates, self.replaced_from.priors) if c in self.adopted.offer.covers]
-
-    replaced_from: FittedTerms | None = None  # the kept linear model the adopted form replaced terms of
 
 
 def offers(physics, kept: FittedTerms, designs: dict, declared: list[dict]) -> list[Offer]:
@@ -245,15 +244,16 @@ def fit_form(offer: Offer, kept: FittedTerms, designs: dict, fitting: Fitting) -
     fitted = FittedTerms(CONSTANT, candidates, priors, heldout, problem.losses, [float(v) for v in p0[: len(priors)]])
     fitting.natural.setdefault(candidates[-1], abs(amplitude) or 1.0)  # its coefficient's size, for the later fits
     gap, error = difference(heldout, kept.heldout)
-    intervals = problem.intervals(p)
+    refused = _refused_by_fit(form, offer, values, gap, error)
+    intervals = problem.intervals(p) if refused is None else None  # the sandwich only for a form still in the running
     named = None if intervals is None else {k: intervals[len(priors) + i] for i, k in enumerate(form.parameters)}
     coefficient = None if intervals is None else intervals[len(priors) - 1]
-    refused = _refused(form, offer, values, named, gap, error)
+    refused = refused or _refused_by_intervals(form, named)
     return FormFit(offer, values, named, coefficient, fitted, gap, error, refused)
 
 
-def _refused(form, offer: Offer, values: dict[str, float], intervals: dict | None, gap: float, error: float) -> str | None:
-    """Why a fitted form is not taken, or None."""
+def _refused_by_fit(form, offer: Offer, values: dict[str, float], gap: float, error: float) -> str | None:
+    """Why a fitted form is not taken, from its parameters' values and its validation score; None if neither bars it."""
     outside = [k for k, v in values.items() if not offer.ranges[k][0] <= v <= offer.ranges[k][1]]
     if outside:
         return f"{', '.join(outside)} left the range it is looked for in"
@@ -261,9 +261,14 @@ def _refused(form, offer: Offer, values: dict[str, float], intervals: dict | Non
     if not math.isfinite(gap) or not (clears(gap, error) or (as_sparse and gap > 0)):
         more = "" if as_sparse else " (it has more parameters than the terms it replaces)"
         return f"it does not fit the validation part better by two standard errors{more}"
+    return None
+
+
+def _refused_by_intervals(form, intervals: dict | None) -> str | None:
+    """Why a form that fits well enough is not taken, from its parameters' intervals; None if they qualify it."""
     if intervals is None:
         return "its parameters have no interval (the fit is not at a minimum)"
-    limits = getattr(form, "library_values", {})
+    limits = form.library_values
     held = [f"{k} = {v:g}" for k, (low, high) in intervals.items() for v in limits.get(k, ()) if low <= v <= high]
     return f"its intervals hold {', '.join(held)}, where it is a library term" if held else None
 
@@ -276,7 +281,8 @@ def _start(offer: Offer, others: list, design) -> tuple[float, dict[str, float]]
     columns = [_column(design, v) for v in offer.variables] if design is not None else [None]
     if any(c is None for c in columns):
         return 1.0, {k: float(axis[len(axis) // 2]) for k, axis in zip(offer.ranges, axes)}
-    target = design.y - sum((v * _column(design, c.feature) for c, v in others if _column(design, c.feature) is not None), 0.0)
+    beside = [(v, _column(design, c.feature)) for c, v in others]
+    target = design.y - sum((v * column for v, column in beside if column is not None), 0.0)
     inputs = [torch.as_tensor(c, dtype=torch.float64) for c in columns]
     best = (math.inf, 1.0, {})
     for point in itertools.product(*axes):

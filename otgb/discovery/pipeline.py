@@ -13,14 +13,14 @@ from typing import Any
 import torch
 
 from otgb.analysis.components import component_analysis
-from otgb.discovery.draws import at_most, simulate_from_priors
+from otgb.discovery.draws import simulate_from_priors
 from otgb.discovery.known import pointwise_errors
 from otgb.discovery.locate import DisagreementMap, describe
 from otgb.discovery.log import DivergenceLog, progress, show_on_stderr
+from otgb.discovery.naming import fitting_for
 from otgb.discovery.paired import paired_check
 from otgb.discovery.recalibration import Recalibration
 from otgb.discovery.record import Discovery
-from otgb.discovery.refine import Fitting
 from otgb.discovery.result import DiscoveryResult
 from otgb.discovery.session import Session, stopped_by_signals
 from otgb.discovery.settings import Measurements
@@ -99,14 +99,10 @@ def nothing_detected(session: Session, data: Measurements, before: DisagreementM
 
 
 def recalibration_only(physics, data: Measurements, settings, context) -> Recalibration | None:
-    """f_p's priors refitted (:func:`otgb.discovery.workflow.recalibrate_step`) with the run's fit settings, on the
-    training and validation parts (at most ``score_rows`` of each)."""
-    fits, seeds = settings.fits, context.seeds
-    train, val = (at_most(part, fits.score_rows, seeds) for part in (data.train, data.val))
-    fitting = Fitting(physics, train, val, fits.steps, fits.batch, seeds.root, cache=context.cache, device=context.device,
-                      spread_samples=fits.spread_samples)  # fmt: skip
+    """f_p's priors refitted (:func:`otgb.discovery.workflow.recalibrate_step`) with the run's fitting, no grey-box's
+    design behind it (:func:`otgb.discovery.naming.fitting_for`)."""
     progress("f_p's priors are refitted: a shift of their bounds can hide from the disagreement map")
-    return recalibrate_step(fitting, data.train_inputs is None)
+    return recalibrate_step(fitting_for(physics, data, settings, {}, context), data.train_inputs is None)
 
 
 def facts_of(session: Session) -> dict[str, Any]:

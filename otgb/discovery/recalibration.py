@@ -79,14 +79,19 @@ class Recalibrated:
 
 @dataclass(frozen=True)
 class Recalibration:
-    """f_p with its refitted priors: each parameter's record, the recalibrated model, its validation scores and how
-    far below f_p alone's they lie, with that difference's standard error (common random numbers)."""
+    """f_p with its refitted priors: each parameter's record, the recalibrated model, its validation scores and f_p
+    alone's (with the same draws: common random numbers)."""
 
     parameters: list[Recalibrated]
     physics: PhysicsModel
     heldout: Scores
-    below_f_p: tuple[float, float]
+    f_p_heldout: Scores
     kept_as_given: list[str]  # parameters whose prior's kind is not refitted
+
+    @property
+    def below_f_p(self) -> tuple[float, float]:
+        """How far below f_p alone's its validation score lies, and that difference's standard error."""
+        return difference(self.heldout, self.f_p_heldout)
 
     @property
     def beats_f_p(self) -> bool:
@@ -189,9 +194,8 @@ def recalibrate(
         for i, n in enumerate(names)
     ]
     heldout = discrepancies(recalibrated, [], [], val, seed)
-    below = difference(heldout, discrepancies(physics, [], [], val, seed))
     kept = [n for n in own if n not in names]
-    return Recalibration(records, recalibrated, heldout, below, kept)
+    return Recalibration(records, recalibrated, heldout, discrepancies(physics, [], [], val, seed), kept)
 
 
 @dataclass(frozen=True)

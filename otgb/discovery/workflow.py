@@ -53,7 +53,7 @@ from otgb.discovery.paired import PairedCheck
 from otgb.discovery.recalibration import Recalibration, recalibrate
 from otgb.discovery.record import Discovery
 from otgb.discovery.refine import FittedTerms, Fitting
-from otgb.discovery.scores import beats, difference, discrepancies, sample_scores
+from otgb.discovery.scores import beats, difference, sample_scores
 from otgb.discovery.search import SearchStep, Unsupported, search
 from otgb.discovery.seeds import Seeds
 from otgb.discovery.settings import Context, DiscoverySettings, Measurements
@@ -202,8 +202,7 @@ def both_step(
     progress(f"f_p's priors recalibrated beside the terms: {better:+.3g} +- {error:.2g} below the terms alone")
     if not (beats(together.heldout, terms.heldout) and beats(together.heldout, alone.heldout)):
         return None
-    f_p = discrepancies(fitting.physics, [], [], fitting.val, fitting.seed)
-    both = replace(beside, physics=base, heldout=together.heldout, below_f_p=difference(together.heldout, f_p))
+    both = replace(beside, physics=base, heldout=together.heldout, f_p_heldout=alone.f_p_heldout)  # against f_p alone
     return both, family
 
 
