@@ -21,12 +21,11 @@ import argparse
 import json
 from pathlib import Path
 
+from discover_file import discover_file
 from scipy_pendulum import write
 
 from otgb.reports import write_between
-from otgb.runs import launch_otgb, machine, newest
 
-ROOT = Path(__file__).parents[1]
 DISCOVER = ["--data.hidden_effect=[]", "--data.measurement_noise=0.02", "--data.simulation_budget=32000"]
 # name -> (law, c, v0, ratio, restoring force's scale, what must be named: a form's name, None for library terms
 # only, or "omega" for a recalibration of omega's prior and no term)
@@ -54,19 +53,11 @@ def run_case(case: str, seed: int, out: Path) -> dict:
     law, c, v0, ratio, restoring, _ = CASES[case]
     folder.mkdir(parents=True, exist_ok=True)
     measured = write(folder / "measured.csv", law, c, v0, ratio, 1000, seed, 0.02, restoring)
-    args = ["discover", "--config", str(ROOT / "configs" / "pendulum.yaml"), f"--data.measured_path={measured.name}"]
-    args += [*DISCOVER, f"--seed_everything={seed}", f"--data.seed={seed}", f"--discover.seed={seed}"]
-    args += ["--trainer.enable_progress_bar=false", "--discover.fit_cache=null"]
-    (folder / "discover.log").unlink(missing_ok=True)
-    done = launch_otgb(args, folder / "discover.log", cwd=folder)
-    report = newest(folder, "runs/*/version_*/report.json")
-    summary = summarise(case, json.loads(report.read_text()) if report and done.returncode == 0 else None)
-    summary |= {"seconds": done.seconds, "returncode": done.returncode, "machine": machine()}
+    report, timing = discover_file(folder, "pendulum.yaml", measured.name, DISCOVER, seed)
+    summary = summarise(case, report) | timing
     measured.unlink()  # rewritten by the script from its seed; the report keeps what was found
-    for name in ("report.json", "report.md") if report else ():  # kept beside the summary (runs/ is not committed)
-        (folder / name).write_text((report.parent / name).read_text())
     (folder / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(f"{folder.name}: exit {done.returncode} in {done.seconds / 60:.1f} min: {summary['terms']}")
+    print(f"{folder.name}: exit {timing['returncode']} in {timing['seconds'] / 60:.1f} min: {summary['terms']}")
     return summary
 
 

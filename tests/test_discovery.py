@@ -1525,7 +1525,7 @@ def _forced_pendulum(path: Path, n: int = 200, noise: float = 0.05) -> Path:
     sys.path.insert(0, str(ROOT / "scripts"))
     from scipy_pendulum import csv_rows
 
-    rows = csv_rows(np.random.default_rng(7), n, lambda s, _: 0.6 * np.cos(2.0 * s), noise, record=True)
+    rows = csv_rows(np.random.default_rng(7), n, lambda _: lambda s, _: 0.6 * np.cos(2.0 * s), noise, record=True)
     path.write_text("\n".join(rows) + "\n")
     return path
 

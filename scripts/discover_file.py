@@ -1,0 +1,30 @@
+"""What the benchmarks on files from independent solvers share: ``otgb discover`` on one measured file in a case's
+folder, seeded, timed, its report.json and report.md kept beside the case's summary (``runs/`` is not committed)::
+
+    from discover_file import discover_file
+    report, timing = discover_file(folder, "pendulum.yaml", "measured.csv", overrides, seed)
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from otgb.runs import launch_otgb, machine, newest
+
+ROOT = Path(__file__).parents[1]
+
+
+def discover_file(folder: Path, config: str, measured: str, overrides: list[str], seed: int) -> tuple[dict | None, dict]:
+    """The report of ``otgb discover`` on ``folder/measured`` with ``configs/config`` (None where it failed) and the
+    run's wall time, exit status and machine."""
+    args = ["discover", "--config", str(ROOT / "configs" / config), f"--data.measured_path={measured}", *overrides]
+    args += [f"--seed_everything={seed}", f"--data.seed={seed}", f"--discover.seed={seed}"]
+    args += ["--trainer.enable_progress_bar=false", "--discover.fit_cache=null"]  # timed: every fit made
+    (folder / "discover.log").unlink(missing_ok=True)  # the log of this attempt only
+    done = launch_otgb(args, folder / "discover.log", cwd=folder)
+    report = newest(folder, "runs/*/version_*/report.json")
+    for name in ("report.json", "report.md") if report else ():
+        (folder / name).write_text((report.parent / name).read_text())
+    found = json.loads(report.read_text()) if report and done.returncode == 0 else None
+    return found, {"seconds": done.seconds, "returncode": done.returncode, "machine": machine()}
