@@ -24,6 +24,7 @@ from torch import nn
 from otgb.data import generate_measured
 from otgb.data.measured import CHUNK, simulate_in_chunks
 from otgb.discovery import refine
+from otgb.discovery.after_fix import beside_f_p, sentence_after
 from otgb.discovery.closer import Closeness, closer
 from otgb.discovery.details import cross_check_row, family_section, search_section
 from otgb.discovery.discrepancy import discrepancy, row_terms
@@ -51,14 +52,12 @@ from otgb.discovery.variation import choose_family
 from otgb.discovery.verdict import (
     OUTCOMES,
     OUTSIDE_THE_LIBRARY,
-    beside_f_p,
     confirmed,
     flags,
     low_power,
     named_divergences,
     outcome,
     outside_the_library,
-    sentence_after,
     share_removed,
     undertrained_text,
     verdict,
@@ -230,9 +229,14 @@ def test_the_sentence_after_the_fix_says_how_f_p_alone_fared_on_the_same_test_pa
         said = sentence_after(result)
         assert said.startswith(describe(silent, b_name="augmented-physics")) and said.endswith(beside_f_p(f_p)), said
         told = "; but the gap table's C2ST tells the augmented physics from the measurements (C2ST 0.70, the Reference's"
-        assert (told in said) == clause, said
-    result.after = f_p  # a map that differs says so itself: no clause
+        assert (told in said) == clause and ("combination of values" in said) == clause, said
+        assert "does not tell them apart" not in said, "the two judges agree where the C2ST is within the Reference's"
+    result.after = f_p  # a map that differs says so itself: no clause where the C2ST agrees with it
     assert "gap table's C2ST" not in sentence_after(result)
+    result.gap["augmented"] = {"c2st": 0.55}  # the map sees a difference, the C2ST does not: which, and why
+    said = "; the gap table's C2ST does not tell them apart (C2ST 0.55, the Reference's 0.49 +- 0.05): the map's "
+    said += f"difference lies in {cells} of 50 cells"
+    assert said in sentence_after(result), sentence_after(result)
 
 
 def test_locate_tests_whole_trajectories_where_no_single_step_differs():

@@ -7,7 +7,6 @@ import math
 
 from otgb.discovery.families import centre
 from otgb.discovery.library import fixed_in_space, implausible, term_name
-from otgb.discovery.locate import DisagreementMap, describe
 from otgb.discovery.record import Discovery
 from otgb.discovery.scores import term_names
 from otgb.discovery.verify import c2st_tells_apart
@@ -354,32 +353,6 @@ def _holding_zero(result: Discovery) -> list[tuple[float, float]]:
 
 def kept_terms(result: Discovery) -> list[tuple]:
     return list(zip(result.fitted.candidates, result.fitted.priors)) if result.found else []
-
-
-def sentence_after(result: Discovery) -> str:
-    """The sentence on the augmented physics against the test part: its disagreement map; where the map sees no
-    difference but the gap table's C2ST does, that; the same map of f_p alone (:func:`beside_f_p`); the paired check."""
-    sentence = describe(result.after, b_name="augmented-physics") + " (on the test part, which no fit saw)"
-    if not result.after.any_significant and (told := c2st_tells_apart(result.gap, "augmented")):
-        sentence += (
-            f"; but the gap table's C2ST tells the augmented physics from the measurements ({told}): a difference "
-            "remains that the map does not see"
-        )
-    sentence += beside_f_p(result.before_on_test)
-    return sentence + (f"; {result.paired_after.sentence()}" if result.paired_after is not None else "")
-
-
-def beside_f_p(before_on_test: DisagreementMap) -> str:
-    """The same tests of f_p alone on the same test part, for the sentence on the augmented physics: an agreement
-    after the fix means something only where f_p alone disagrees with these trajectories."""
-    if not before_on_test.any_significant:
-        return "; nor between f_p alone and them, so this agreement alone does not show what the fix changed"
-    cells = int(before_on_test.significant.sum())
-    if cells:
-        where = f"in {cells} of {before_on_test.significant.numel()} cells"
-    else:
-        where = "as whole trajectories" if before_on_test.whole_significant else "on their recorded inputs"
-    return f"; f_p alone, tested the same way, differs from them {where}"
 
 
 def undertrained_text(gain: float, error: float, n: int, greybox: float, alone: float) -> str:

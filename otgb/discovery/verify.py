@@ -84,4 +84,12 @@ def c2st_tells_apart(gap: dict[str, dict[str, float]], source: str) -> str | Non
     judged, reference = gap.get(source, {}), gap.get("reference", {})
     if "c2st" not in judged or "c2st_std" not in reference or not judged["c2st"] - 0.5 > 2 * reference["c2st_std"]:
         return None
+    return c2st_numbers(gap, source)
+
+
+def c2st_numbers(gap: dict[str, dict[str, float]], source: str) -> str | None:
+    """``source``'s C2ST beside the Reference's, as the verdict quotes them; None where either is missing."""
+    judged, reference = gap.get(source, {}), gap.get("reference", {})
+    if "c2st" not in judged or "c2st_std" not in reference:
+        return None
     return f"C2ST {judged['c2st']:.2f}, the Reference's {reference['c2st']:.2f} +- {reference['c2st_std']:.2f}"

@@ -29,6 +29,7 @@ from typing import Any
 
 from torch import Tensor
 
+from otgb.discovery.after_fix import sentence_after
 from otgb.discovery.draws import GREYBOX, at_most, generated, simulate_candidate, simulate_from_priors
 from otgb.discovery.families import centre
 from otgb.discovery.forms import FormStep, form_step
@@ -57,7 +58,7 @@ from otgb.discovery.scores import beats, difference, sample_scores
 from otgb.discovery.search import SearchStep, Unsupported, search
 from otgb.discovery.seeds import Seeds
 from otgb.discovery.settings import Context, DiscoverySettings, Measurements
-from otgb.discovery.verdict import sentence_after, undertrained_text
+from otgb.discovery.verdict import undertrained_text
 from otgb.discovery.verify import closer_step, gap_step, paired_after
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
