@@ -7,6 +7,7 @@ folder, seeded, timed, its report.json and report.md kept beside the case's summ
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
@@ -28,3 +29,14 @@ def discover_file(folder: Path, config: str, measured: str, overrides: list[str]
         (folder / name).write_text((report.parent / name).read_text())
     found = json.loads(report.read_text()) if report and done.returncode == 0 else None
     return found, {"seconds": done.seconds, "returncode": done.returncode, "machine": machine()}
+
+
+def case_parser(description: str, cases: dict, seeds: list[int]) -> argparse.ArgumentParser:
+    """The arguments such a benchmark takes: its results folder, the cases and seeds to run, and ``--table``, a page to
+    gather the finished runs into instead."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--cases", nargs="+", choices=sorted(cases), default=list(cases))
+    parser.add_argument("--seeds", nargs="+", type=int, default=seeds)
+    parser.add_argument("--table", type=Path, help="only gather the finished runs into this Markdown page's markers")
+    return parser

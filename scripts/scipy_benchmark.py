@@ -17,11 +17,10 @@ interrupted benchmark resumes; ``--table`` writes the gathered runs between the 
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
-from discover_file import discover_file
+from discover_file import case_parser, discover_file
 from scipy_pendulum import write
 
 from otgb.reports import write_between
@@ -125,11 +124,7 @@ START, END = "<!-- table: scripts/scipy_benchmark.py --table -->", "<!-- end for
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--cases", nargs="+", choices=sorted(CASES), default=list(CASES))
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0])
-    parser.add_argument("--table", type=Path, help="only gather the finished runs into this Markdown page's markers")
+    parser = case_parser(__doc__.split("\n\n")[0], CASES, [0])
     args = parser.parse_args()
     if args.table:
         write_between(args.table, START, END, table(args.out))

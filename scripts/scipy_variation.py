@@ -17,14 +17,13 @@ resumes; ``--table`` writes the gathered runs between the markers of the page gi
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 from pathlib import Path
 
 import scipy_advdiff
 import scipy_pendulum
-from discover_file import discover_file
+from discover_file import case_parser, discover_file
 
 from otgb.reports import write_between
 
@@ -147,12 +146,8 @@ START, END = "<!-- table: scripts/scipy_variation.py --table -->", "<!-- end var
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--cases", nargs="+", choices=sorted(CASES), default=list(CASES))
+    parser = case_parser(__doc__.split("\n\n")[0], CASES, [0, 1, 2, 3, 4])
     parser.add_argument("--sizes", nargs="+", type=int, default=[3000, 1000])
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3, 4])
-    parser.add_argument("--table", type=Path, help="only gather the finished runs into this Markdown page's markers")
     args = parser.parse_args()
     if args.table:
         write_between(args.table, START, END, table(args.out))
