@@ -14,6 +14,7 @@ from otgb.physics import (
     ConstantDrain,
     FieldModel,
     FitzHughNagumoReaction,
+    LibraryTerm,
     Pendulum,
     Prior,
     ReactionDiffusion,
@@ -165,3 +166,32 @@ def test_reaction_diffusion_shapes_frames_and_measured_step(generator):
     fine = model.with_hidden_effect(term, step_size=1e-3).simulate(x0, theta, k)
     coarse = model.with_hidden_effect(term, step_size=1e-2).simulate(x0, theta, k)
     assert (fine - coarse).abs().max() < 1e-5, "the measured data's RK4 step is converged"
+
+
+def test_the_scipy_rod_of_the_variation_benchmark_matches_otgbs_solve_with_the_same_decay(tmp_path):
+    """scripts/scipy_advdiff.py (SciPy's DOP853 on the method of lines) against AdvectionDiffusion plus -k T (otgb's
+    RK4): the two solvers agree far below the files' noise (sd 0.01), so a benchmark on those files measures discovery,
+    not a difference of discretisations; each trajectory draws its own rate where asked."""
+    import sys
+    from pathlib import Path
+
+    import numpy as np
+
+    sys.path.insert(0, str(Path(__file__).parents[1] / "scripts"))
+    import scipy_advdiff
+
+    constant = np.load(scipy_advdiff.write(tmp_path / "rod.npz", 0.6, 0.0, 4, 3, 0.0))["y"]
+    rng, draws = np.random.default_rng(3), []  # the script's draws, in its order: alpha, amplitude, then the noise
+    for _ in range(4):
+        draws.append((rng.uniform(0.01, 0.1), rng.uniform(0.5, 1.5)))
+        rng.normal(0, 0.0, (50, 20))
+    model = AdvectionDiffusion().with_hidden_effect([LibraryTerm("T", "T", Constant(-0.6))])
+    profile = torch.sin(math.pi * model.grid / 2)
+    x0 = torch.stack([a * profile for _, a in draws]).unsqueeze(1)
+    theta = torch.tensor([[alpha] for alpha, _ in draws])
+    solved = model.simulate(x0, theta, model.sample_effect_params(4, torch.Generator().manual_seed(0)))
+    assert constant.shape == (4, 50, 1, 20)
+    assert float((solved - torch.from_numpy(constant)).abs().max()) < 1e-4
+    varying = np.load(scipy_advdiff.write(tmp_path / "varying.npz", 0.6, 0.3, 4, 3, 0.0))["y"]
+    late = varying[:, -1, 0].sum(1) / constant[:, -1, 0].sum(1)  # the last frame's heat against the constant rate's
+    assert late.std() > 0.01, late
