@@ -48,6 +48,7 @@ from otgb.discovery.scores import Scores, beats, discrepancies
 from otgb.discovery.search import SearchStep, best_subsets, search, sparsest_kept, subset_values, supported
 from otgb.discovery.seeds import Seeds
 from otgb.discovery.settings import Context, DiscoverySettings, Measurements
+from otgb.discovery.theta_terms import theta_candidates, theta_step
 from otgb.discovery.variation import choose_family
 from otgb.discovery.verdict import (
     OUTCOMES,
@@ -1350,6 +1351,34 @@ def test_the_search_drops_a_term_whose_interval_holds_zero_and_keeps_the_rest(tm
             "below_f_p": 7.0, "standard_error": 0.3, "validation_trajectories": 100}  # fmt: skip
     text = "\n".join(search_section(report | {"search": [step], "route": "library search"}))
     assert "95 % intervals holding zero: `angle` on dvelocity/dt (coefficient -0.04, interval [" in text
+
+
+def test_terms_that_scale_with_theta_are_offered_as_each_local_feature_times_each_parameter_and_its_square():
+    pendulum = Pendulum()
+    candidates = theta_candidates(pendulum, ["velocity"])
+    features = [c.feature for c in candidates]
+    assert {"omega", "omega^2", "omega*velocity", "omega^2*sin(angle)", "omega*sign(velocity)"} <= set(features)
+    assert len(features) == len(set(features)) == 28 and {c.component for c in candidates} == {"velocity"}
+    assert not any("d_" in f or "lap(" in f for f in features), "local features only, as the library search's"
+    fitting = Fitting(pendulum, _draws(pendulum, 20, 1), _draws(pendulum, 20, 2), 2, 16, 0)
+    asked = []
+    assert theta_step(fitting, None, Scores([0.1]), ["velocity"], lambda: asked.append(1) or False) is None
+    assert asked == [1], "without a remainder the answer stays and nothing is searched"
+
+
+@pytest.mark.slow
+def test_a_friction_that_scales_with_omega_is_named_by_the_theta_search_where_a_constant_friction_leaves_a_remainder():
+    """Pendulums whose friction grows with their frequency (-0.5 omega v): a constant viscous friction fitted to them is
+    the answer a library without theta gives; the search on theta-dependent terms names omega*velocity, within 10 %,
+    and it fits the validation part better than that answer by two standard errors."""
+    pendulum = Pendulum()
+    dgp = pendulum.with_hidden_effect([LibraryTerm("omega*velocity", "velocity", Constant(-0.5))])
+    fitting = Fitting(pendulum, _draws(dgp, 300, 1), _draws(dgp, 150, 2), 30, 256, 0)
+    constant = fitting([Candidate("velocity", "velocity")], [-0.8])
+    found = theta_step(fitting, constant, constant.heldout, ["velocity"], lambda: True)
+    assert found is not None and found.kept is not None, found
+    assert [c.feature for c in found.kept.candidates] == ["omega*velocity"]
+    assert abs(found.kept.priors[0].value + 0.5) < 0.05 and found.versus_answer[0] > 2 * found.versus_answer[1]
 
 
 def test_the_cross_check_gives_a_share_of_the_gap_only_where_the_validation_part_sees_the_lead():

@@ -17,6 +17,7 @@ from otgb.discovery.recalibration import Recalibration
 from otgb.discovery.refine import FittedTerms
 from otgb.discovery.regression import SelectedTerm, Selection
 from otgb.discovery.search import SearchStep, Unsupported
+from otgb.discovery.theta_terms import ThetaSearch
 from otgb.discovery.variation import FamilyChoice
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
@@ -55,6 +56,7 @@ class Discovery:
     recalibration: Recalibration | None = None  # f_p's theta priors refitted (otgb.discovery.recalibration)
     recalibrated: bool = False  # whether the answer holds f_p with those priors (alone, or beneath the named terms)
     forms: FormStep | None = None  # the parametric forms weighed against the linear terms (otgb.discovery.forms)
+    theta_search: ThetaSearch | None = None  # terms that scale with theta, searched where the answer left a remainder
 
     @property
     def found(self) -> bool:

@@ -53,6 +53,7 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
         "route": result.route if result.found else None,
         "search_reason": result.search_reason,
         "search": [_search_step_dict(step) for step in result.search],
+        "theta_search": _theta_search_dict(result.theta_search),
         "search_unsupported": [
             {
                 "feature": u.candidate.feature,
@@ -123,6 +124,22 @@ def _search_step_dict(step: Any) -> dict[str, Any]:
         "standard_error": step.versus_f_p[1],
         "validation_trajectories": len(step.fitted.heldout.rows),
         "alternatives": [[{"feature": c.feature, "component": c.component} for c in a] for a in step.alternatives],
+    }
+
+
+def _theta_search_dict(theta: Any) -> dict[str, Any] | None:
+    """The search on theta-dependent terms, where it ran: why, its path, what it kept (None: the answer stayed) and by
+    how much that fits the validation part better than the answer."""
+    if theta is None:
+        return None
+    kept = None if theta.kept is None else [{"feature": c.feature, "component": c.component} for c in theta.kept.candidates]
+    better, error = theta.versus_answer
+    return {
+        "reason": theta.reason,
+        "path": [_search_step_dict(step) for step in theta.steps],
+        "kept": kept,
+        "below_answer": better if kept else None,
+        "standard_error": error if kept else None,
     }
 
 

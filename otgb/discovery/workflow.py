@@ -30,7 +30,7 @@ from typing import Any
 from torch import Tensor
 
 from otgb.discovery.after_fix import sentence_after
-from otgb.discovery.draws import GREYBOX, at_most, generated, simulate_candidate, simulate_from_priors
+from otgb.discovery.draws import GREYBOX, acting_components, at_most, generated, simulate_candidate, simulate_from_priors
 from otgb.discovery.families import centre
 from otgb.discovery.forms import FormStep, form_step
 from otgb.discovery.intervals import fitted_intervals
@@ -54,10 +54,11 @@ from otgb.discovery.paired import PairedCheck
 from otgb.discovery.recalibration import Recalibration, recalibrate
 from otgb.discovery.record import Discovery
 from otgb.discovery.refine import FittedTerms, Fitting
-from otgb.discovery.scores import beats, difference, sample_scores
+from otgb.discovery.scores import beats, difference, discrepancies, sample_scores
 from otgb.discovery.search import SearchStep, Unsupported, search
 from otgb.discovery.seeds import Seeds
 from otgb.discovery.settings import Context, DiscoverySettings, Measurements
+from otgb.discovery.theta_terms import ThetaSearch, theta_step
 from otgb.discovery.verdict import undertrained_text
 from otgb.discovery.verify import closer_step, gap_step, paired_after
 from otgb.physics.augmented import Augmented
@@ -135,14 +136,54 @@ def name_and_add(
         family, weighed = None, None
     terms, family = answer.terms, answer.family or family
     dropped = dropped + (answer.family.dropped if answer.family else [])
+    theta = theta_terms_step(fitting, answer, physics, settings, context) if not settings.library.theta_products else None
+    if theta is not None and theta.kept is not None:
+        family = family_step(theta.kept, answer_fitting(fitting, answer), settings.fits.families)
+        dropped = dropped + family.dropped
+        terms = family.choice.fitted
     return Discovery(
         before, describe(before), selections, cross_check, terms,
         family=family.choice if family else None, evidence=weighed.comparisons if weighed else [],
         added=weighed.added if weighed else [], dropped=dropped, correction_share=naming.correction_share,
         search=searched.steps, unsupported=searched.unsupported,
-        route="library search" if searched.replaced else "f_phi regression", search_reason=reason, undertrained=unused,
-        recalibration=recalibration, recalibrated=recalibrated, forms=formed,
+        route=route_name(searched, theta), search_reason=reason, undertrained=unused,
+        recalibration=recalibration, recalibrated=recalibrated, forms=formed, theta_search=theta,
     )  # fmt: skip
+
+
+def route_name(searched: Searched, theta: ThetaSearch | None) -> str:
+    """Which route named the kept terms."""
+    if theta is not None and theta.kept is not None:
+        return "library search on terms that scale with theta"
+    return "library search" if searched.replaced else "f_phi regression"
+
+
+def answer_fitting(fitting: Fitting, answer: Answer) -> Fitting:
+    """``fitting`` on the answer's base: f_p with its recalibrated priors where the answer holds them."""
+    return replace(fitting, physics=answer.recalibration.physics) if answer.recalibrated else fitting
+
+
+def theta_terms_step(
+    fitting: Fitting, answer: Answer, physics: PhysicsModel, settings: DiscoverySettings, context: Context
+) -> ThetaSearch | None:
+    """The search on terms that scale with theta (:mod:`otgb.discovery.theta_terms`) where the answer's model still
+    disagrees with the validation part."""
+    on_base = answer_fitting(fitting, answer)
+    base, terms = on_base.physics, answer.terms
+    model = terms.model(base) if terms is not None else Augmented(base, [])
+    if terms is not None:
+        scores = terms.heldout
+    elif answer.recalibrated:
+        scores = answer.recalibration.heldout
+    else:
+        scores = (
+            answer.recalibration.f_p_heldout if answer.recalibration else discrepancies(base, [], [], on_base.val, on_base.seed)
+        )
+
+    def remainder() -> bool:
+        return locate_step(model, on_base.val, settings, context, "theta-check").any_significant
+
+    return theta_step(on_base, terms, scores, acting_components(physics), remainder)
 
 
 def forms_step(weighed: Weighed, designs: dict, fitting: Fitting, settings: DiscoverySettings, context: Context) -> FormStep:
