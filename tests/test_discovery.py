@@ -25,6 +25,7 @@ from otgb.data import generate_measured
 from otgb.data.measured import CHUNK, simulate_in_chunks
 from otgb.discovery import refine
 from otgb.discovery.after_fix import beside_f_p, sentence_after
+from otgb.discovery.answer import Answer
 from otgb.discovery.closer import Closeness, closer
 from otgb.discovery.details import cross_check_row, family_section, search_section
 from otgb.discovery.discrepancy import discrepancy, row_terms
@@ -1362,7 +1363,7 @@ def test_terms_that_scale_with_theta_are_offered_as_each_local_feature_times_eac
     assert not any("d_" in f or "lap(" in f for f in features), "local features only, as the library search's"
     fitting = Fitting(pendulum, _draws(pendulum, 20, 1), _draws(pendulum, 20, 2), 2, 16, 0)
     asked = []
-    assert theta_step(fitting, None, Scores([0.1]), ["velocity"], lambda: asked.append(1) or False) is None
+    assert theta_step(fitting, Answer(None, False, None), ["velocity"], lambda model, val: asked.append(1) or False) is None
     assert asked == [1], "without a remainder the answer stays and nothing is searched"
 
 
@@ -1375,7 +1376,7 @@ def test_a_friction_that_scales_with_omega_is_named_by_the_theta_search_where_a_
     dgp = pendulum.with_hidden_effect([LibraryTerm("omega*velocity", "velocity", Constant(-0.5))])
     fitting = Fitting(pendulum, _draws(dgp, 300, 1), _draws(dgp, 150, 2), 30, 256, 0)
     constant = fitting([Candidate("velocity", "velocity")], [-0.8])
-    found = theta_step(fitting, constant, constant.heldout, ["velocity"], lambda: True)
+    found = theta_step(fitting, Answer(None, False, constant), ["velocity"], lambda model, val: True)
     assert found is not None and found.kept is not None, found
     assert [c.feature for c in found.kept.candidates] == ["omega*velocity"]
     assert abs(found.kept.priors[0].value + 0.5) < 0.05 and found.versus_answer[0] > 2 * found.versus_answer[1]

@@ -29,6 +29,13 @@ def naming_section(report: dict[str, Any]) -> list[str]:
     """How f_phi was named: its regression per component, each named term's regression figures, then the evidence,
     the cross-checks, the search, the diverged solves and the prior family."""
     lines = ["## What the learned correction is", ""]
+    if report.get("evidence_on"):
+        lines += [
+            f"Every held-out score below that decides between models is computed on {report['evidence_on']}; where a "
+            "cross-fitted score is meant, 'the validation part' is read as those trajectories, each scored by fits that "
+            "did not see it (docs/discovery.md, Cross-fitted evidence).",
+            "",
+        ]
     if report["correction_share"] is not None:
         lines.append(
             f"The grey-box's correction f_phi has {report['correction_share']:.3g} times the size (RMS) of f_p "
@@ -65,6 +72,7 @@ def naming_section(report: dict[str, Any]) -> list[str]:
     ]
     lines += [cross_check_row(row) for row in report["cross_check"]]
     lines += search_section(report)
+    lines += theta_search_section(report.get("theta_search"))
     if report["dropped_by_heldout_check"]:
         lines.append("")
         dropped = ", ".join(f"`{d['feature']}`" for d in report["dropped_by_heldout_check"])
@@ -231,27 +239,47 @@ def search_section(report: dict) -> list[str]:
     lines = ["", "### Library search: every local candidate fitted together, then the best subset of each size", ""]
     if report.get("search_reason"):
         lines += [f"It ran because {report['search_reason']}.", ""]
-    first = report["search"][0]
-    lines += [
-        f"Held-out energy: on the {first['validation_trajectories']} validation trajectories, lower is better; a model is "
+    lines += path_table(report["search"], report.get("search_unsupported"))
+    return lines + ["", f"Terms named by: **{report['route']}**." if report["route"] else "Nothing kept."]
+
+
+def theta_search_section(theta: dict | None) -> list[str]:
+    """The search on terms that scale with theta, where it ran: why, its path and whether its model replaced the
+    answer's terms."""
+    if not theta:
+        return []
+    lines = ["", "### Terms that scale with theta", "", f"Searched because {theta['reason']}.", ""]
+    lines += path_table(theta["path"], theta.get("unsupported")) if theta["path"] else ["The search fitted no model."]
+    if theta["kept"]:
+        kept = ", ".join(f"{code(t['feature'])} on d{t['component']}/dt" for t in theta["kept"])
+        better = f"{theta['below_answer']:.3g} ± {theta['standard_error']:.2g}"
+        return lines + ["", f"Its model, {kept}, replaces the answer's terms: it fits the validation part better by {better}."]
+    return lines + ["", "No model of the search fits the validation part better than the answer by two standard errors."]
+
+
+def path_table(steps: list[dict], unsupported: list[dict] | None) -> list[str]:
+    """A library search's models, each on the validation part against f_p alone, and the terms it dropped."""
+    first = steps[0]
+    lines = [
+        f"Held-out energy: on {first['validation_trajectories']} held-out trajectories, lower is better; a model is "
         "kept only where it is below f_p alone's by more than two standard errors of the difference.",
         "",
         "| terms | residual of g (relative RMS) | held-out energy | below f_p alone's (± standard error) |",
         "|---|---|---|---|",
         f"| f_p alone | - | {first['heldout_energy'] + first['below_f_p']:.4g} | - |",
     ]
-    for step in report["search"]:
+    for step in steps:
         terms = ", ".join(f"{code(t['feature'])} on d{t['component']}/dt" for t in step["terms"])
         below = f"{step['below_f_p']:.3g} ± {step['standard_error']:.2g}"
         lines.append(f"| {terms} | {step['g_residual']:.3f} | {step['heldout_energy']:.4g} | {below} |")
-    if unsupported := report.get("search_unsupported"):
+    if unsupported:
         dropped = "; ".join(
             f"{code(u['feature'])} on d{u['component']}/dt (coefficient {u['coefficient']:.3g}, interval "
             f"[{u['interval'][0]:.3g}, {u['interval'][1]:.3g}])"
             for u in unsupported
         )
         lines += ["", f"Dropped from the search's model, their coefficients' 95 % intervals holding zero: {dropped}."]
-    return lines + ["", f"Terms named by: **{report['route']}**." if report["route"] else "Nothing kept."]
+    return lines
 
 
 def forms_section(forms: dict | None) -> list[str]:

@@ -38,13 +38,14 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from otgb.discovery.chunked import Simulate
+from otgb.discovery.crossfit import cross_fitted
 from otgb.discovery.discrepancy import Target
 from otgb.discovery.evidence import Comparison
 from otgb.discovery.families import CONSTANT
@@ -53,10 +54,10 @@ from otgb.discovery.lbfgs import minimise
 from otgb.discovery.library import Candidate, fixed_in_space, signed_kind, term_name
 from otgb.discovery.log import progress
 from otgb.discovery.refine import FitSample, FittedTerms, Fitting
-from otgb.discovery.scores import beats, clears, difference, discrepancies
+from otgb.discovery.scores import Scores, beats, clears, difference, discrepancies
 from otgb.physics.augmented import Augmented
 from otgb.physics.forms import FRICTION_FORMS, Range, form_feature, form_named
-from otgb.physics.priors import Constant
+from otgb.physics.priors import Constant, Prior
 from otgb.physics.terms import FormTerm, LibraryTerm
 
 GRID_POINTS = 400  # points of the start's grid over a form's parameters, at most
@@ -238,9 +239,8 @@ def fit_form(offer: Offer, kept: FittedTerms, designs: dict, fitting: Fitting) -
     p0 = torch.tensor([v for _, v in others] + [amplitude] + problem.to_fitted(start), dtype=torch.float64)
     p = problem.fit(p0)
     values = problem.values_of(p)
-    candidates = [c for c, _ in others] + [Candidate(form_feature(offer.form, offer.variables, values), offer.component)]
-    priors = [Constant(float(v)) for v in p[: len(others) + 1]]
-    heldout = discrepancies(fitting.physics, candidates, priors, fitting.val, fitting.seed, device=fitting.device)
+    candidates, priors = _terms_of(problem, offer, [c for c, _ in others], p)
+    heldout = _heldout(fitting, offer, [c for c, _ in others], p0, (candidates, priors))
     fitted = FittedTerms(CONSTANT, candidates, priors, heldout, problem.losses, [float(v) for v in p0[: len(priors)]])
     fitting.natural.setdefault(candidates[-1], abs(amplitude) or 1.0)  # its coefficient's size, for the later fits
     gap, error = difference(heldout, kept.heldout)
@@ -250,6 +250,29 @@ def fit_form(offer: Offer, kept: FittedTerms, designs: dict, fitting: Fitting) -
     coefficient = None if intervals is None else intervals[len(priors) - 1]
     refused = refused or _refused_by_intervals(form, named)
     return FormFit(offer, values, named, coefficient, fitted, gap, error, refused)
+
+
+def _terms_of(problem: _Problem, offer: Offer, others: list[Candidate], p: Tensor) -> tuple[list[Candidate], list[Prior]]:
+    """The candidates and constant priors of the form model at ``p``: the other terms, then the form."""
+    form = Candidate(form_feature(offer.form, offer.variables, problem.values_of(p)), offer.component)
+    return [*others, form], [Constant(float(v)) for v in p[: problem.k]]
+
+
+def _heldout(
+    fitting: Fitting, offer: Offer, others: list[Candidate], p0: Tensor, terms: tuple[list[Candidate], list[Prior]]
+) -> Scores:
+    """The form model's held-out scores: ``terms`` (fitted from ``p0``) on the validation part or, with folds, the same
+    fit from ``p0`` on each fold's complement, scored on the fold (:mod:`otgb.discovery.crossfit`)."""
+    physics, seed, device = fitting.physics, fitting.seed, fitting.device
+    if fitting.folds is None:
+        return discrepancies(physics, *terms, fitting.val, seed, device=device)
+    form = form_named(offer.form)
+
+    def score_fold(rest: Tensor, fold: Tensor) -> Scores:
+        problem = _Problem(replace(fitting, train=rest), offer, others, form.parameters, form.positive)
+        return discrepancies(physics, *_terms_of(problem, offer, others, problem.fit(p0)), fold, seed, device=device)
+
+    return cross_fitted(fitting.folds, score_fold)
 
 
 def _refused_by_fit(form, offer: Offer, values: dict[str, float], gap: float, error: float) -> str | None:

@@ -65,8 +65,15 @@ def feature_names(model: PhysicsModel, theta_products: bool = False, position_de
     features += [f"{v}*|{v}|" for v in model.velocity_names] + [f"sign({v})" for v in model.velocity_names]
     features += spatial_features(model)
     if theta_products:
-        features += [theta if f == "1" else f"{theta}*{f}" for theta in model.theta_names for f in list(features)]
+        features += scaled_by_theta(list(features), model.theta_names)
     return features
+
+
+def scaled_by_theta(features: list[str], theta_names: list[str], powers: tuple[int, ...] = (1,)) -> list[str]:
+    """Each of ``features`` times each physics parameter raised to each of ``powers`` (``omega*velocity``,
+    ``omega^2*sin(angle)``; the constant feature ``1`` gives the parameter itself)."""
+    scales = [name if power == 1 else f"{name}^{power}" for name in theta_names for power in powers]
+    return [scale if f == "1" else f"{scale}*{f}" for scale in scales for f in features]
 
 
 def build_library(

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 from torch import Tensor
 
+from otgb.discovery.crossfit import Folds
 from otgb.discovery.draws import acting_components, at_most, greybox_draws
 from otgb.discovery.evidence import Comparison, moves_with, weigh
 from otgb.discovery.families import centre, varies
@@ -18,7 +19,7 @@ from otgb.discovery.library import Candidate, build_library
 from otgb.discovery.log import progress
 from otgb.discovery.refine import FittedTerms, Fitting
 from otgb.discovery.regression import Selection, describe_terms, design_matrix, regress, subset_coefficients
-from otgb.discovery.scores import beats, difference, discrepancies
+from otgb.discovery.scores import beats, difference
 from otgb.discovery.seeds import Seeds
 from otgb.discovery.settings import Context, DiscoverySettings, Measurements
 from otgb.discovery.variation import FamilyChoice
@@ -77,7 +78,7 @@ def strong_candidates(selections: list[Selection], designs: dict, k: int) -> lis
 def cross_check_step(strong: list[tuple], fitting: Fitting) -> list[dict]:
     """Each strong candidate alone added to f_p, its coefficient fitted: the share of f_p's held-out gap it closes,
     and how far below f_p alone's its held-out energy lies, with that difference's standard error."""
-    baseline = discrepancies(fitting.physics, [], [], fitting.val, fitting.seed)
+    baseline = fitting.alone()
     gap = baseline.mean
     rows = []
     for candidate, init in strong:
@@ -106,7 +107,8 @@ def fitting_for(
     train, val = (at_most(part, settings.fits.score_rows, context.seeds) for part in (data.train, data.val))
     steps = (settings.fits.steps, settings.fits.batch, context.seeds.root)
     fits = {"cache": context.cache, "device": context.device, "spread_samples": settings.fits.spread_samples}
-    return Fitting(physics, train, val, *steps, natural, **fits)
+    folds = Folds.of(train, val, settings.fits.folds, context.seeds.root)
+    return Fitting(physics, train, val, *steps, natural, folds=folds, **fits)
 
 
 def _natural_scale(candidate: Candidate, design: Any) -> float:
@@ -211,7 +213,8 @@ def choose_prior(constant: FittedTerms, fitting: Fitting, families: tuple[str, .
     def interval(fitted: FittedTerms) -> Intervals | None:
         return fitted_intervals(fitting, fitted)
 
-    return choose_family_of(fitting.physics, constant, fitting.train, families, refit, fitting.seed, interval)
+    options = {"interval": interval, "cross_fitted": fitting.folds is not None}
+    return choose_family_of(fitting.physics, constant, fitting.train, families, refit, fitting.seed, **options)
 
 
 def prune(current: FittedTerms, fitting: Fitting) -> FittedTerms:

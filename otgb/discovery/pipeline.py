@@ -13,6 +13,7 @@ from typing import Any
 import torch
 
 from otgb.analysis.components import component_analysis
+from otgb.discovery.answer import recalibrate_step
 from otgb.discovery.draws import simulate_from_priors
 from otgb.discovery.known import pointwise_errors
 from otgb.discovery.locate import DisagreementMap, describe
@@ -25,7 +26,7 @@ from otgb.discovery.result import DiscoveryResult
 from otgb.discovery.session import Session, stopped_by_signals
 from otgb.discovery.settings import Measurements
 from otgb.discovery.verify import gap_step
-from otgb.discovery.workflow import locate_step, recalibrate_step, run, verify_answer
+from otgb.discovery.workflow import locate_step, run, verify_answer
 from otgb.runs import load_weights
 
 
@@ -99,7 +100,7 @@ def nothing_detected(session: Session, data: Measurements, before: DisagreementM
 
 
 def recalibration_only(physics, data: Measurements, settings, context) -> Recalibration | None:
-    """f_p's priors refitted (:func:`otgb.discovery.workflow.recalibrate_step`) with the run's fitting, no grey-box's
+    """f_p's priors refitted (:func:`otgb.discovery.answer.recalibrate_step`) with the run's fitting, no grey-box's
     design behind it (:func:`otgb.discovery.naming.fitting_for`)."""
     progress("f_p's priors are refitted: a shift of their bounds can hide from the disagreement map")
     return recalibrate_step(fitting_for(physics, data, settings, {}, context), data.train_inputs is None)

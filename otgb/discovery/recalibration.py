@@ -22,12 +22,13 @@ import torch
 from torch import Tensor
 
 from otgb.discovery.chunked import Simulate
+from otgb.discovery.crossfit import Folds, cross_fitted
 from otgb.discovery.discrepancy import Target
 from otgb.discovery.families import CONSTANT, NORMAL, UNIFORM, centre, prior, standard_noise, varies
 from otgb.discovery.intervals import STEP, Z95, sandwich, spread
 from otgb.discovery.lbfgs import minimise
 from otgb.discovery.prior_text import prior_text
-from otgb.discovery.scores import Scores, clears, difference, discrepancies
+from otgb.discovery.scores import HELDOUT_REPEATS, Scores, clears, difference, discrepancies
 from otgb.physics.base import FieldModel, PhysicsModel
 from otgb.physics.priors import Constant, Normal, Prior, Uniform
 
@@ -170,12 +171,13 @@ class ThetaPriors(torch.nn.Module):
 
 def recalibrate(
     physics: PhysicsModel, train: Tensor, val: Tensor, steps: int, batch: int, seed: int, samples: int = 1,
-    states: bool = False,
+    states: bool = False, folds: Folds | None = None, intervals: bool = True,
 ) -> Recalibration | None:  # fmt: skip
     """f_p's theta priors (and, with ``states``, the priors of its initial state's components, for an ODE whose x0
     is drawn per component) refitted to ``train`` (module docstring) on ``samples`` simulated samples of ``batch``
-    (one where no refitted prior varies), scored on ``val``; None where no prior is of a kind it refits or the fit
-    diverged."""
+    (one where no refitted prior varies), scored on ``val`` or, with ``folds``, cross-fitted over them
+    (:mod:`otgb.discovery.crossfit`); without ``intervals``, none are computed (a refit whose scores alone count);
+    None where no prior is of a kind it refits or the fit diverged."""
     own = getattr(physics, "base", physics).theta_names  # f_p's parameters, not an augmented model's coefficients
     components = physics.state_names if states and not isinstance(physics, FieldModel) else ()
     names = [n for n in (*own, *components) if family_of(physics.priors.get(n)) is not None]
@@ -188,14 +190,25 @@ def recalibrate(
         return None
     fitted = dict(zip(names, theta_priors.priors()))
     recalibrated = physics.with_priors(fitted)
-    intervals = _intervals(physics, names, theta_priors, sample)
+    intervals = _intervals(physics, names, theta_priors, sample) if intervals else None
     records = [
         Recalibrated(n, physics.priors[n], fitted[n], *(intervals[i] if intervals else (None, None, None)))
         for i, n in enumerate(names)
     ]
-    heldout = discrepancies(recalibrated, [], [], val, seed)
     kept = [n for n in own if n not in names]
-    return Recalibration(records, recalibrated, heldout, discrepancies(physics, [], [], val, seed), kept)
+    if folds is None:
+        scores = discrepancies(recalibrated, [], [], val, seed), discrepancies(physics, [], [], val, seed)
+        return Recalibration(records, recalibrated, *scores, kept)
+
+    def refitted(rest: Tensor, fold: Tensor) -> Scores:  # the same fit on the other folds, scored on this one
+        again = ThetaPriors([physics.priors[n] for n in names])
+        on_rest = _sample(physics, names, again.families, rest, batch * samples, seed, samples)
+        if not _fit(physics, names, again, on_rest, steps):
+            return Scores.diverged(HELDOUT_REPEATS)
+        return discrepancies(physics.with_priors(dict(zip(names, again.priors()))), [], [], fold, seed)
+
+    alone = cross_fitted(folds, lambda rest, fold: discrepancies(physics, [], [], fold, seed))
+    return Recalibration(records, recalibrated, cross_fitted(folds, refitted), alone, kept)
 
 
 @dataclass(frozen=True)

@@ -19,12 +19,13 @@ held-out parts, which a spread that varies over time needs to be seen.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from otgb.discovery.crossfit import Folds, cross_fitted
 from otgb.discovery.discrepancy import Target
 from otgb.discovery.families import CONSTANT, prior, standard_noise, varies
 from otgb.discovery.fit_cache import FitCache
@@ -77,7 +78,7 @@ class FittedTerms:
             "family": self.family,
             "candidates": [[c.feature, c.component] for c in self.candidates],
             "priors": [[type(p).__name__, dict(p.init_args)] for p in self.priors],
-            "heldout": {"draws": list(self.heldout.draws), "rows": self.heldout.rows},
+            "heldout": {"draws": list(self.heldout.draws), "rows": self.heldout.rows, "folds": self.heldout.folds},
             "loss": list(self.loss),
             "start": list(self.start),
             "scales": self.scales,
@@ -88,7 +89,7 @@ class FittedTerms:
     def from_record(cls, record: dict) -> FittedTerms:
         candidates = [Candidate(feature, component) for feature, component in record["candidates"]]
         priors = [PRIOR_CLASSES[name](**arguments) for name, arguments in record["priors"]]
-        heldout = Scores(list(record["heldout"]["draws"]), record["heldout"]["rows"])
+        heldout = Scores(list(record["heldout"]["draws"]), record["heldout"]["rows"], record["heldout"].get("folds", 1))
         rest = (list(record["loss"]), list(record["start"]), record["scales"], record.get("samples", 1))
         return cls(record["family"], candidates, priors, heldout, *rest)
 
@@ -218,8 +219,9 @@ def prior_is_finite(prior: CoefficientPrior) -> bool:
 @dataclass
 class Fitting:
     """How every coefficient fit of one discovery run is made (:func:`fit`): on the training part, scored on the
-    validation part, with one run's steps, batch and seed; each coefficient moved in units of its natural scale
-    (``natural``: the slope at which its term alone is as large as f_phi) where one is known."""
+    validation part or, with ``folds``, cross-fitted over the folds of both (:mod:`otgb.discovery.crossfit`), with one
+    run's steps, batch and seed; each coefficient moved in units of its natural scale (``natural``: the slope at which
+    its term alone is as large as f_phi) where one is known."""
 
     physics: PhysicsModel
     train: Tensor
@@ -232,6 +234,7 @@ class Fitting:
     device: torch.device = CPU  # where the fits run; the CPU from the first fit that fails elsewhere (:meth:`fit_on_device`)
     fallback: str | None = None  # why the fits moved to the CPU
     spread_samples: int = SPREAD_SAMPLES  # simulated samples of a fit of a family that varies
+    folds: Folds | None = None  # the folds held-out scores are cross-fitted over (None: scored on the validation part)
 
     def __call__(
         self, candidates: list[Candidate], init: list[float], family: str = CONSTANT, natural_scales: bool = True,
@@ -245,14 +248,15 @@ class Fitting:
 
         def run() -> FittedTerms:
             data = (self.train, self.val, self.steps, self.batch, self.seed)
-            options = {"scales": scales, "samples": samples}
-            return self.fit_on_device(lambda on: fit(self.physics, candidates, init, family, *data, device=on, **options))
+            options = {"scales": scales, "samples": samples, "score": self.folds is None}
+            fitted = self.fit_on_device(lambda on: fit(self.physics, candidates, init, family, *data, device=on, **options))
+            return fitted if self.folds is None else replace(fitted, heldout=self.cross_fitted(fitted))
 
         if self.cache is None:
             return run()
         terms = [(c.feature, c.component) for c in candidates]
         inputs = {"terms": terms, "init": init, "family": family, "scales": scales, "steps": self.steps, "batch": self.batch}
-        inputs |= {"samples": samples}
+        inputs |= {"samples": samples, "folds": self.folds.k if self.folds else 1}
         inputs |= {"device": device_name(self.device), "solver": current_solver()}  # each rounds differently
 
         def stored() -> dict:
@@ -264,6 +268,33 @@ class Fitting:
         if record["fallback"] is not None and self.device.type != "cpu":  # the run that made this fit moved to the CPU here
             self.fall_back(record["fallback"])
         return FittedTerms.from_record(record["fitted"])
+
+    def cross_fitted(self, fitted: FittedTerms) -> Scores:
+        """``fitted``'s held-out scores cross-fitted over the folds: the same fit (its start, family, scales and
+        iterations) on each fold's complement, scored on the fold."""
+        if not fitted.heldout.finite:
+            return Scores.diverged(HELDOUT_REPEATS, self.folds.k)
+        settings = {"scales": fitted.scales, "samples": fitted.samples}
+
+        def score_fold(rest: Tensor, fold: Tensor) -> Scores:
+            data = (rest, fold, self.steps, self.batch, self.seed)
+            refit = lambda on: fit(self.physics, fitted.candidates, fitted.start, fitted.family, *data, device=on, **settings)  # noqa: E731
+            return self.fit_on_device(refit).heldout
+
+        return cross_fitted(self.folds, score_fold)
+
+    def alone(self, physics: PhysicsModel | None = None) -> Scores:
+        """The held-out scores of ``physics`` (default: this fitting's) with nothing fitted: on the validation part, or
+        on each fold, as a fitted model's are (the same draws)."""
+        physics = physics or self.physics
+        score = lambda rest, fold: discrepancies(physics, [], [], fold, self.seed, device=self.device)  # noqa: E731
+        return score(self.train, self.val) if self.folds is None else cross_fitted(self.folds, score)
+
+    def on_folds(self) -> str:
+        """What the held-out scores are computed on, for the log and the report."""
+        if self.folds is None:
+            return f"the {len(self.val)} validation trajectories"
+        return f"the {len(self.folds.pool)} training and validation trajectories, cross-fitted over {self.folds.k} folds"
 
     def fit_on_device(self, fit_on: Callable[[torch.device], FittedTerms]) -> FittedTerms:
         """``fit_on(self.device)``; where it fails off the CPU, one warning and this and every later fit on the CPU (the

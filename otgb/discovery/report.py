@@ -54,15 +54,8 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
         "search_reason": result.search_reason,
         "search": [_search_step_dict(step) for step in result.search],
         "theta_search": _theta_search_dict(result.theta_search),
-        "search_unsupported": [
-            {
-                "feature": u.candidate.feature,
-                "component": u.candidate.component,
-                "coefficient": u.coefficient,
-                "interval": list(u.interval),
-            }
-            for u in result.unsupported
-        ],  # fmt: skip
+        "evidence_on": result.evidence_on or None,
+        "search_unsupported": _unsupported_dicts(result.unsupported),
         **_family_dict(result),
         "dropped_by_heldout_check": result.dropped,
         "interval_method": result.intervals.method if result.intervals else None,
@@ -137,10 +130,20 @@ def _theta_search_dict(theta: Any) -> dict[str, Any] | None:
     return {
         "reason": theta.reason,
         "path": [_search_step_dict(step) for step in theta.steps],
+        "unsupported": _unsupported_dicts(theta.unsupported),
         "kept": kept,
         "below_answer": better if kept else None,
         "standard_error": error if kept else None,
     }
+
+
+def _unsupported_dicts(unsupported: list) -> list[dict[str, Any]]:
+    """The terms a library search dropped because their coefficients' 95 % intervals hold zero."""
+    return [
+        {"feature": u.candidate.feature, "component": u.candidate.component, "coefficient": u.coefficient,
+         "interval": list(u.interval)}
+        for u in unsupported
+    ]  # fmt: skip
 
 
 def _recalibrated_dicts(result: Discovery) -> list[dict[str, Any]]:

@@ -38,6 +38,7 @@ class Scores:
 
     draws: list[float]
     rows: Tensor = field(default_factory=lambda: torch.zeros(0))
+    folds: int = 1  # cross-fitted over this many folds (:mod:`otgb.discovery.crossfit`); 1: scored on one held-out part
 
     @property
     def mean(self) -> float:
@@ -48,9 +49,9 @@ class Scores:
         return bool(torch.isfinite(torch.tensor(self.draws)).all())
 
     @classmethod
-    def diverged(cls, repeats: int) -> Scores:
+    def diverged(cls, repeats: int, folds: int = 1) -> Scores:
         """The scores of a model that diverges for some inputs: it does not describe the data."""
-        return cls([float("inf")] * repeats)
+        return cls([float("inf")] * repeats, folds=folds)
 
 
 def simulate_finite(model: Augmented, x0: Tensor, theta: Tensor) -> tuple[Tensor, Tensor]:
@@ -126,15 +127,25 @@ def difference(a: Scores, b: Scores) -> tuple[float, float]:
     the draws, common random numbers) and the measured sample, which is finite, and the same for
     both (the spread over measured trajectories of the differences of their ``rows``): a model may
     fit these measured trajectories better than another without describing the process better.
-    A model that diverged is infinitely worse.
+    Cross-fitted scores (``folds`` > 1) scale the second by :func:`otgb.discovery.crossfit.fold_inflation`: their
+    folds' fits share most of their training data. A model that diverged is infinitely worse.
     """
+    if a.folds != b.folds:
+        raise ValueError(f"scores of {a.folds} and {b.folds} folds are not comparable")
     if not (a.finite and b.finite):
         return (float("inf") if a.finite else float("-inf") if b.finite else float("nan")), float("nan")
     differences = torch.tensor(b.draws) - torch.tensor(a.draws)
     variance = differences.var() / len(differences)
     if len(a.rows) > 1 and len(a.rows) == len(b.rows):
-        variance = variance + (b.rows - a.rows).var() / len(a.rows)
+        variance = variance + fold_inflation(a.folds) * (b.rows - a.rows).var() / len(a.rows)
     return float(differences.mean()), float(variance) ** 0.5
+
+
+def fold_inflation(folds: int) -> float:
+    """The factor on the measured sample's variance of a difference of scores cross-fitted over ``folds`` folds
+    (Nadeau and Bengio, 2003, "Inference for the generalization error": (1/K + n_test/n_train) for K splits, times the
+    K folds' n_test = n/K; 1 + K/(K-1)); 1 for scores on one held-out part."""
+    return 1.0 if folds <= 1 else 1.0 + folds / (folds - 1)
 
 
 def beats(a: Scores, b: Scores) -> bool:

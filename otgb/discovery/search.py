@@ -178,7 +178,7 @@ def search(
         return None, [], []
     states, theta, correction = fitted_correction(physics, dense, TRAJECTORIES, seed)
     X, y = stacked_design(physics, local, states, theta, correction, seed)
-    alone = discrepancies(physics, [], [], fitting.val, seed)  # f_p itself, size 0
+    alone = fitting.alone()  # f_p itself, size 0
     report(f"search: f_p alone, held-out energy {alone.mean:.4g}")
     path: list[SearchStep] = []
     scores, leader = [alone], 0  # held-out scores by size; the last size that beat the leader before it

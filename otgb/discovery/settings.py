@@ -20,6 +20,8 @@ from otgb.errors import InputError
 from otgb.physics.base import PhysicsModel
 from otgb.physics.forms import form_named
 
+MAX_FOLDS = 20  # each fold costs a refit of every model compared
+
 
 @dataclass(frozen=True)
 class PermutationSettings:
@@ -53,6 +55,7 @@ class FitSettings:
     spread_samples: int
     recalibrate: bool
     forms: tuple[dict, ...] = ()  # declared parametric forms (:func:`declared_forms`)
+    folds: int = 1  # folds the held-out scores are cross-fitted over (:mod:`otgb.discovery.crossfit`); 1: the validation part
 
 
 class DiscoverySettings:
@@ -84,6 +87,10 @@ class DiscoverySettings:
             less than one sample's noise. Each such fit costs this many times a constant's.
         recalibrate: Whether f_p's parameters' priors are also refitted and weighed against f_p alone and the named
             terms (:mod:`otgb.discovery.recalibration`).
+        folds: Folds of the measured training and validation trajectories over which every held-out score that decides
+            between models is cross-fitted (:mod:`otgb.discovery.crossfit`): each model refitted on K - 1 folds and scored
+            on the one left out, so that each decision sees every one of those trajectories out of sample; 1: fitted on
+            the training part and scored on the validation part alone. The test part is never among them.
         forms: Parametric forms of your own, weighed like the built-in ones (:mod:`otgb.discovery.forms`), each
             ``{class_path: a subclass of otgb.physics.forms.Form (or a built-in form's name), component: the state
             whose rate it adds to, variables: [what it is a function of], ranges: {parameter: [low, high]}}``.
@@ -114,6 +121,7 @@ class DiscoverySettings:
         spread_samples: int = SPREAD_SAMPLES,
         recalibrate: bool = True,
         forms: list[dict] | None = None,
+        folds: int = 1,
         c2st_classifier: str = "auto",
         seed: int = 0,
         fit_cache: str | None = "auto",
@@ -129,6 +137,8 @@ class DiscoverySettings:
             )
         if isinstance(spread_samples, bool) or not (isinstance(spread_samples, int) and spread_samples >= 1):
             raise InputError(f"discover.spread_samples={spread_samples!r} is invalid; expected a whole number >= 1")
+        if isinstance(folds, bool) or not (isinstance(folds, int) and 1 <= folds <= MAX_FOLDS):
+            raise InputError(f"discover.folds={folds!r} is invalid; expected a whole number 1..{MAX_FOLDS} (1: no cross-fitting)")
         if isinstance(position_degree, bool) or not (isinstance(position_degree, int) and 0 <= position_degree <= MAX_DEGREE):
             raise InputError(f"discover.position_degree={position_degree!r} is invalid; expected a whole number 0..{MAX_DEGREE}")
         unknown = [f for f in families if f not in FAMILIES]
@@ -136,7 +146,16 @@ class DiscoverySettings:
             raise InputError(f"discover.families={list(families)}: expected a non-empty list among {list(FAMILIES)}")
         self.tests = PermutationSettings(n_permutations, alpha, regions_per_axis, locate_rows)
         self.library = LibrarySettings(n_trajectories, n_bootstrap, bool(theta_products), position_degree, strong_candidates)
-        fits = (fit_steps, fit_batch, score_rows, tuple(families), spread_samples, bool(recalibrate), declared_forms(forms))
+        fits = (
+            fit_steps,
+            fit_batch,
+            score_rows,
+            tuple(families),
+            spread_samples,
+            bool(recalibrate),
+            declared_forms(forms),
+            folds,
+        )
         self.fits = FitSettings(*fits)
         self.c2st_classifier, self.seed, self.fit_cache = c2st_classifier, seed, fit_cache
         self.cache = None if fit_cache in (None, "auto") else FitCache(fit_cache)  # refuses a file before any work

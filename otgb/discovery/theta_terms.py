@@ -20,12 +20,16 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from torch import Tensor
+
+from otgb.discovery.answer import Answer, answer_fitting
 from otgb.discovery.families import centre
-from otgb.discovery.library import Candidate, feature_names
+from otgb.discovery.library import Candidate, feature_names, scaled_by_theta
 from otgb.discovery.log import progress, short
 from otgb.discovery.refine import FittedTerms, Fitting
 from otgb.discovery.scores import Scores, beats, difference
 from otgb.discovery.search import SearchStep, Unsupported, search
+from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 from otgb.physics.features import is_local
 
@@ -48,28 +52,41 @@ class ThetaSearch:
 
 def theta_candidates(physics: PhysicsModel, components: list[str]) -> list[Candidate]:
     """Each local feature of ``physics``'s library times each physics parameter and its square, on ``components``."""
-    features = [f for f in feature_names(physics) if is_local(f, physics)]
-    scales = [name if power == 1 else f"{name}^{power}" for name in physics.theta_names for power in (1, 2)]
-    return [Candidate(s if f == "1" else f"{s}*{f}", c) for c in components for s in scales for f in features]
+    local = [f for f in feature_names(physics) if is_local(f, physics)]
+    return [Candidate(f, c) for c in components for f in scaled_by_theta(local, physics.theta_names, (1, 2))]
 
 
 def theta_step(
-    fitting: Fitting, terms: FittedTerms | None, answer: Scores, components: list[str], remainder: Callable[[], bool]
+    fitting: Fitting, answer: Answer, components: list[str], disagrees: Callable[[PhysicsModel, Tensor], bool]
 ) -> ThetaSearch | None:
-    """The search on theta-dependent terms (the module docstring) on ``fitting``'s physics (the answer's base), beside
-    the answer's ``terms``, whose validation scores are ``answer``; None where f_p has no parameters or the answer
-    leaves no ``remainder()``."""
-    physics = fitting.physics
-    if not physics.theta_names or not remainder():
+    """The search on theta-dependent terms (the module docstring) on the answer's base, beside the answer's terms; None
+    where f_p has no parameters or ``disagrees(model, validation)`` (the disagreement map of the answer's model) finds
+    no remainder. ``components``: where to search when the answer names no term."""
+    on_base = answer_fitting(fitting, answer)
+    physics, terms = on_base.physics, answer.terms
+    model = terms.model(physics) if terms is not None else Augmented(physics, [])
+    if not physics.theta_names or not disagrees(model, on_base.val):
         return None
     named = [] if terms is None else list(terms.candidates)
     acting = list(dict.fromkeys(c.component for c in named)) or components
     candidates = [c for c in theta_candidates(physics, acting) if c not in named] + named
     init = [0.0] * (len(candidates) - len(named)) + ([centre(p) for p in terms.priors] if terms else [])
     progress(f"{REASON}: searching terms that scale with {', '.join(physics.theta_names)}")
-    found, steps, unsupported = search(candidates, init, fitting, progress)
-    if found is None or not beats(found.heldout, answer):
+    found, steps, unsupported = search(candidates, init, on_base, progress)
+    scores = answer_scores(on_base, answer)
+    if found is None or not beats(found.heldout, scores):
         progress("theta search: nothing better than the answer")
         return ThetaSearch(REASON, steps, unsupported)
     progress(f"theta search: kept {[c.feature for c in found.candidates]}, coefficients {short(found.priors)}")
-    return ThetaSearch(REASON, steps, unsupported, found, difference(found.heldout, answer))
+    return ThetaSearch(REASON, steps, unsupported, found, difference(found.heldout, scores))
+
+
+def answer_scores(on_base: Fitting, answer: Answer) -> Scores:
+    """The answer's validation scores: its terms', else its recalibration's, else f_p's alone."""
+    if answer.terms is not None:
+        return answer.terms.heldout
+    if answer.recalibrated:
+        return answer.recalibration.heldout
+    if answer.recalibration is not None:
+        return answer.recalibration.f_p_heldout
+    return on_base.alone()

@@ -64,13 +64,15 @@ def choose_family(fits: list[FittedTerms], scores: dict[str, Scores]) -> FittedT
 
 def choose_prior(
     physics: PhysicsModel, constant: FittedTerms, measured: Tensor, families: tuple[str, ...], refit: Callable, seed: int,
-    interval: Callable[[FittedTerms], Intervals | None] | None = None,
+    interval: Callable[[FittedTerms], Intervals | None] | None = None, cross_fitted: bool = False,
 ) -> FamilyChoice:  # fmt: skip
     """Each family of ``families`` for ``constant``'s terms (``refit(family)`` fits one from the constant's optimum,
-    the constant itself again too), scored on ``measured``; the nested check, the choice (a family that varies kept
-    only as :func:`unsupported_spread` allows, with ``interval`` the 95 % intervals of a fit), and the spread the data
-    allow if the constant is chosen."""
-    score = lambda f: discrepancies(physics, f.candidates, f.priors, measured, seed, FAMILY_REPEATS)  # noqa: E731
+    the constant itself again too), scored on ``measured`` (with ``cross_fitted``, by each fit's own cross-fitted
+    held-out scores, :mod:`otgb.discovery.crossfit`); the nested check, the choice (a family that varies kept only as
+    :func:`unsupported_spread` allows, with ``interval`` the 95 % intervals of a fit), and the spread the data allow if
+    the constant is chosen (on ``measured``)."""
+    on_measured = lambda f: discrepancies(physics, f.candidates, f.priors, measured, seed, FAMILY_REPEATS)  # noqa: E731
+    score = (lambda f: f.heldout) if cross_fitted else on_measured
     constant = refit(CONSTANT)  # on the families' samples
     fits, scores, stopped_short = [constant], {CONSTANT: score(constant)}, []
     for family in filter(varies, families):

@@ -30,15 +30,14 @@ from typing import Any
 from torch import Tensor
 
 from otgb.discovery.after_fix import sentence_after
+from otgb.discovery.answer import answer_fitting, answer_step
 from otgb.discovery.draws import GREYBOX, acting_components, at_most, generated, simulate_candidate, simulate_from_priors
-from otgb.discovery.families import centre
 from otgb.discovery.forms import FormStep, form_step
 from otgb.discovery.intervals import fitted_intervals
 from otgb.discovery.locate import DisagreementMap, describe, locate
 from otgb.discovery.log import DivergenceLog, progress, rounded, short
 from otgb.discovery.naming import (
     MAX_FORWARD_TERMS,
-    FamilyStep,
     Naming,
     Weighed,
     add_step,
@@ -51,10 +50,9 @@ from otgb.discovery.naming import (
     strong_candidates,
 )
 from otgb.discovery.paired import PairedCheck
-from otgb.discovery.recalibration import Recalibration, recalibrate
 from otgb.discovery.record import Discovery
 from otgb.discovery.refine import FittedTerms, Fitting
-from otgb.discovery.scores import beats, difference, discrepancies, sample_scores
+from otgb.discovery.scores import beats, difference, sample_scores
 from otgb.discovery.search import SearchStep, Unsupported, search
 from otgb.discovery.seeds import Seeds
 from otgb.discovery.settings import Context, DiscoverySettings, Measurements
@@ -136,7 +134,8 @@ def name_and_add(
         family, weighed = None, None
     terms, family = answer.terms, answer.family or family
     dropped = dropped + (answer.family.dropped if answer.family else [])
-    theta = theta_terms_step(fitting, answer, physics, settings, context) if not settings.library.theta_products else None
+    disagrees = lambda model, val: locate_step(model, val, settings, context, "theta-check").any_significant  # noqa: E731
+    theta = None if settings.library.theta_products else theta_step(fitting, answer, acting_components(physics), disagrees)
     if theta is not None and theta.kept is not None:
         family = family_step(theta.kept, answer_fitting(fitting, answer), settings.fits.families)
         dropped = dropped + family.dropped
@@ -148,6 +147,7 @@ def name_and_add(
         search=searched.steps, unsupported=searched.unsupported,
         route=route_name(searched, theta), search_reason=reason, undertrained=unused,
         recalibration=recalibration, recalibrated=recalibrated, forms=formed, theta_search=theta,
+        evidence_on=fitting.on_folds(),
     )  # fmt: skip
 
 
@@ -156,34 +156,6 @@ def route_name(searched: Searched, theta: ThetaSearch | None) -> str:
     if theta is not None and theta.kept is not None:
         return "library search on terms that scale with theta"
     return "library search" if searched.replaced else "f_phi regression"
-
-
-def answer_fitting(fitting: Fitting, answer: Answer) -> Fitting:
-    """``fitting`` on the answer's base: f_p with its recalibrated priors where the answer holds them."""
-    return replace(fitting, physics=answer.recalibration.physics) if answer.recalibrated else fitting
-
-
-def theta_terms_step(
-    fitting: Fitting, answer: Answer, physics: PhysicsModel, settings: DiscoverySettings, context: Context
-) -> ThetaSearch | None:
-    """The search on terms that scale with theta (:mod:`otgb.discovery.theta_terms`) where the answer's model still
-    disagrees with the validation part."""
-    on_base = answer_fitting(fitting, answer)
-    base, terms = on_base.physics, answer.terms
-    model = terms.model(base) if terms is not None else Augmented(base, [])
-    if terms is not None:
-        scores = terms.heldout
-    elif answer.recalibrated:
-        scores = answer.recalibration.heldout
-    else:
-        scores = (
-            answer.recalibration.f_p_heldout if answer.recalibration else discrepancies(base, [], [], on_base.val, on_base.seed)
-        )
-
-    def remainder() -> bool:
-        return locate_step(model, on_base.val, settings, context, "theta-check").any_significant
-
-    return theta_step(on_base, terms, scores, acting_components(physics), remainder)
 
 
 def forms_step(weighed: Weighed, designs: dict, fitting: Fitting, settings: DiscoverySettings, context: Context) -> FormStep:
@@ -195,76 +167,6 @@ def forms_step(weighed: Weighed, designs: dict, fitting: Fitting, settings: Disc
         return locate_step(model, fitting.val, settings, context, "augmented-check").any_significant
 
     return form_step(weighed.kept, weighed.comparisons, designs, fitting, list(settings.fits.forms), remainder)
-
-
-@dataclass(frozen=True)
-class Answer:
-    """f_p's recalibration (None: not tried or nothing to refit), whether the answer holds it, and the terms the
-    answer holds (None: none, or set aside for the recalibration)."""
-
-    recalibration: Recalibration | None
-    recalibrated: bool
-    terms: FittedTerms | None
-    family: FamilyStep | None = None  # the terms' prior family chosen again beside the recalibration (None: as before)
-
-
-def answer_step(fitting: Fitting, terms: FittedTerms | None, settings: DiscoverySettings, refit_x0: bool) -> Answer:
-    """Terms, recalibrated priors or both: f_p's priors refitted (:func:`recalibrate_step`) and weighed against f_p
-    alone and the terms (:func:`answers_instead`); where terms are named and the recalibration is not the answer, the
-    two together (:func:`both_step`): a prior refitted alone can move the wrong way to mimic a missing term."""
-    recalibration = recalibrate_step(fitting, refit_x0) if settings.fits.recalibrate else None
-    if recalibration is None:
-        return Answer(None, False, terms)
-    if answers_instead(recalibration, terms):
-        if terms is not None:
-            progress("the recalibrated f_p fits the validation part better than f_p plus the terms: the terms are set aside")
-        return Answer(recalibration, True, None)
-    both = both_step(fitting, recalibration, terms, settings.fits.families, refit_x0) if terms is not None else None
-    return Answer(both[0], True, both[1].choice.fitted, both[1]) if both else Answer(recalibration, False, terms)
-
-
-def both_step(
-    fitting: Fitting, alone: Recalibration, terms: FittedTerms, families: tuple[str, ...], refit_x0: bool
-) -> tuple[Recalibration, FamilyStep] | None:
-    """f_p's priors refitted with the named terms in (their coefficients' priors held), then the terms refitted on f_p
-    with those priors, their prior family chosen again (a spread can have stood in for the priors' error): the
-    recalibration (its scores those of the two together) and the terms' family step, where the two together fit the
-    validation part better than the terms alone and than the recalibration alone, by two standard errors each; else
-    None."""
-    data = (fitting.train, fitting.val, fitting.steps, fitting.batch, fitting.seed, fitting.spread_samples)
-    beside = recalibrate(terms.model(fitting.physics), *data, states=refit_x0)
-    if beside is None:
-        return None
-    base = beside.physics.base
-    on_base = replace(fitting, physics=base)
-    constant = on_base(terms.candidates, [centre(p) for p in terms.priors], natural_scales=False)
-    family = family_step(constant, on_base, families)
-    together = family.choice.fitted
-    better, error = difference(together.heldout, terms.heldout)
-    progress(f"f_p's priors recalibrated beside the terms: {better:+.3g} +- {error:.2g} below the terms alone")
-    if not (beats(together.heldout, terms.heldout) and beats(together.heldout, alone.heldout)):
-        return None
-    both = replace(beside, physics=base, heldout=together.heldout, f_p_heldout=alone.f_p_heldout)  # against f_p alone
-    return both, family
-
-
-def answers_instead(recalibration: Recalibration, terms: FittedTerms | None) -> bool:
-    """Whether f_p with recalibrated priors is the answer: it fits the validation part better than f_p alone by two
-    standard errors, and better than f_p plus the named terms (if any) by two. Where neither of those two beats the
-    other, the terms stay and the verdict says that the measurements cannot tell them from a recalibration."""
-    return recalibration.beats_f_p and (terms is None or beats(recalibration.heldout, terms.heldout))
-
-
-def recalibrate_step(fitting: Fitting, refit_x0: bool) -> Recalibration | None:
-    """f_p's theta priors (and x0's, with ``refit_x0``) refitted to the training part and scored on the validation part
-    (:mod:`otgb.discovery.recalibration`)."""
-    data = (fitting.train, fitting.val, fitting.steps, fitting.batch, fitting.seed, fitting.spread_samples)
-    recalibration = recalibrate(fitting.physics, *data, states=refit_x0)
-    if recalibration is not None:
-        below, error = recalibration.below_f_p
-        priors = ", ".join(f"{r.parameter} {r.prior!r}" for r in recalibration.parameters)
-        progress(f"recalibrated f_p's priors: {priors}; {below:+.3g} +- {error:.2g} below f_p alone on the validation part")
-    return recalibration
 
 
 def verify(

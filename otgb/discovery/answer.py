@@ -1,0 +1,119 @@
+"""The answer of discovery's add step: f_p plus the named terms, f_p with its priors recalibrated, or both.
+
+A physicist's first question about a model that disagrees with measurements is whether its form or its parameters are
+wrong. f_p's priors of theta (and of x0 where the measurements do not record it) are refitted by distribution matching
+(:mod:`otgb.discovery.recalibration`) and weighed against f_p alone and against the named terms by held-out evidence
+(:func:`otgb.discovery.scores.beats`); where terms are named and the recalibration alone is not the answer, the two
+together are fitted and weighed against each.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+from torch import Tensor
+
+from otgb.discovery.crossfit import cross_fitted
+from otgb.discovery.families import centre
+from otgb.discovery.log import progress
+from otgb.discovery.naming import FamilyStep, family_step
+from otgb.discovery.recalibration import Recalibration, recalibrate
+from otgb.discovery.refine import FittedTerms, Fitting, fit
+from otgb.discovery.scores import HELDOUT_REPEATS, Scores, beats, difference
+from otgb.discovery.settings import DiscoverySettings
+
+
+@dataclass(frozen=True)
+class Answer:
+    """f_p's recalibration (None: not tried or nothing to refit), whether the answer holds it, and the terms the
+    answer holds (None: none, or set aside for the recalibration)."""
+
+    recalibration: Recalibration | None
+    recalibrated: bool
+    terms: FittedTerms | None
+    family: FamilyStep | None = None  # the terms' prior family chosen again beside the recalibration (None: as before)
+
+
+def answer_step(fitting: Fitting, terms: FittedTerms | None, settings: DiscoverySettings, refit_x0: bool) -> Answer:
+    """Terms, recalibrated priors or both: f_p's priors refitted (:func:`recalibrate_step`) and weighed against f_p
+    alone and the terms (:func:`answers_instead`); where terms are named and the recalibration is not the answer, the
+    two together (:func:`both_step`): a prior refitted alone can move the wrong way to mimic a missing term."""
+    recalibration = recalibrate_step(fitting, refit_x0) if settings.fits.recalibrate else None
+    if recalibration is None:
+        return Answer(None, False, terms)
+    if answers_instead(recalibration, terms):
+        if terms is not None:
+            progress("the recalibrated f_p fits the validation part better than f_p plus the terms: the terms are set aside")
+        return Answer(recalibration, True, None)
+    both = both_step(fitting, recalibration, terms, settings.fits.families, refit_x0) if terms is not None else None
+    return Answer(both[0], True, both[1].choice.fitted, both[1]) if both else Answer(recalibration, False, terms)
+
+
+def both_step(
+    fitting: Fitting, alone: Recalibration, terms: FittedTerms, families: tuple[str, ...], refit_x0: bool
+) -> tuple[Recalibration, FamilyStep] | None:
+    """f_p's priors refitted with the named terms in (their coefficients' priors held), then the terms refitted on f_p
+    with those priors, their prior family chosen again (a spread can have stood in for the priors' error): the
+    recalibration (its scores those of the two together) and the terms' family step, where the two together fit the
+    validation part better than the terms alone and than the recalibration alone, by two standard errors each; else
+    None."""
+    data = (fitting.train, fitting.val, fitting.steps, fitting.batch, fitting.seed, fitting.spread_samples)
+    beside = recalibrate(terms.model(fitting.physics), *data, states=refit_x0)  # its own scores are not used
+    if beside is None:
+        return None
+    base = beside.physics.base
+    on_base = replace(fitting, physics=base)
+    constant = on_base(terms.candidates, [centre(p) for p in terms.priors], natural_scales=False)
+    family = family_step(constant, on_base, families)
+    together = family.choice.fitted
+    if fitting.folds is not None:  # both refitted on each fold's complement, not the terms alone on the priors' fit
+        together = replace(together, heldout=cross_fitted(fitting.folds, both_on_fold(fitting, together, refit_x0)))
+    better, error = difference(together.heldout, terms.heldout)
+    progress(f"f_p's priors recalibrated beside the terms: {better:+.3g} +- {error:.2g} below the terms alone")
+    if not (beats(together.heldout, terms.heldout) and beats(together.heldout, alone.heldout)):
+        return None
+    both = replace(beside, physics=base, heldout=together.heldout, f_p_heldout=alone.f_p_heldout)  # against f_p alone
+    return both, family
+
+
+def both_on_fold(fitting: Fitting, together: FittedTerms, refit_x0: bool) -> Callable[[Tensor, Tensor], Scores]:
+    """The two together fitted again on a fold's complement as on the training part (f_p's configured priors refitted
+    beside the terms, then the terms from their start on those priors), scored on the fold:
+    :func:`otgb.discovery.crossfit.cross_fitted`'s step. The terms' values held during the first fit are their fit on
+    the training part."""
+    options = {"scales": together.scales, "samples": together.samples}
+
+    def score_fold(rest: Tensor, fold: Tensor) -> Scores:
+        data = (rest, fold, fitting.steps, fitting.batch, fitting.seed, fitting.spread_samples)
+        again = recalibrate(together.model(fitting.physics), *data, states=refit_x0, intervals=False)
+        if again is None:
+            return Scores.diverged(HELDOUT_REPEATS)
+        terms = fit(again.physics.base, together.candidates, together.start, together.family, *data[:5], **options)
+        return terms.heldout
+
+    return score_fold
+
+
+def answers_instead(recalibration: Recalibration, terms: FittedTerms | None) -> bool:
+    """Whether f_p with recalibrated priors is the answer: it fits the validation part better than f_p alone by two
+    standard errors, and better than f_p plus the named terms (if any) by two. Where neither of those two beats the
+    other, the terms stay and the verdict says that the measurements cannot tell them from a recalibration."""
+    return recalibration.beats_f_p and (terms is None or beats(recalibration.heldout, terms.heldout))
+
+
+def recalibrate_step(fitting: Fitting, refit_x0: bool) -> Recalibration | None:
+    """f_p's theta priors (and x0's, with ``refit_x0``) refitted to the training part and scored on the validation part
+    (:mod:`otgb.discovery.recalibration`)."""
+    data = (fitting.train, fitting.val, fitting.steps, fitting.batch, fitting.seed, fitting.spread_samples)
+    recalibration = recalibrate(fitting.physics, *data, states=refit_x0, folds=fitting.folds)
+    if recalibration is not None:
+        below, error = recalibration.below_f_p
+        priors = ", ".join(f"{r.parameter} {r.prior!r}" for r in recalibration.parameters)
+        progress(f"recalibrated f_p's priors: {priors}; {below:+.3g} +- {error:.2g} below f_p alone on the validation part")
+    return recalibration
+
+
+def answer_fitting(fitting: Fitting, answer: Answer) -> Fitting:
+    """``fitting`` on the answer's base: f_p with its recalibrated priors where the answer holds them."""
+    return replace(fitting, physics=answer.recalibration.physics) if answer.recalibrated else fitting

@@ -1,0 +1,73 @@
+"""Held-out evidence from every measured trajectory: scores cross-fitted over K folds of the training and validation
+parts.
+
+With ``discover.folds`` = K > 1, the measured training and validation trajectories are pooled and split into K folds
+at random, once per run (the same folds for every model, so that two models' scores are paired). A fitted model's
+held-out score is then made K times: the same fit (its start, prior family and iterations) made on the other K - 1
+folds, and scored on the fold left out (never started where the fit on the training part ended, which has seen most
+of each fold), with the simulation draws that
+every model's score of that fold shares (common random numbers, :func:`otgb.discovery.scores.discrepancies`). The
+K scores combine into one :class:`~otgb.discovery.scores.Scores`: per simulation draw, the folds' discrepancies weighted
+by their sizes; per measured trajectory, its row from the fold that held it out. Every measured trajectory of the two
+parts is so seen out of sample by each decision, not only the validation part's.
+
+The standard error of a difference of two such scores (:func:`otgb.discovery.scores.difference`) adds the simulation
+draws' part and the measured sample's; the K folds' fits share most of their training data, so their held-out errors
+are correlated, and the measured part's variance is scaled by Nadeau and Bengio's correction (2003),
+:func:`~otgb.discovery.scores.fold_inflation`: 1 + K/(K-1), 2.25 at K = 5.
+
+What stays on one part: the answer's own coefficients are fitted on the training part (its intervals, and the checks
+of the disagreement map on the validation part, see data no fit of that answer saw), the grey-box is trained once on
+the training part (its undertrained check scores it on the validation part), and the test part is the final
+verification's alone.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from otgb.discovery.scores import Scores
+
+
+@dataclass(frozen=True)
+class Folds:
+    """The pooled training and validation trajectories (n, T, *obs) and each fold's rows in that pool."""
+
+    pool: Tensor
+    index: tuple[Tensor, ...]
+
+    @classmethod
+    def of(cls, train: Tensor, val: Tensor, k: int, seed: int) -> Folds | None:
+        """K folds of ``train`` and ``val`` pooled, drawn with ``seed``; None for K = 1 (one held-out part)."""
+        if k <= 1:
+            return None
+        pool = torch.cat([train, val])
+        if len(pool) < 2 * k:
+            raise ValueError(f"{len(pool)} measured trajectories cannot be split into {k} folds of at least 2")
+        order = torch.randperm(len(pool), generator=torch.Generator().manual_seed(seed))
+        return cls(pool, tuple(order.tensor_split(k)))
+
+    @property
+    def k(self) -> int:
+        return len(self.index)
+
+    def split(self, fold: int) -> tuple[Tensor, Tensor]:
+        """The other folds' trajectories (to fit on) and fold ``fold``'s (to score on)."""
+        rest = torch.cat([self.index[j] for j in range(self.k) if j != fold])
+        return self.pool[rest], self.pool[self.index[fold]]
+
+
+def cross_fitted(folds: Folds, score_fold: Callable[[Tensor, Tensor], Scores]) -> Scores:
+    """The cross-fitted :class:`Scores` of a fitting procedure: ``score_fold(rest, fold)`` refits on ``rest`` and scores
+    on ``fold``, for each fold; combined as the module docstring says (diverged if any fold's model diverged)."""
+    per_fold = [score_fold(*folds.split(k)) for k in range(folds.k)]
+    if not all(s.finite for s in per_fold):
+        return Scores.diverged(max(len(s.draws) for s in per_fold), folds.k)
+    sizes = torch.tensor([float(len(i)) for i in folds.index], dtype=torch.float64)
+    weights = sizes / sizes.sum()
+    draws = (torch.tensor([s.draws for s in per_fold], dtype=torch.float64) * weights[:, None]).sum(0)
+    return Scores(draws.tolist(), torch.cat([s.rows for s in per_fold]), folds.k)

@@ -1,0 +1,85 @@
+"""Cross-fitted held-out scores (otgb.discovery.crossfit): the folds, how fold scores combine, the standard error of a
+difference, and a real fit on a pendulum."""
+
+import math
+
+import pytest
+import torch
+
+from otgb.data import generate_measured
+from otgb.discovery.crossfit import Folds, cross_fitted
+from otgb.discovery.library import Candidate
+from otgb.discovery.refine import Fitting
+from otgb.discovery.scores import Scores, difference, fold_inflation
+from otgb.discovery.settings import DiscoverySettings
+from otgb.errors import InputError
+from otgb.physics import Pendulum
+from otgb.physics.priors import Constant
+from otgb.physics.terms import LibraryTerm
+
+
+def test_folds_partition_the_pooled_training_and_validation_trajectories_the_same_way_for_one_seed():
+    train, val = torch.arange(17.0)[:, None], 100 + torch.arange(6.0)[:, None]
+    folds = Folds.of(train, val, 4, seed=3)
+    rows = torch.cat(folds.index)
+    assert folds.k == 4 and sorted(rows.tolist()) == list(range(23)), "each trajectory in exactly one fold"
+    assert {len(i) for i in folds.index} <= {5, 6}
+    rest, fold = folds.split(1)
+    assert len(rest) + len(fold) == 23 and not set(rest[:, 0].tolist()) & set(fold[:, 0].tolist())
+    assert all(torch.equal(a, b) for a, b in zip(folds.index, Folds.of(train, val, 4, seed=3).index))
+    assert Folds.of(train, val, 1, seed=3) is None
+    with pytest.raises(ValueError, match="23 measured trajectories cannot be split into 12 folds"):
+        Folds.of(train, val, 12, seed=3)
+
+
+def test_fold_scores_combine_by_fold_size_per_draw_and_keep_each_trajectory_row_from_the_fold_that_held_it_out():
+    folds = Folds.of(torch.zeros(6, 1), torch.zeros(3, 1), 3, seed=0)
+    per_fold = {}
+
+    def score_fold(rest, fold):
+        k = len(per_fold)
+        per_fold[k] = Scores([float(k), 10.0 + k], torch.full((len(fold),), float(k), dtype=torch.float64))
+        return per_fold[k]
+
+    combined = cross_fitted(folds, score_fold)
+    assert combined.folds == 3 and combined.draws == pytest.approx([1.0, 11.0])  # equal folds of 3: the mean
+    assert combined.rows.tolist() == [0.0] * 3 + [1.0] * 3 + [2.0] * 3
+    diverged = cross_fitted(folds, lambda rest, fold: Scores.diverged(2) if len(rest) else None)
+    assert not diverged.finite and diverged.folds == 3
+
+
+def test_the_measured_part_of_a_cross_fitted_difference_is_scaled_by_nadeau_and_bengios_correction():
+    rows_a, rows_b = torch.tensor([0.0, 1.0, 2.0, 3.0]), torch.tensor([0.5, 1.0, 3.0, 3.5])
+    draws = [1.0, 1.0, 1.0]  # no simulation noise: the measured part alone
+    single = difference(Scores(draws, rows_a), Scores([2.0] * 3, rows_b))
+    five = difference(Scores(draws, rows_a, 5), Scores([2.0] * 3, rows_b, 5))
+    by_hand = float((rows_b - rows_a).var() / 4) ** 0.5
+    assert single == pytest.approx((1.0, by_hand)) and five == pytest.approx((1.0, by_hand * math.sqrt(2.25)))
+    assert fold_inflation(1) == 1.0 and fold_inflation(5) == 2.25 and fold_inflation(2) == 3.0
+    with pytest.raises(ValueError, match="scores of 1 and 5 folds are not comparable"):
+        difference(Scores(draws, rows_a), Scores(draws, rows_b, 5))
+
+
+def test_a_cross_fitted_fit_keeps_the_training_parts_coefficients_and_scores_every_pooled_trajectory_out_of_sample():
+    pendulum = Pendulum()
+    dgp = pendulum.with_hidden_effect([LibraryTerm("velocity", "velocity", Constant(-0.8))])
+    train, val = generate_measured(dgp, 60, 1)["y"], generate_measured(dgp, 20, 2)["y"]
+    friction = [Candidate("velocity", "velocity")]
+    single = Fitting(pendulum, train, val, 6, 32, 0)
+    crossed = Fitting(pendulum, train, val, 6, 32, 0, folds=Folds.of(train, val, 4, 0))
+    a, b = single(friction, [-0.5]), crossed(friction, [-0.5])
+    assert [p.value for p in a.priors] == [p.value for p in b.priors], (
+        "the answer's coefficients are its fit on the training part either way"
+    )
+    assert (len(a.heldout.rows), a.heldout.folds) == (20, 1) and (len(b.heldout.rows), b.heldout.folds) == (80, 4)
+    alone = crossed.alone()
+    assert alone.folds == 4 and len(alone.rows) == 80
+    gain, error = difference(b.heldout, alone)
+    assert gain > 2 * error > 0, "a friction of -0.8 is seen against f_p alone on 80 trajectories"
+    assert "80 training and validation trajectories, cross-fitted over 4 folds" in crossed.on_folds()
+
+
+@pytest.mark.parametrize("folds", [0, 21, 2.5, True])
+def test_a_bad_number_of_folds_is_refused_in_one_line(folds):
+    with pytest.raises(InputError, match=rf"discover.folds={folds!r} is invalid; expected a whole number 1..20"):
+        DiscoverySettings(folds=folds)
