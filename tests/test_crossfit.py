@@ -9,7 +9,7 @@ import torch
 from otgb.data import generate_measured
 from otgb.discovery.crossfit import Folds, cross_fitted
 from otgb.discovery.library import Candidate
-from otgb.discovery.refine import Fitting
+from otgb.discovery.refine import FittedTerms, Fitting, FoldStarts
 from otgb.discovery.scores import Scores, difference, fold_inflation
 from otgb.discovery.settings import DiscoverySettings
 from otgb.errors import InputError
@@ -28,7 +28,7 @@ def test_folds_partition_the_pooled_training_and_validation_trajectories_the_sam
     assert len(rest) + len(fold) == 23 and not set(rest[:, 0].tolist()) & set(fold[:, 0].tolist())
     assert all(torch.equal(a, b) for a, b in zip(folds.index, Folds.of(train, val, 4, seed=3).index))
     assert Folds.of(train, val, 1, seed=3) is None
-    with pytest.raises(ValueError, match="23 measured trajectories cannot be split into 12 folds"):
+    with pytest.raises(InputError, match="discover.folds=12: the 23 measured training and validation trajectories cannot"):
         Folds.of(train, val, 12, seed=3)
 
 
@@ -76,10 +76,33 @@ def test_a_cross_fitted_fit_keeps_the_training_parts_coefficients_and_scores_eve
     assert alone.folds == 4 and len(alone.rows) == 80
     gain, error = difference(b.heldout, alone)
     assert gain > 2 * error > 0, "a friction of -0.8 is seen against f_p alone on 80 trajectories"
-    assert "80 training and validation trajectories, cross-fitted over 4 folds" in crossed.on_folds()
+    assert crossed.evidence_on() == "the 80 training and validation trajectories, cross-fitted over 4 folds"
+    assert single.evidence_on() is None
 
 
 @pytest.mark.parametrize("folds", [0, 21, 2.5, True])
 def test_a_bad_number_of_folds_is_refused_in_one_line(folds):
     with pytest.raises(InputError, match=rf"discover.folds={folds!r} is invalid; expected a whole number 1..20"):
         DiscoverySettings(folds=folds)
+
+
+def test_a_fold_refit_starts_where_that_folds_own_earlier_fit_ended_not_where_the_training_parts_fit_did():
+    """A chain of fits (a swap from the kept terms, a family from the constant) starts at a fit's values on the
+    training part, which saw most of every fold; each fold's refit starts at that fold's own end instead."""
+    starts, friction, drag = FoldStarts(), Candidate("velocity", "velocity"), Candidate("velocity*|velocity|", "velocity")
+    kept = FittedTerms("constant", [friction], [Constant(-0.8)], Scores([0.0]), [], [-0.5])
+    kept.fold_priors = [[Constant(-0.7)], [Constant(-0.9)], [Constant(-0.85)]]
+    starts.remember(kept)
+    assert [starts.start([friction, drag], [-0.8, 0.0], k) for k in range(3)] == [[-0.7, 0.0], [-0.9, 0.0], [-0.85, 0.0]]
+    assert starts.start([friction], [-0.5], 1) == [-0.5], "a start no fit ended at is the same for every fold"
+
+
+def test_a_candidate_without_a_natural_scale_moves_in_units_of_its_start():
+    """The theta search's candidates (omega*velocity) have no natural scale from f_phi's design: fitted beside those
+    that have one, they move in units of their start's size (a run stopped on a KeyError before)."""
+    pendulum = Pendulum()
+    train, val = generate_measured(pendulum, 30, 1)["y"], generate_measured(pendulum, 10, 2)["y"]
+    friction, scaled = Candidate("velocity", "velocity"), Candidate("omega*velocity", "velocity")
+    fitting = Fitting(pendulum, train, val, 2, 16, 0, natural={friction: 0.5})
+    fitted = fitting([friction, scaled], [-0.1, 0.0])
+    assert fitted.scales == [0.5, 0.0] and len(fitted.priors) == 2

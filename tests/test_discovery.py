@@ -1082,6 +1082,26 @@ def test_workflow_names_adds_and_closes_the_gap():
 
 
 @pytest.mark.slow
+def test_workflow_with_cross_fitted_evidence_names_the_same_friction_and_scores_every_pooled_trajectory():
+    """The workflow of the test above with ``discover.folds`` = 3: the same term named from the training part's fit,
+    every decision's scores cross-fitted over the 400 pooled trajectories (3 folds), the report saying so."""
+    pendulum = Pendulum()
+    dgp = pendulum.with_hidden_effect([ViscousFriction(Constant(1.2))])
+    module = _knowing(pendulum, lambda state: -1.2 * state[:, 1:2])
+    data = Measurements(_draws(dgp, 300, 1), _draws(dgp, 100, 2), _draws(dgp, 100, 3))
+    settings = DiscoverySettings(**FAST, folds=3)
+    before = locate_step(pendulum, data.train, settings, Context.of(settings))
+    result = run(module, data, settings, before, Context.of(settings))
+    assert result.found and [c.feature for c in result.fitted.candidates] == ["velocity"]
+    assert abs(result.fitted.priors[0].value + 1.2) < 0.12 and result.fitted.family == "constant"
+    assert (result.fitted.heldout.folds, len(result.fitted.heldout.rows)) == (3, 400)
+    assert all(row["standard_error"] > 0 for row in result.cross_check)
+    assert result.evidence_on == "the 400 training and validation trajectories, cross-fitted over 3 folds"
+    assert result.fitted.fold_priors and len(result.fitted.fold_priors) == 3
+    assert result.closer.significant and result.gap["augmented"]["c2st"] < 0.7
+
+
+@pytest.mark.slow
 def test_a_stopped_run_resumed_from_its_fit_cache_reaches_the_result_of_a_run_never_stopped(tmp_path, monkeypatch):
     """The workflow with ``fit_cache``; then the fits of its second half deleted (what a stop part way leaves: the
     fits finished before it) and the workflow run again: it fits only those and ends with the same terms, priors,

@@ -68,7 +68,7 @@ def both_step(
     family = family_step(constant, on_base, families)
     together = family.choice.fitted
     if fitting.folds is not None:  # both refitted on each fold's complement, not the terms alone on the priors' fit
-        together = replace(together, heldout=cross_fitted(fitting.folds, both_on_fold(fitting, together, refit_x0)))
+        together = replace(together, heldout=cross_fitted(fitting.folds, both_on_fold(fitting, terms, together, refit_x0)))
     better, error = difference(together.heldout, terms.heldout)
     progress(f"f_p's priors recalibrated beside the terms: {better:+.3g} +- {error:.2g} below the terms alone")
     if not (beats(together.heldout, terms.heldout) and beats(together.heldout, alone.heldout)):
@@ -77,20 +77,25 @@ def both_step(
     return both, family
 
 
-def both_on_fold(fitting: Fitting, together: FittedTerms, refit_x0: bool) -> Callable[[Tensor, Tensor], Scores]:
+def both_on_fold(
+    fitting: Fitting, terms: FittedTerms, together: FittedTerms, refit_x0: bool
+) -> Callable[[Tensor, Tensor], Scores]:
     """The two together fitted again on a fold's complement as on the training part (f_p's configured priors refitted
-    beside the terms, then the terms from their start on those priors), scored on the fold:
-    :func:`otgb.discovery.crossfit.cross_fitted`'s step. The terms' values held during the first fit are their fit on
-    the training part."""
+    beside the named ``terms`` held at that fold's own refit of them, then the terms on those priors from that fold's
+    start), scored on the fold: :func:`otgb.discovery.crossfit.cross_fitted`'s step, called for the folds in order."""
     options = {"scales": together.scales, "samples": together.samples}
+    done: list[int] = []
 
     def score_fold(rest: Tensor, fold: Tensor) -> Scores:
+        k = len(done)
+        done.append(k)
+        held = replace(terms, priors=terms.fold_priors[k]) if terms.fold_priors else terms
         data = (rest, fold, fitting.steps, fitting.batch, fitting.seed, fitting.spread_samples)
-        again = recalibrate(together.model(fitting.physics), *data, states=refit_x0, intervals=False)
+        again = recalibrate(held.model(fitting.physics), *data, states=refit_x0, with_intervals=False)
         if again is None:
             return Scores.diverged(HELDOUT_REPEATS)
-        terms = fit(again.physics.base, together.candidates, together.start, together.family, *data[:5], **options)
-        return terms.heldout
+        start = fitting.fold_starts.start(together.candidates, together.start, k)
+        return fit(again.physics.base, together.candidates, start, together.family, *data[:5], **options).heldout
 
     return score_fold
 

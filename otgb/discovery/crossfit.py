@@ -3,11 +3,11 @@ parts.
 
 With ``discover.folds`` = K > 1, the measured training and validation trajectories are pooled and split into K folds
 at random, once per run (the same folds for every model, so that two models' scores are paired). A fitted model's
-held-out score is then made K times: the same fit (its start, prior family and iterations) made on the other K - 1
-folds, and scored on the fold left out (never started where the fit on the training part ended, which has seen most
-of each fold), with the simulation draws that
-every model's score of that fold shares (common random numbers, :func:`otgb.discovery.scores.discrepancies`). The
-K scores combine into one :class:`~otgb.discovery.scores.Scores`: per simulation draw, the folds' discrepancies weighted
+held-out score is then made K times: the same fit (its prior family and iterations) made on the other K - 1 folds,
+and scored on the fold left out, with the simulation draws that every model's score of that fold shares (common random
+numbers, :func:`otgb.discovery.scores.discrepancies`). A refit starts where that fold's own chain of fits ended
+(:class:`otgb.discovery.refine.FoldStarts`), never where a fit on the training part ended, which has seen most of each
+fold. The K scores combine into one :class:`~otgb.discovery.scores.Scores`: per simulation draw, the folds' discrepancies weighted
 by their sizes; per measured trajectory, its row from the fold that held it out. Every measured trajectory of the two
 parts is so seen out of sample by each decision, not only the validation part's.
 
@@ -31,6 +31,7 @@ import torch
 from torch import Tensor
 
 from otgb.discovery.scores import Scores
+from otgb.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -47,7 +48,10 @@ class Folds:
             return None
         pool = torch.cat([train, val])
         if len(pool) < 2 * k:
-            raise ValueError(f"{len(pool)} measured trajectories cannot be split into {k} folds of at least 2")
+            raise InputError(
+                f"discover.folds={k}: the {len(pool)} measured training and validation trajectories cannot be split into "
+                f"{k} folds of at least 2; expected fewer folds"
+            )
         order = torch.randperm(len(pool), generator=torch.Generator().manual_seed(seed))
         return cls(pool, tuple(order.tensor_split(k)))
 

@@ -31,9 +31,9 @@ def naming_section(report: dict[str, Any]) -> list[str]:
     lines = ["## What the learned correction is", ""]
     if report.get("evidence_on"):
         lines += [
-            f"Every held-out score below that decides between models is computed on {report['evidence_on']}; where a "
-            "cross-fitted score is meant, 'the validation part' is read as those trajectories, each scored by fits that "
-            "did not see it (docs/discovery.md, Cross-fitted evidence).",
+            f"Every held-out score below that decides between models is computed on {report['evidence_on']}: 'the "
+            "validation part' is read as those trajectories, each scored by fits that did not see it "
+            "(docs/discovery.md, Cross-fitted evidence).",
             "",
         ]
     if report["correction_share"] is not None:

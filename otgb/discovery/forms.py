@@ -262,15 +262,21 @@ def _heldout(
     fitting: Fitting, offer: Offer, others: list[Candidate], p0: Tensor, terms: tuple[list[Candidate], list[Prior]]
 ) -> Scores:
     """The form model's held-out scores: ``terms`` (fitted from ``p0``) on the validation part or, with folds, the same
-    fit from ``p0`` on each fold's complement, scored on the fold (:mod:`otgb.discovery.crossfit`)."""
+    fit on each fold's complement, scored on the fold (:mod:`otgb.discovery.crossfit`); the other terms start at that
+    fold's own values (:class:`otgb.discovery.refine.FoldStarts`), the form where it started on the training part."""
     physics, seed, device = fitting.physics, fitting.seed, fitting.device
     if fitting.folds is None:
         return discrepancies(physics, *terms, fitting.val, seed, device=device)
     form = form_named(offer.form)
 
-    def score_fold(rest: Tensor, fold: Tensor) -> Scores:
+    done: list[int] = []
+
+    def score_fold(rest: Tensor, fold: Tensor) -> Scores:  # called for the folds in order
+        start = p0.clone()
+        start[: len(others)] = torch.tensor(fitting.fold_starts.start(others, p0[: len(others)].tolist(), len(done)))
+        done.append(len(done))
         problem = _Problem(replace(fitting, train=rest), offer, others, form.parameters, form.positive)
-        return discrepancies(physics, *_terms_of(problem, offer, others, problem.fit(p0)), fold, seed, device=device)
+        return discrepancies(physics, *_terms_of(problem, offer, others, problem.fit(start)), fold, seed, device=device)
 
     return cross_fitted(fitting.folds, score_fold)
 

@@ -14,6 +14,7 @@ import torch
 
 from otgb.analysis.components import component_analysis
 from otgb.discovery.answer import recalibrate_step
+from otgb.discovery.crossfit import Folds
 from otgb.discovery.draws import simulate_from_priors
 from otgb.discovery.known import pointwise_errors
 from otgb.discovery.locate import DisagreementMap, describe
@@ -22,6 +23,7 @@ from otgb.discovery.naming import fitting_for
 from otgb.discovery.paired import paired_check
 from otgb.discovery.recalibration import Recalibration
 from otgb.discovery.record import Discovery
+from otgb.discovery.refine import Fitting
 from otgb.discovery.result import DiscoveryResult
 from otgb.discovery.session import Session, stopped_by_signals
 from otgb.discovery.settings import Measurements
@@ -37,6 +39,7 @@ def discover(session: Session) -> DiscoveryResult:
     show_on_stderr()
     datamodule, settings, physics, context = session.datamodule, session.settings, session.physics, session.context
     data = Measurements.from_datamodule(datamodule)
+    Folds.of(data.train, data.val, settings.fits.folds, context.seeds.root)  # too many folds: said before any training
     paired = paired_check(physics, data.train, *data.train_inputs, data.noise) if data.pairable() else None
     with context.as_measured(physics, data.noise):
         before = locate_step(physics, data.train, settings, context, paired=paired)
@@ -91,19 +94,20 @@ def nothing_detected(session: Session, data: Measurements, before: DisagreementM
     physics, settings, context = session.physics, session.settings, session.context
     with context.as_measured(physics, data.noise):
         draws = {"f_p": simulate_from_priors(physics, len(data.test), context.seeds, "gap-f_p")}
-        recalibration = recalibration_only(physics, data, settings, context) if settings.fits.recalibrate else None
+        fitting = fitting_for(physics, data, settings, {}, context)  # the run's fitting, no grey-box's design behind it
+        recalibration = recalibration_only(fitting, data) if settings.fits.recalibrate else None
+        found = {"recalibration": recalibration, "evidence_on": fitting.evidence_on()}
         if recalibration is not None and recalibration.beats_f_p:
-            named = Discovery(before, describe(before), recalibration=recalibration, recalibrated=True)
+            named = Discovery(before, describe(before), recalibrated=True, **found)
             return verify_answer(named, physics, data.test, settings, context, draws)
     gap = gap_step(draws, data.test, settings, context.seeds)
-    return Discovery(before, describe(before), draws=draws, gap=gap, recalibration=recalibration)
+    return Discovery(before, describe(before), draws=draws, gap=gap, **found)
 
 
-def recalibration_only(physics, data: Measurements, settings, context) -> Recalibration | None:
-    """f_p's priors refitted (:func:`otgb.discovery.answer.recalibrate_step`) with the run's fitting, no grey-box's
-    design behind it (:func:`otgb.discovery.naming.fitting_for`)."""
+def recalibration_only(fitting: Fitting, data: Measurements) -> Recalibration | None:
+    """f_p's priors refitted (:func:`otgb.discovery.answer.recalibrate_step`) with the run's ``fitting``."""
     progress("f_p's priors are refitted: a shift of their bounds can hide from the disagreement map")
-    return recalibrate_step(fitting_for(physics, data, settings, {}, context), data.train_inputs is None)
+    return recalibrate_step(fitting, data.train_inputs is None)
 
 
 def facts_of(session: Session) -> dict[str, Any]:

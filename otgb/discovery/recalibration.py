@@ -171,12 +171,12 @@ class ThetaPriors(torch.nn.Module):
 
 def recalibrate(
     physics: PhysicsModel, train: Tensor, val: Tensor, steps: int, batch: int, seed: int, samples: int = 1,
-    states: bool = False, folds: Folds | None = None, intervals: bool = True,
+    states: bool = False, folds: Folds | None = None, with_intervals: bool = True,
 ) -> Recalibration | None:  # fmt: skip
     """f_p's theta priors (and, with ``states``, the priors of its initial state's components, for an ODE whose x0
     is drawn per component) refitted to ``train`` (module docstring) on ``samples`` simulated samples of ``batch``
     (one where no refitted prior varies), scored on ``val`` or, with ``folds``, cross-fitted over them
-    (:mod:`otgb.discovery.crossfit`); without ``intervals``, none are computed (a refit whose scores alone count);
+    (:mod:`otgb.discovery.crossfit`); without ``with_intervals``, none are computed (a refit whose scores alone count);
     None where no prior is of a kind it refits or the fit diverged."""
     own = getattr(physics, "base", physics).theta_names  # f_p's parameters, not an augmented model's coefficients
     components = physics.state_names if states and not isinstance(physics, FieldModel) else ()
@@ -190,7 +190,7 @@ def recalibrate(
         return None
     fitted = dict(zip(names, theta_priors.priors()))
     recalibrated = physics.with_priors(fitted)
-    intervals = _intervals(physics, names, theta_priors, sample) if intervals else None
+    intervals = _intervals(physics, names, theta_priors, sample) if with_intervals else None
     records = [
         Recalibrated(n, physics.priors[n], fitted[n], *(intervals[i] if intervals else (None, None, None)))
         for i, n in enumerate(names)

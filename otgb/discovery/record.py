@@ -57,7 +57,7 @@ class Discovery:
     recalibrated: bool = False  # whether the answer holds f_p with those priors (alone, or beneath the named terms)
     forms: FormStep | None = None  # the parametric forms weighed against the linear terms (otgb.discovery.forms)
     theta_search: ThetaSearch | None = None  # terms that scale with theta, searched where the answer left a remainder
-    evidence_on: str = ""  # what the held-out scores of its decisions are computed on (Fitting.on_folds)
+    evidence_on: str | None = None  # what the held-out scores of its decisions are cross-fitted over (None: not)
 
     @property
     def found(self) -> bool:

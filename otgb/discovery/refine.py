@@ -27,7 +27,7 @@ from torch import Tensor
 
 from otgb.discovery.crossfit import Folds, cross_fitted
 from otgb.discovery.discrepancy import Target
-from otgb.discovery.families import CONSTANT, prior, standard_noise, varies
+from otgb.discovery.families import CONSTANT, centre, prior, standard_noise, varies
 from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.lbfgs import minimise
 from otgb.discovery.library import Candidate
@@ -61,6 +61,7 @@ class FittedTerms:
     start: list[float] = field(default_factory=list)  # where the fit started (refits for intervals start there too)
     scales: list[float] | None = None  # the coefficients' natural sizes the fit moved them in
     samples: int = 1  # simulated samples the fit averaged its discrepancy over (``discover.spread_samples``)
+    fold_priors: list[list[Prior]] = field(default_factory=list)  # per fold, the priors of its cross-fitting refit
 
     @property
     def heldout_energy(self) -> float:
@@ -83,6 +84,7 @@ class FittedTerms:
             "start": list(self.start),
             "scales": self.scales,
             "samples": self.samples,
+            "fold_priors": [[[type(p).__name__, dict(p.init_args)] for p in fold] for fold in self.fold_priors],
         }
 
     @classmethod
@@ -91,7 +93,8 @@ class FittedTerms:
         priors = [PRIOR_CLASSES[name](**arguments) for name, arguments in record["priors"]]
         heldout = Scores(list(record["heldout"]["draws"]), record["heldout"]["rows"], record["heldout"].get("folds", 1))
         rest = (list(record["loss"]), list(record["start"]), record["scales"], record.get("samples", 1))
-        return cls(record["family"], candidates, priors, heldout, *rest)
+        folds = [[PRIOR_CLASSES[name](**arguments) for name, arguments in fold] for fold in record.get("fold_priors", [])]
+        return cls(record["family"], candidates, priors, heldout, *rest, folds)
 
 
 PRIOR_CLASSES = {prior.__name__: prior for prior in (Constant, Uniform, Normal, Choice)}  # the families' priors
@@ -216,6 +219,30 @@ def prior_is_finite(prior: CoefficientPrior) -> bool:
     return bool(torch.isfinite(prior.centre).all() and torch.isfinite(prior.width).all())
 
 
+class FoldStarts:
+    """Where each fold's refit of a coefficient starts, so that no fold's score comes from a fit that saw that fold.
+
+    The fits of a discovery run form a chain: a swap starts at the kept terms' values, a family at the constant's, an
+    addition beside the kept ones. Those values are the fits on the training part, which hold most of every fold. So
+    each cross-fitted fit (:meth:`Fitting.cross_fitted`) is remembered by its candidates' fitted centres, with its
+    folds' ends; a later fit started at such a value starts each fold's refit at that fold's end instead. A start no fit
+    ended at (f_phi's slope, zero for a term added) is the same for every fold.
+    """
+
+    def __init__(self) -> None:
+        self.ends: dict[tuple[Candidate, float], list[float]] = {}
+
+    def remember(self, fitted: FittedTerms) -> FittedTerms:
+        for i, (candidate, answer) in enumerate(zip(fitted.candidates, fitted.priors)):
+            if fitted.fold_priors:
+                self.ends[(candidate, centre(answer))] = [centre(fold[i]) for fold in fitted.fold_priors]
+        return fitted
+
+    def start(self, candidates: list[Candidate], init: list[float], fold: int) -> list[float]:
+        """Fold ``fold``'s start for ``candidates`` whose start on the training part is ``init``."""
+        return [self.ends.get((c, float(v)), [float(v)] * (fold + 1))[fold] for c, v in zip(candidates, init)]
+
+
 @dataclass
 class Fitting:
     """How every coefficient fit of one discovery run is made (:func:`fit`): on the training part, scored on the
@@ -235,6 +262,7 @@ class Fitting:
     fallback: str | None = None  # why the fits moved to the CPU
     spread_samples: int = SPREAD_SAMPLES  # simulated samples of a fit of a family that varies
     folds: Folds | None = None  # the folds held-out scores are cross-fitted over (None: scored on the validation part)
+    fold_starts: FoldStarts = field(default_factory=lambda: FoldStarts())  # shared by the copies ``replace`` makes
 
     def __call__(
         self, candidates: list[Candidate], init: list[float], family: str = CONSTANT, natural_scales: bool = True,
@@ -243,17 +271,17 @@ class Fitting:
         """The fitted prior of ``family`` for ``candidates`` started at ``init``, on ``samples`` simulated samples
         (default: ``spread_samples`` for a family that varies, else one); without ``natural_scales`` each coefficient
         moves in units of its start's size. Read from the cache where it holds this fit."""
-        scales = [float(self.natural[c]) for c in candidates] if natural_scales and self.natural else None
+        scales = [float(self.natural.get(c, 0.0)) for c in candidates] if natural_scales and self.natural else None
         init, samples = [float(v) for v in init], samples or (self.spread_samples if varies(family) else 1)
 
         def run() -> FittedTerms:
             data = (self.train, self.val, self.steps, self.batch, self.seed)
             options = {"scales": scales, "samples": samples, "score": self.folds is None}
             fitted = self.fit_on_device(lambda on: fit(self.physics, candidates, init, family, *data, device=on, **options))
-            return fitted if self.folds is None else replace(fitted, heldout=self.cross_fitted(fitted))
+            return fitted if self.folds is None else self.cross_fitted(fitted)
 
         if self.cache is None:
-            return run()
+            return self.fold_starts.remember(run())
         terms = [(c.feature, c.component) for c in candidates]
         inputs = {"terms": terms, "init": init, "family": family, "scales": scales, "steps": self.steps, "batch": self.batch}
         inputs |= {"samples": samples, "folds": self.folds.k if self.folds else 1}
@@ -267,33 +295,38 @@ class Fitting:
         record = self.cache.record(self.cache.key(self.physics, self.train, self.val, seed=self.seed, **inputs), stored)
         if record["fallback"] is not None and self.device.type != "cpu":  # the run that made this fit moved to the CPU here
             self.fall_back(record["fallback"])
-        return FittedTerms.from_record(record["fitted"])
+        return self.fold_starts.remember(FittedTerms.from_record(record["fitted"]))
 
-    def cross_fitted(self, fitted: FittedTerms) -> Scores:
-        """``fitted``'s held-out scores cross-fitted over the folds: the same fit (its start, family, scales and
-        iterations) on each fold's complement, scored on the fold."""
+    def cross_fitted(self, fitted: FittedTerms) -> FittedTerms:
+        """``fitted`` with its held-out scores cross-fitted over the folds: the same fit (its family, scales and
+        iterations) on each fold's complement, started where that fold's own chain of fits ended
+        (:class:`FoldStarts`), scored on the fold."""
         if not fitted.heldout.finite:
-            return Scores.diverged(HELDOUT_REPEATS, self.folds.k)
+            return replace(fitted, heldout=Scores.diverged(HELDOUT_REPEATS, self.folds.k))
         settings = {"scales": fitted.scales, "samples": fitted.samples}
+        ends: list[list[Prior]] = []
 
-        def score_fold(rest: Tensor, fold: Tensor) -> Scores:
+        def score_fold(rest: Tensor, fold: Tensor) -> Scores:  # called for the folds in order: this is fold len(ends)
+            start = self.fold_starts.start(fitted.candidates, fitted.start, len(ends))
             data = (rest, fold, self.steps, self.batch, self.seed)
-            refit = lambda on: fit(self.physics, fitted.candidates, fitted.start, fitted.family, *data, device=on, **settings)  # noqa: E731
-            return self.fit_on_device(refit).heldout
+            refit = self.fit_on_device(
+                lambda on: fit(self.physics, fitted.candidates, start, fitted.family, *data, device=on, **settings)
+            )
+            ends.append(refit.priors)
+            return refit.heldout
 
-        return cross_fitted(self.folds, score_fold)
+        return replace(fitted, heldout=cross_fitted(self.folds, score_fold), fold_priors=ends)
 
-    def alone(self, physics: PhysicsModel | None = None) -> Scores:
-        """The held-out scores of ``physics`` (default: this fitting's) with nothing fitted: on the validation part, or
-        on each fold, as a fitted model's are (the same draws)."""
-        physics = physics or self.physics
-        score = lambda rest, fold: discrepancies(physics, [], [], fold, self.seed, device=self.device)  # noqa: E731
+    def alone(self) -> Scores:
+        """The held-out scores of this fitting's physics with nothing fitted: on the validation part, or on each fold,
+        as a fitted model's are (the same draws)."""
+        score = lambda rest, fold: discrepancies(self.physics, [], [], fold, self.seed, device=self.device)  # noqa: E731
         return score(self.train, self.val) if self.folds is None else cross_fitted(self.folds, score)
 
-    def on_folds(self) -> str:
-        """What the held-out scores are computed on, for the log and the report."""
+    def evidence_on(self) -> str | None:
+        """What the held-out scores are cross-fitted over, for the log and the report; None without folds."""
         if self.folds is None:
-            return f"the {len(self.val)} validation trajectories"
+            return None
         return f"the {len(self.folds.pool)} training and validation trajectories, cross-fitted over {self.folds.k} folds"
 
     def fit_on_device(self, fit_on: Callable[[torch.device], FittedTerms]) -> FittedTerms:

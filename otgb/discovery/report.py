@@ -54,7 +54,7 @@ def report_dict(result: Discovery, physics: PhysicsModel, facts: dict[str, Any])
         "search_reason": result.search_reason,
         "search": [_search_step_dict(step) for step in result.search],
         "theta_search": _theta_search_dict(result.theta_search),
-        "evidence_on": result.evidence_on or None,
+        "evidence_on": result.evidence_on,
         "search_unsupported": _unsupported_dicts(result.unsupported),
         **_family_dict(result),
         "dropped_by_heldout_check": result.dropped,

@@ -127,7 +127,7 @@ def difference(a: Scores, b: Scores) -> tuple[float, float]:
     the draws, common random numbers) and the measured sample, which is finite, and the same for
     both (the spread over measured trajectories of the differences of their ``rows``): a model may
     fit these measured trajectories better than another without describing the process better.
-    Cross-fitted scores (``folds`` > 1) scale the second by :func:`otgb.discovery.crossfit.fold_inflation`: their
+    Cross-fitted scores (``folds`` > 1) scale the second by :func:`fold_inflation`: their
     folds' fits share most of their training data. A model that diverged is infinitely worse.
     """
     if a.folds != b.folds:

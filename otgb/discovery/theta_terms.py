@@ -82,11 +82,12 @@ def theta_step(
 
 
 def answer_scores(on_base: Fitting, answer: Answer) -> Scores:
-    """The answer's validation scores: its terms', else its recalibration's, else f_p's alone."""
-    if answer.terms is not None:
-        return answer.terms.heldout
+    """The answer's validation scores: its recalibration's where it holds one (beside terms: the two together's), else
+    its terms', else f_p's alone."""
     if answer.recalibrated:
         return answer.recalibration.heldout
+    if answer.terms is not None:
+        return answer.terms.heldout
     if answer.recalibration is not None:
         return answer.recalibration.f_p_heldout
     return on_base.alone()

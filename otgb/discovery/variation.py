@@ -3,10 +3,12 @@
 The families are nested: a uniform U(c - w, c + w), a normal N(c, w^2) or a two-point
 {c - w, c + w} of zero width is the constant c. Each richer family is fitted from the constant's optimum
 (:func:`otgb.discovery.refine.fit`) and scored on the training measurements with the same
-simulation draws as the constant (common random numbers, ``FAMILY_REPEATS`` draws). A richer
-fit that scores worse than the constant stopped short of the optimum its family contains (it
-cannot be worse at zero width); it is then taken at zero width, where it ties the constant, and
-the report says so. The simplest family that no richer family beats by two standard errors
+simulation draws as the constant (common random numbers, ``FAMILY_REPEATS`` draws), or, with
+cross-fitted evidence (:mod:`otgb.discovery.crossfit`), by each fit's cross-fitted scores. A richer
+fit that scores worse than the constant on the training measurements stopped short of the optimum
+its family contains (it cannot be worse at zero width); it is then taken at zero width, where it
+ties the constant, and the report says so (out of sample, worse is the spread's overfitting, and
+the richer fit stands to be weighed). The simplest family that no richer family beats by two standard errors
 (:func:`otgb.discovery.scores.beats`) is chosen, and every family's difference to it is
 reported with its standard error. A family that varies is kept only where the 95 % interval of
 every term's spread excludes zero (:mod:`otgb.discovery.intervals`) and it scores lower than the
@@ -45,7 +47,7 @@ class FamilyChoice:
     """The chosen family's fit, each family's score and difference to it, the fits that stopped short."""
 
     fitted: FittedTerms
-    scores: dict[str, float]  # mean discrepancy to the training measurements per family
+    scores: dict[str, float]  # mean discrepancy per family (to the training measurements, or cross-fitted)
     differences: dict[str, tuple[float, float]]  # per family: its score minus the chosen one's, and its standard error
     stopped_short: list[str] = field(default_factory=list)  # families whose fit ended worse than the constant
     excluded_spread: list[float | None] | None = None  # constant chosen: per term, the smallest spread the data exclude
@@ -78,7 +80,7 @@ def choose_prior(
     for family in filter(varies, families):
         richer = refit(family)
         scores[family] = score(richer)
-        if difference(scores[CONSTANT], scores[family])[0] > 0:  # worse than the width-zero member of its family
+        if not cross_fitted and difference(scores[CONSTANT], scores[family])[0] > 0:  # worse than its width-zero member
             stopped_short.append(family)
             richer, scores[family] = at_zero_width(richer, constant), scores[CONSTANT]
         fits.append(richer)

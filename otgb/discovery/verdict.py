@@ -162,10 +162,10 @@ def closest_unkept(result: Discovery) -> list[str]:
         return []
     below, error = closest.versus_f_p
     terms = ", ".join(f"{c.feature} on d{c.component}/dt" for c in closest.candidates)
-    n = len(closest.fitted.heldout.rows)
+    scored_on = result.evidence_on or f"the {len(closest.fitted.heldout.rows)} validation trajectories"
     return [
         f"undecided rather than absent: the closest model, f_p + {terms}, scores {below:.3g} ± {error:.2g} below f_p "
-        f"alone's held-out energy ({below / error:.1f} standard errors, two needed) on the {n} validation trajectories, "
+        f"alone's held-out energy ({below / error:.1f} standard errors, two needed) on {scored_on}, "
         "too few to tell whether it describes the process or fits their noise: more measurements would decide"
     ]
 

@@ -147,7 +147,7 @@ def name_and_add(
         search=searched.steps, unsupported=searched.unsupported,
         route=route_name(searched, theta), search_reason=reason, undertrained=unused,
         recalibration=recalibration, recalibrated=recalibrated, forms=formed, theta_search=theta,
-        evidence_on=fitting.on_folds(),
+        evidence_on=fitting.evidence_on(),
     )  # fmt: skip
 
 
