@@ -26,6 +26,7 @@ import numpy as np
 import scipy_pendulum
 from discover_file import case_parser, discover_file
 from scipy.integrate import solve_ivp
+from scipy_variation import cell
 
 from otgb.reports import write_between
 
@@ -105,7 +106,7 @@ def table(out: Path) -> str:
         said = lambda terms: ", ".join(f"{f} {v:.3g}" for f, v in terms.items()) or "nothing"  # noqa: E731
         extra = ", ".join(s["extra"]) if s["extra"] else ("-" if s["extra"] is not None else "failed")
         lines.append(
-            f"| {s['case']} | {s['seed']} | {s['folds']} | {said(s['truth'])} | {said(s['terms'])} | {s['outcome']} "
+            f"| {s['case']} | {s['seed']} | {s['folds']} | {cell(said(s['truth']))} | {cell(said(s['terms']))} | {s['outcome']} "
             f"| {s['right']} | {extra} | {s['seconds'] / 60:.1f} |"
         )
     share = shares(0.6, COULOMB)

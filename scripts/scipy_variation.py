@@ -121,10 +121,15 @@ def table(out: Path) -> str:
         c2st = " / ".join(f"{s['c2st'][k]:.2f}" if k in s.get("c2st", {}) else "-" for k in ("f_p", "augmented", "reference"))
         minutes = f"{s['seconds'] / 60:.1f}"
         lines.append(
-            f"| {s['case']} | {s['n']} | {s['seed']} | {truth} | {named} | {spreads} | {s['outcome']} | {c2st} | {s['right']} "
-            f"| {minutes} |"
+            f"| {s['case']} | {s['n']} | {s['seed']} | {cell(truth)} | {cell(named)} | {spreads} | {s['outcome']} | {c2st} "
+            f"| {s['right']} | {minutes} |"
         )
     return "\n".join(lines + ["", _tally(out)])
+
+
+def cell(text: str) -> str:
+    """``text`` for a Markdown table's cell: a feature's own bars (``velocity*|velocity|``) escaped."""
+    return text.replace("|", "\\|")
 
 
 def _order(path: Path) -> tuple:
