@@ -23,7 +23,7 @@ from torch import nn
 
 from otgb.data import generate_measured
 from otgb.data.measured import CHUNK, simulate_in_chunks
-from otgb.discovery import refine
+from otgb.discovery import naming, refine
 from otgb.discovery.after_fix import beside_f_p, sentence_after
 from otgb.discovery.answer import Answer
 from otgb.discovery.closer import Closeness, closer
@@ -50,7 +50,7 @@ from otgb.discovery.search import SearchStep, best_subsets, search, sparsest_kep
 from otgb.discovery.seeds import Seeds
 from otgb.discovery.settings import Context, DiscoverySettings, Measurements
 from otgb.discovery.theta_terms import theta_candidates, theta_step
-from otgb.discovery.variation import choose_family
+from otgb.discovery.variation import FamilyChoice, choose_family
 from otgb.discovery.verdict import (
     OUTCOMES,
     OUTSIDE_THE_LIBRARY,
@@ -1950,3 +1950,27 @@ def test_report_md_says_when_the_grey_box_was_trained_on_other_measurements():
         "**Note: the grey-box's checkpoint was trained on the measurements in /a.csv, not on these measurements.**",
         "",
     ]
+
+
+def test_a_varying_family_refused_for_want_of_an_interval_has_its_spurious_term_pruned_and_is_chosen_again(monkeypatch):
+    """SciPy pendulums whose viscous friction varied: Coulomb friction -0.02 kept beside it, the uniform family far
+    better than the constant but refused (no interval: the two terms left the fit without a usable minimum). The
+    family step prunes that uniform fit; with the spurious term gone, the family is chosen again for the friction."""
+    friction, coulomb = Candidate("velocity", "velocity"), Candidate("sign(velocity)", "velocity")
+    both = FittedTerms("constant", [friction, coulomb], [Constant(-0.9), Constant(-0.02)], Scores([0.0]), [])
+    refused = FittedTerms("uniform", [friction, coulomb], [Uniform(-1.4, -0.5), Constant(-0.02)], Scores([0.0]), [])
+    alone = FittedTerms("uniform", [friction], [Uniform(-1.45, -0.55)], Scores([0.0]), [])
+    chosen = []
+
+    def choose(kept, fitting, families):
+        chosen.append([c.feature for c in kept.candidates])
+        if len(kept.candidates) == 2:
+            return FamilyChoice(kept, {}, {}, rejected={"uniform": "its spread has no 95 % interval"}, rejected_fit=refused)
+        return FamilyChoice(alone, {}, {})
+
+    monkeypatch.setattr(naming, "choose_prior", choose)
+    monkeypatch.setattr(naming, "prune", lambda fit, fitting: alone if fit is refused else fit)
+    refit = lambda candidates, init, **options: dataclasses.replace(both, candidates=candidates)  # noqa: E731
+    step = family_step(both, refit, ("constant", "uniform"))
+    assert chosen == [["velocity", "sign(velocity)"], ["velocity"]]
+    assert step.choice.fitted is alone and step.dropped == [{"feature": "sign(velocity)", "component": "velocity"}]

@@ -250,18 +250,24 @@ class FamilyStep:
 
 
 def family_step(kept: FittedTerms, fitting: Fitting, families: tuple[str, ...]) -> FamilyStep:
-    """The prior family of ``kept``'s terms (:func:`choose_prior`); when it varies, the terms are pruned again in it.
+    """The prior family of ``kept``'s terms (:func:`choose_prior`); when it varies, or when a family that varies
+    scored best but its spread had no interval, the terms are pruned again in that family.
 
     Every earlier step fits constant coefficients. When the effect varies between trajectories, a
     constant one misfits the measurements, and a further term can lower the held-out discrepancy by
     taking up part of the variation (on the one-to-many pendulum, whose friction is one of two values,
     Coulomb friction was added beside viscous friction). Fitted with the chosen family, such a term is
     no longer needed: it is dropped (:func:`prune`) and the family is chosen again for the terms left.
+    Such a term can also leave the varying fit without a minimum the sandwich can use (SciPy pendulums
+    whose viscous friction varied as U(-1.5, -0.5): Coulomb friction -0.02 beside it, the uniform family
+    7 standard errors better than the constant, refused for want of an interval): the family's fit is then
+    pruned as well.
     """
     choice = choose_prior(kept, fitting, families)
-    if not varies(choice.fitted.family) or len(kept.candidates) == 1:
+    varying = choice.fitted if varies(choice.fitted.family) else choice.rejected_fit
+    if varying is None or len(kept.candidates) == 1:
         return FamilyStep(choice, [])
-    pruned = prune(choice.fitted, fitting)
+    pruned = prune(varying, fitting)
     if len(pruned.candidates) == len(kept.candidates):
         return FamilyStep(choice, [])
     dropped = [{"feature": c.feature, "component": c.component} for c in kept.candidates if c not in pruned.candidates]

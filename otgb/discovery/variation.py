@@ -52,6 +52,7 @@ class FamilyChoice:
     stopped_short: list[str] = field(default_factory=list)  # families whose fit ended worse than the constant
     excluded_spread: list[float | None] | None = None  # constant chosen: per term, the smallest spread the data exclude
     rejected: dict[str, str] = field(default_factory=dict)  # a family the scores chose, and why it was not kept
+    rejected_fit: FittedTerms | None = None  # that family's fit
 
 
 def choose_family(fits: list[FittedTerms], scores: dict[str, Scores]) -> FittedTerms:
@@ -85,9 +86,9 @@ def choose_prior(
             richer, scores[family] = at_zero_width(richer, constant), scores[CONSTANT]
         fits.append(richer)
     fits = [f for f in fits if f.family in families] or [constant]
-    chosen, rejected = choose_family(fits, scores), {}
+    chosen, rejected, rejected_fit = choose_family(fits, scores), {}, None
     if varies(chosen.family) and interval is not None and (reason := unsupported_spread(chosen, constant, interval)):
-        chosen, rejected = constant, {chosen.family: reason}
+        chosen, rejected, rejected_fit = constant, {chosen.family: reason}, chosen
     differences = {f.family: difference(scores[chosen.family], scores[f.family]) for f in fits}
     excluded = None
     if not varies(chosen.family):
@@ -95,7 +96,7 @@ def choose_prior(
         terms = range(len(constant.candidates))
         excluded = [excluded_spread(physics, constant, k, spread_family, measured, seed) for k in terms]
     means = {f.family: scores[f.family].mean for f in fits}
-    return FamilyChoice(chosen, means, differences, stopped_short, excluded, rejected)
+    return FamilyChoice(chosen, means, differences, stopped_short, excluded, rejected, rejected_fit)
 
 
 def unsupported_spread(
