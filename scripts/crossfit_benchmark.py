@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import scipy_pendulum
-from discover_file import case_parser, discover_file
+from discover_file import case_parser, run_once
 from scipy.integrate import solve_ivp
 from scipy_variation import cell
 
@@ -70,18 +70,10 @@ def measured_file(case: str, folder: Path, seed: int) -> Path:
 
 
 def run_case(case: str, seed: int, folds: int, out: Path) -> dict:
-    folder = out / f"{case}-seed{seed}-K{folds}"
-    if (folder / "summary.json").exists():
-        print(f"{folder.name}: done")
-        return json.loads((folder / "summary.json").read_text())
-    folder.mkdir(parents=True, exist_ok=True)
-    measured = measured_file(case, folder, seed)
-    report, timing = discover_file(folder, "pendulum.yaml", measured.name, [*OVERRIDES, f"--discover.folds={folds}"], seed)
-    summary = summarise(case, seed, report) | {"seed": seed, "folds": folds} | timing
-    measured.unlink()  # rewritten by the script from its seed; the report keeps what was found
-    (folder / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(f"{folder.name}: exit {timing['returncode']} in {timing['seconds'] / 60:.1f} min: {summary['right']}")
-    return summary
+    overrides = [*OVERRIDES, f"--discover.folds={folds}"]
+    summary = lambda report: summarise(case, seed, report) | {"seed": seed, "folds": folds}  # noqa: E731
+    write = lambda folder: measured_file(case, folder, seed)  # noqa: E731
+    return run_once(out / f"{case}-seed{seed}-K{folds}", write, "pendulum.yaml", overrides, seed, summary)
 
 
 def summarise(case: str, seed: int, report: dict | None) -> dict:

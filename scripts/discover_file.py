@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 from otgb.runs import launch_otgb, machine, newest
@@ -29,6 +30,26 @@ def discover_file(folder: Path, config: str, measured: str, overrides: list[str]
         (folder / name).write_text((report.parent / name).read_text())
     found = json.loads(report.read_text()) if report and done.returncode == 0 else None
     return found, {"seconds": done.seconds, "returncode": done.returncode, "machine": machine()}
+
+
+def run_once(
+    folder: Path, write_measured: Callable[[Path], Path], config: str, overrides: list[str], seed: int,
+    summarise: Callable[[dict | None], dict],
+) -> dict:  # fmt: skip
+    """One case of a benchmark, resumable: the ``summary.json`` in ``folder`` where it finished, else the measured file
+    written by ``write_measured(folder)``, :func:`discover_file` on it and ``summarise(report)`` with the timing,
+    written there (the file is removed: the script rewrites it from its seed, the report keeps what was found)."""
+    if (folder / "summary.json").exists():
+        print(f"{folder.name}: done")
+        return json.loads((folder / "summary.json").read_text())
+    folder.mkdir(parents=True, exist_ok=True)
+    measured = write_measured(folder)
+    report, timing = discover_file(folder, config, measured.name, overrides, seed)
+    summary = summarise(report) | timing
+    measured.unlink()
+    (folder / "summary.json").write_text(json.dumps(summary, indent=2))
+    print(f"{folder.name}: exit {timing['returncode']} in {timing['seconds'] / 60:.1f} min: {summary.get('right')}")
+    return summary
 
 
 def case_parser(description: str, cases: dict, seeds: list[int]) -> argparse.ArgumentParser:

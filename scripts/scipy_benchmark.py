@@ -18,9 +18,10 @@ interrupted benchmark resumes; ``--table`` writes the gathered runs between the 
 from __future__ import annotations
 
 import json
+from functools import partial
 from pathlib import Path
 
-from discover_file import case_parser, discover_file
+from discover_file import case_parser, run_once
 from scipy_pendulum import write
 
 from otgb.reports import write_between
@@ -45,19 +46,9 @@ TRUTH = {  # the coefficient and parameters a named form should have, or the bou
 
 
 def run_case(case: str, seed: int, out: Path) -> dict:
-    folder = out / f"{case}-seed{seed}"
-    if (folder / "summary.json").exists():
-        print(f"{folder.name}: done")
-        return json.loads((folder / "summary.json").read_text())
     law, c, v0, ratio, restoring, _ = CASES[case]
-    folder.mkdir(parents=True, exist_ok=True)
-    measured = write(folder / "measured.csv", law, c, v0, ratio, 1000, seed, 0.02, restoring)
-    report, timing = discover_file(folder, "pendulum.yaml", measured.name, DISCOVER, seed)
-    summary = summarise(case, report) | timing
-    measured.unlink()  # rewritten by the script from its seed; the report keeps what was found
-    (folder / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(f"{folder.name}: exit {timing['returncode']} in {timing['seconds'] / 60:.1f} min: {summary['terms']}")
-    return summary
+    write_measured = lambda folder: write(folder / "measured.csv", law, c, v0, ratio, 1000, seed, 0.02, restoring)  # noqa: E731
+    return run_once(out / f"{case}-seed{seed}", write_measured, "pendulum.yaml", DISCOVER, seed, partial(summarise, case))
 
 
 def summarise(case: str, report: dict | None) -> dict:

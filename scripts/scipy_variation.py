@@ -23,7 +23,7 @@ from pathlib import Path
 
 import scipy_advdiff
 import scipy_pendulum
-from discover_file import case_parser, discover_file
+from discover_file import case_parser, run_once
 
 from otgb.reports import write_between
 
@@ -49,20 +49,11 @@ def measured_file(case: str, folder: Path, n: int, seed: int) -> Path:
 
 
 def run_case(case: str, n: int, seed: int, out: Path) -> dict:
-    folder = out / f"{case}-n{n}-seed{seed}"
-    if (folder / "summary.json").exists():
-        print(f"{folder.name}: done")
-        return json.loads((folder / "summary.json").read_text())
-    folder.mkdir(parents=True, exist_ok=True)
-    measured = measured_file(case, folder, n, seed)
     system = CASES[case][0]
     overrides = PENDULUM if system == "pendulum" else ADVDIFF
-    report, timing = discover_file(folder, f"{system}.yaml", measured.name, overrides, seed)
-    summary = summarise(case, report) | {"n": n, "seed": seed} | timing
-    measured.unlink()  # rewritten by the script from its seed; the report keeps what was found
-    (folder / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(f"{folder.name}: exit {timing['returncode']} in {timing['seconds'] / 60:.1f} min: {summary['right']}")
-    return summary
+    summary = lambda report: summarise(case, report) | {"n": n, "seed": seed}  # noqa: E731
+    write = lambda folder: measured_file(case, folder, n, seed)  # noqa: E731
+    return run_once(out / f"{case}-n{n}-seed{seed}", write, f"{system}.yaml", overrides, seed, summary)
 
 
 def summarise(case: str, report: dict | None) -> dict:
