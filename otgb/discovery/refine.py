@@ -262,7 +262,7 @@ class Fitting:
     fallback: str | None = None  # why the fits moved to the CPU
     spread_samples: int = SPREAD_SAMPLES  # simulated samples of a fit of a family that varies
     folds: Folds | None = None  # the folds held-out scores are cross-fitted over (None: scored on the validation part)
-    fold_starts: FoldStarts = field(default_factory=lambda: FoldStarts())  # shared by the copies ``replace`` makes
+    fold_starts: FoldStarts = field(default_factory=FoldStarts)  # shared by the copies ``replace`` makes
 
     def __call__(
         self, candidates: list[Candidate], init: list[float], family: str = CONSTANT, natural_scales: bool = True,
