@@ -1,7 +1,7 @@
 """Benchmark of cross-fitted evidence (``discover.folds``) against one validation part, on files from SciPy.
 
     python scripts/crossfit_benchmark.py --out results/crossfit                          # every case, K = 1 and 5
-    python scripts/crossfit_benchmark.py --out results/crossfit --cases viscous_coulomb --seeds 0 1
+    python scripts/crossfit_benchmark.py --out results/crossfit --cases viscous_coulomb --seeds 0 1 --folds 5
     python scripts/crossfit_benchmark.py --out results/crossfit --table docs/discovery.md      # gather only
 
 Each file (``scripts/scipy_pendulum.py``: 1000 pendulums, the angle with noise of sd 0.02, theta and x0 not recorded)
@@ -130,6 +130,7 @@ START, END = "<!-- table: scripts/crossfit_benchmark.py --table -->", "<!-- end 
 
 def main() -> None:
     parser = case_parser(__doc__.split("\n\n")[0], CASES, list(range(10)))
+    parser.add_argument("--folds", nargs="+", type=int, choices=FOLDS, default=list(FOLDS), help="the K to run")
     args = parser.parse_args()
     if args.table:
         write_between(args.table, START, END, table(args.out))
@@ -138,7 +139,7 @@ def main() -> None:
         for case in args.cases:
             if case == "viscous_coulomb" and seed >= 5:
                 continue  # five files of the two frictions, ten of the viscous alone
-            for folds in FOLDS:
+            for folds in args.folds:
                 run_case(case, seed, folds, args.out)
 
 
