@@ -23,8 +23,8 @@ from pathlib import Path
 from result_tables import header, results_in, row
 
 from otgb.data import generate_measured
-from otgb.discovery.families import centre
-from otgb.discovery.intervals import sandwich_intervals, spread
+from otgb.discovery.families import centre, spread
+from otgb.discovery.intervals import sandwich_intervals
 from otgb.discovery.library import Candidate
 from otgb.discovery.refine import fit
 from otgb.physics import AdvectionDiffusion, Choice, Constant, LibraryTerm, Pendulum, Uniform

@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from otgb.data import generate_measured
-from otgb.discovery.crossfit import Folds, cross_fitted
+from otgb.discovery.crossfit import Folds, cross_fitted, refit_steps
 from otgb.discovery.library import Candidate
-from otgb.discovery.refine import FittedTerms, Fitting, FoldStarts
+from otgb.discovery.refine import CoefficientPrior, Fitting, fit, refit_on
 from otgb.discovery.scores import Scores, difference, fold_inflation
 from otgb.discovery.settings import DiscoverySettings
 from otgb.errors import InputError
@@ -36,15 +36,14 @@ def test_fold_scores_combine_by_fold_size_per_draw_and_keep_each_trajectory_row_
     folds = Folds.of(torch.zeros(6, 1), torch.zeros(3, 1), 3, seed=0)
     per_fold = {}
 
-    def score_fold(rest, fold):
-        k = len(per_fold)
+    def score_fold(k, rest, fold):
         per_fold[k] = Scores([float(k), 10.0 + k], torch.full((len(fold),), float(k), dtype=torch.float64))
         return per_fold[k]
 
     combined = cross_fitted(folds, score_fold)
     assert combined.folds == 3 and combined.draws == pytest.approx([1.0, 11.0])  # equal folds of 3: the mean
     assert combined.rows.tolist() == [0.0] * 3 + [1.0] * 3 + [2.0] * 3
-    diverged = cross_fitted(folds, lambda rest, fold: Scores.diverged(2) if len(rest) else None)
+    diverged = cross_fitted(folds, lambda k, rest, fold: Scores([0.0, 0.0]) if k else Scores.diverged(2))
     assert not diverged.finite and diverged.folds == 3
 
 
@@ -86,15 +85,36 @@ def test_a_bad_number_of_folds_is_refused_in_one_line(folds):
         DiscoverySettings(folds=folds)
 
 
-def test_a_fold_refit_starts_where_that_folds_own_earlier_fit_ended_not_where_the_training_parts_fit_did():
-    """A chain of fits (a swap from the kept terms, a family from the constant) starts at a fit's values on the
-    training part, which saw most of every fold; each fold's refit starts at that fold's own end instead."""
-    starts, friction, drag = FoldStarts(), Candidate("velocity", "velocity"), Candidate("velocity*|velocity|", "velocity")
-    kept = FittedTerms("constant", [friction], [Constant(-0.8)], Scores([0.0]), [], [-0.5])
-    kept.fold_priors = [[Constant(-0.7)], [Constant(-0.9)], [Constant(-0.85)]]
-    starts.remember(kept)
-    assert [starts.start([friction, drag], [-0.8, 0.0], k) for k in range(3)] == [[-0.7, 0.0], [-0.9, 0.0], [-0.85, 0.0]]
-    assert starts.start([friction], [-0.5], 1) == [-0.5], "a start no fit ended at is the same for every fold"
+def test_a_fold_refit_from_the_training_parts_end_reaches_the_other_folds_own_optimum():
+    """A fold's refit starts where the fit on the training part ended (which saw most of the fold) and takes a fifth of
+    its iterations: two correlated frictions must end where a full fit on the other folds alone ends, not near the
+    start (the start is 0.03 to 0.07 from that end; the refit's evaluations are a third of the full fit's)."""
+    pendulum = Pendulum()
+    frictions = [
+        LibraryTerm("velocity", "velocity", Constant(-0.5)),
+        LibraryTerm("velocity*|velocity|", "velocity", Constant(-0.3)),
+    ]
+    dgp = pendulum.with_hidden_effect(frictions)
+    train, val = generate_measured(dgp, 90, 1)["y"], generate_measured(dgp, 30, 2)["y"]
+    fitting = Fitting(pendulum, train, val, 30, 96, 0, folds=Folds.of(train, val, 4, 0))
+    terms = [Candidate("velocity", "velocity"), Candidate("velocity*|velocity|", "velocity")]
+    on_train = fit(pendulum, terms, [-0.3, -0.1], "constant", train, val, 30, 96, 0, score=False)
+    assert refit_steps(30) == 6
+    for k in (0, 2):
+        rest, fold = fitting.folds.split(k)
+        own = fit(pendulum, terms, [-0.3, -0.1], "constant", rest, fold, 30, 96, 0, score=False)
+        refit = refit_on(pendulum, on_train, rest, fold, fitting)
+        assert refit.heldout.finite and len(refit.heldout.rows) == len(fold) and len(refit.loss) < len(own.loss)
+        for got, start, target in zip(refit.centres, on_train.centres, own.centres):
+            assert abs(got - target) < 0.2 * abs(start - target) + 0.01, (k, got, start, target)
+
+
+def test_a_refit_of_a_family_that_varies_starts_at_the_fitted_width_or_the_usual_start_where_narrower():
+    """A width near zero barely moves (the softplus that keeps it positive is flat there): a refit starts no narrower
+    than a fit from scratch does."""
+    usual = CoefficientPrior("uniform", [-0.5]).width.tolist()
+    assert CoefficientPrior("uniform", [-0.5], widths=[1e-7]).width.tolist() == pytest.approx(usual)
+    assert CoefficientPrior("uniform", [-0.5], widths=[0.3]).width.tolist() == pytest.approx([0.3])
 
 
 def test_a_candidate_without_a_natural_scale_moves_in_units_of_its_start():

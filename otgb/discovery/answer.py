@@ -14,12 +14,12 @@ from dataclasses import dataclass, replace
 
 from torch import Tensor
 
-from otgb.discovery.crossfit import cross_fitted
+from otgb.discovery.crossfit import cross_fitted, refit_steps
 from otgb.discovery.families import centre
 from otgb.discovery.log import progress
 from otgb.discovery.naming import FamilyStep, family_step
 from otgb.discovery.recalibration import Recalibration, recalibrate
-from otgb.discovery.refine import FittedTerms, Fitting, fit
+from otgb.discovery.refine import FittedTerms, Fitting, refit_on
 from otgb.discovery.scores import HELDOUT_REPEATS, Scores, beats, difference
 from otgb.discovery.settings import DiscoverySettings
 
@@ -68,7 +68,8 @@ def both_step(
     family = family_step(constant, on_base, families)
     together = family.choice.fitted
     if fitting.folds is not None:  # both refitted on each fold's complement, not the terms alone on the priors' fit
-        together = replace(together, heldout=cross_fitted(fitting.folds, both_on_fold(fitting, terms, together, refit_x0)))
+        on_folds = both_on_fold(fitting, terms, together, beside, refit_x0)
+        together = replace(together, heldout=cross_fitted(fitting.folds, on_folds))
     better, error = difference(together.heldout, terms.heldout)
     progress(f"f_p's priors recalibrated beside the terms: {better:+.3g} +- {error:.2g} below the terms alone")
     if not (beats(together.heldout, terms.heldout) and beats(together.heldout, alone.heldout)):
@@ -78,24 +79,20 @@ def both_step(
 
 
 def both_on_fold(
-    fitting: Fitting, terms: FittedTerms, together: FittedTerms, refit_x0: bool
-) -> Callable[[Tensor, Tensor], Scores]:
-    """The two together fitted again on a fold's complement as on the training part (f_p's configured priors refitted
-    beside the named ``terms`` held at that fold's own refit of them, then the terms on those priors from that fold's
-    start), scored on the fold: :func:`otgb.discovery.crossfit.cross_fitted`'s step, called for the folds in order."""
-    options = {"scales": together.scales, "samples": together.samples}
-    done: list[int] = []
+    fitting: Fitting, terms: FittedTerms, together: FittedTerms, beside: Recalibration, refit_x0: bool
+) -> Callable[[int, Tensor, Tensor], Scores]:
+    """The two together fitted again on a fold's complement as on the training part (f_p's priors refitted beside the
+    named ``terms`` held at that fold's own refit of them, then the terms on those priors), each refit started where its
+    fit on the training part ended (``beside``'s priors, ``together``'s terms), scored on the fold:
+    :func:`otgb.discovery.crossfit.cross_fitted`'s step."""
 
-    def score_fold(rest: Tensor, fold: Tensor) -> Scores:
-        k = len(done)
-        done.append(k)
+    def score_fold(k: int, rest: Tensor, held_out: Tensor) -> Scores:
         held = replace(terms, priors=terms.fold_priors[k]) if terms.fold_priors else terms
-        data = (rest, fold, fitting.steps, fitting.batch, fitting.seed, fitting.spread_samples)
-        again = recalibrate(held.model(fitting.physics), *data, states=refit_x0, with_intervals=False)
+        data = (rest, held_out, refit_steps(fitting.steps), fitting.batch, fitting.seed, fitting.spread_samples)
+        again = recalibrate(held.model(beside.physics.base), *data, states=refit_x0, with_intervals=False)
         if again is None:
             return Scores.diverged(HELDOUT_REPEATS)
-        start = fitting.fold_starts.start(together.candidates, together.start, k)
-        return fit(again.physics.base, together.candidates, start, together.family, *data[:5], **options).heldout
+        return refit_on(again.physics.base, together, rest, held_out, fitting).heldout
 
     return score_fold
 

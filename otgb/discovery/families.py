@@ -1,5 +1,5 @@
 """The prior families a fitted coefficient takes, in one place: their names (simplest first), whether one varies
-between trajectories, the prior a centre and a width make in each, a prior's centre, and the standard draws that
+between trajectories, the prior a centre and a width make in each, a prior's centre and width, and the standard draws that
 centre + width * noise maps to coefficients.
 
 - ``constant``: c (the effect is the same in every trajectory);
@@ -47,6 +47,14 @@ def centre(fitted: Prior) -> float:
     if isinstance(fitted, Choice):
         return sum(fitted.values) / len(fitted.values)
     raise TypeError(f"centre: a Constant, Uniform, Normal or Choice prior, got {type(fitted).__name__}")
+
+
+def spread(fitted: Prior) -> float:
+    """The width w of a fitted prior that varies: U(c - w, c + w)'s and {c - w, c + w}'s half-width, N(c, w^2)'s
+    standard deviation."""
+    if isinstance(fitted, Choice):
+        return (max(fitted.values) - min(fitted.values)) / 2
+    return (fitted.high - fitted.low) / 2 if isinstance(fitted, Uniform) else fitted.std
 
 
 def standard_noise(family: str, shape: tuple[int, ...], generator: torch.Generator) -> Tensor:

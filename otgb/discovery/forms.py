@@ -45,7 +45,7 @@ import torch
 from torch import Tensor
 
 from otgb.discovery.chunked import Simulate
-from otgb.discovery.crossfit import cross_fitted
+from otgb.discovery.crossfit import cross_fitted, refit_steps
 from otgb.discovery.discrepancy import Target
 from otgb.discovery.evidence import Comparison
 from otgb.discovery.families import CONSTANT
@@ -240,7 +240,7 @@ def fit_form(offer: Offer, kept: FittedTerms, designs: dict, fitting: Fitting) -
     p = problem.fit(p0)
     values = problem.values_of(p)
     candidates, priors = _terms_of(problem, offer, [c for c, _ in others], p)
-    heldout = _heldout(fitting, offer, [c for c, _ in others], p0, (candidates, priors))
+    heldout = _heldout(fitting, offer, [c for c, _ in others], p, (candidates, priors))
     fitted = FittedTerms(CONSTANT, candidates, priors, heldout, problem.losses, [float(v) for v in p0[: len(priors)]])
     fitting.natural.setdefault(candidates[-1], abs(amplitude) or 1.0)  # its coefficient's size, for the later fits
     gap, error = difference(heldout, kept.heldout)
@@ -259,24 +259,20 @@ def _terms_of(problem: _Problem, offer: Offer, others: list[Candidate], p: Tenso
 
 
 def _heldout(
-    fitting: Fitting, offer: Offer, others: list[Candidate], p0: Tensor, terms: tuple[list[Candidate], list[Prior]]
+    fitting: Fitting, offer: Offer, others: list[Candidate], p: Tensor, terms: tuple[list[Candidate], list[Prior]]
 ) -> Scores:
-    """The form model's held-out scores: ``terms`` (fitted from ``p0``) on the validation part or, with folds, the same
-    fit on each fold's complement, scored on the fold (:mod:`otgb.discovery.crossfit`); the other terms start at that
-    fold's own values (:class:`otgb.discovery.refine.FoldStarts`), the form where it started on the training part."""
+    """The form model's held-out scores: ``terms`` (fitted to ``p``) on the validation part or, with folds, the same fit
+    on each fold's complement started at ``p``, :func:`~otgb.discovery.crossfit.refit_steps` iterations, scored on the
+    fold (:mod:`otgb.discovery.crossfit`)."""
     physics, seed, device = fitting.physics, fitting.seed, fitting.device
     if fitting.folds is None:
         return discrepancies(physics, *terms, fitting.val, seed, device=device)
     form = form_named(offer.form)
 
-    done: list[int] = []
-
-    def score_fold(rest: Tensor, fold: Tensor) -> Scores:  # called for the folds in order
-        start = p0.clone()
-        start[: len(others)] = torch.tensor(fitting.fold_starts.start(others, p0[: len(others)].tolist(), len(done)))
-        done.append(len(done))
-        problem = _Problem(replace(fitting, train=rest), offer, others, form.parameters, form.positive)
-        return discrepancies(physics, *_terms_of(problem, offer, others, problem.fit(start)), fold, seed, device=device)
+    def score_fold(k: int, rest: Tensor, held_out: Tensor) -> Scores:
+        on_rest = replace(fitting, train=rest, steps=refit_steps(fitting.steps))
+        problem = _Problem(on_rest, offer, others, form.parameters, form.positive)
+        return discrepancies(physics, *_terms_of(problem, offer, others, problem.fit(p)), held_out, seed, device=device)
 
     return cross_fitted(fitting.folds, score_fold)
 

@@ -33,13 +33,13 @@ from torch import Tensor
 
 from otgb.discovery.chunked import Simulate, backward_in_chunks, chunk_size
 from otgb.discovery.discrepancy import batched_discrepancy, row_terms
-from otgb.discovery.families import centre, varies
+from otgb.discovery.families import centre, spread, varies
 from otgb.discovery.log import diverged
 from otgb.discovery.refine import FitSample, FittedTerms, Fitting
 from otgb.discovery.scores import term_names
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
-from otgb.physics.priors import Choice, Constant, Prior, Uniform
+from otgb.physics.priors import Constant
 from otgb.physics.solvers import current_solver
 from otgb.physics.terms import LibraryTerm
 
@@ -62,13 +62,6 @@ def parameters(fitted: FittedTerms) -> Tensor:
     if not varies(fitted.family):
         return torch.tensor(centres, dtype=torch.float64)
     return torch.tensor(centres + [spread(prior) for prior in fitted.priors], dtype=torch.float64)
-
-
-def spread(prior: Prior) -> float:
-    """A uniform or two-point prior's half-width, a normal prior's standard deviation."""
-    if isinstance(prior, Choice):
-        return (max(prior.values) - min(prior.values)) / 2
-    return (prior.high - prior.low) / 2 if isinstance(prior, Uniform) else prior.std
 
 
 def sandwich_intervals(base: PhysicsModel, fitted: FittedTerms, measured: Tensor, batch: int, seed: int) -> Intervals | None:

@@ -22,10 +22,10 @@ import torch
 from torch import Tensor
 
 from otgb.discovery.chunked import Simulate
-from otgb.discovery.crossfit import Folds, cross_fitted
+from otgb.discovery.crossfit import Folds, cross_fitted, refit_steps
 from otgb.discovery.discrepancy import Target
-from otgb.discovery.families import CONSTANT, NORMAL, UNIFORM, centre, prior, standard_noise, varies
-from otgb.discovery.intervals import STEP, Z95, sandwich, spread
+from otgb.discovery.families import CONSTANT, NORMAL, UNIFORM, centre, prior, spread, standard_noise, varies
+from otgb.discovery.intervals import STEP, Z95, sandwich
 from otgb.discovery.lbfgs import minimise
 from otgb.discovery.prior_text import prior_text
 from otgb.discovery.scores import HELDOUT_REPEATS, Scores, clears, difference, discrepancies
@@ -200,14 +200,14 @@ def recalibrate(
         scores = discrepancies(recalibrated, [], [], val, seed), discrepancies(physics, [], [], val, seed)
         return Recalibration(records, recalibrated, *scores, kept)
 
-    def refitted(rest: Tensor, fold: Tensor) -> Scores:  # the same fit on the other folds, scored on this one
-        again = ThetaPriors([physics.priors[n] for n in names])
+    def refitted(k: int, rest: Tensor, held_out: Tensor) -> Scores:  # the fit again on the other folds, from its end
+        again = ThetaPriors([fitted[n] for n in names])
         on_rest = _sample(physics, names, again.families, rest, batch * samples, seed, samples)
-        if not _fit(physics, names, again, on_rest, steps):
+        if not _fit(physics, names, again, on_rest, refit_steps(steps)):
             return Scores.diverged(HELDOUT_REPEATS)
-        return discrepancies(physics.with_priors(dict(zip(names, again.priors()))), [], [], fold, seed)
+        return discrepancies(physics.with_priors(dict(zip(names, again.priors()))), [], [], held_out, seed)
 
-    alone = cross_fitted(folds, lambda rest, fold: discrepancies(physics, [], [], fold, seed))
+    alone = cross_fitted(folds, lambda k, rest, held_out: discrepancies(physics, [], [], held_out, seed))
     return Recalibration(records, recalibrated, cross_fitted(folds, refitted), alone, kept)
 
 

@@ -25,9 +25,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from otgb.discovery.crossfit import Folds, cross_fitted
+from otgb.discovery.crossfit import Folds, cross_fitted, refit_steps
 from otgb.discovery.discrepancy import Target
-from otgb.discovery.families import CONSTANT, centre, prior, standard_noise, varies
+from otgb.discovery.families import CONSTANT, centre, prior, spread, standard_noise, varies
 from otgb.discovery.fit_cache import FitCache
 from otgb.discovery.lbfgs import minimise
 from otgb.discovery.library import Candidate
@@ -41,6 +41,7 @@ from otgb.physics.terms import LibraryTerm
 
 FAMILY_REPEATS = 20  # simulation draws per score of a prior family on the training measurements
 MIN_WIDTH = 1e-6  # a prior's smallest width, in units of its coefficient's scale
+START_RAW_WIDTH = -2.0  # where a fit's raw width parameter starts: a width of softplus(-2) = 0.13 scales
 # Independent simulated samples a fit of a family that varies averages its discrepancy over, by default
 # (``discover.spread_samples``). A spread changes the
 # discrepancy at second order in its width, by less than one fixed sample's own noise: fitted on one sample of 1024
@@ -62,6 +63,15 @@ class FittedTerms:
     scales: list[float] | None = None  # the coefficients' natural sizes the fit moved them in
     samples: int = 1  # simulated samples the fit averaged its discrepancy over (``discover.spread_samples``)
     fold_priors: list[list[Prior]] = field(default_factory=list)  # per fold, the priors of its cross-fitting refit
+
+    @property
+    def centres(self) -> list[float]:
+        return [centre(p) for p in self.priors]
+
+    @property
+    def widths(self) -> list[float] | None:
+        """The fitted priors' widths (families that vary; None for the constant)."""
+        return [spread(p) for p in self.priors] if varies(self.family) else None
 
     @property
     def heldout_energy(self) -> float:
@@ -101,14 +111,17 @@ PRIOR_CLASSES = {prior.__name__: prior for prior in (Constant, Uniform, Normal, 
 
 
 class CoefficientPrior(torch.nn.Module):
-    """A differentiable prior family over K coefficients, started at ``init``.
+    """A differentiable prior family over K coefficients, started at centres ``init`` and widths of
+    :data:`START_RAW_WIDTH` (or ``widths``, where wider).
 
     The optimiser moves each coefficient in units of its ``scales`` (default: its start's size):
     a term whose start is far too small (a network that learned drag mostly as linear friction
     gives ``v*|v|`` a tiny slope) must still be able to reach its value.
     """
 
-    def __init__(self, family: str, init: list[float], scales: list[float] | None = None) -> None:
+    def __init__(
+        self, family: str, init: list[float], scales: list[float] | None = None, widths: list[float] | None = None
+    ) -> None:
         super().__init__()
         init = torch.tensor(init, dtype=torch.float32)
         scale = init.abs() if scales is None else torch.maximum(torch.tensor(scales, dtype=torch.float32), init.abs())
@@ -116,7 +129,11 @@ class CoefficientPrior(torch.nn.Module):
         self.register_buffer("init", init)
         self.register_buffer("scale", torch.where(scale > 0, scale, torch.ones_like(init)))
         self.shift = torch.nn.Parameter(torch.zeros_like(init))
-        self.raw_width = torch.nn.Parameter(torch.full_like(init, -2.0))
+        self.raw_width = torch.nn.Parameter(torch.full_like(init, START_RAW_WIDTH))
+        if widths is not None:  # no narrower than the usual start: a width near zero barely moves (softplus is flat)
+            share = (torch.tensor(widths, dtype=torch.float32) / self.scale - MIN_WIDTH).clamp_min(MIN_WIDTH)
+            raw = torch.where(share > 20, share, torch.log(torch.expm1(share)))
+            self.raw_width.data = torch.maximum(raw, self.raw_width.data)
 
     @property
     def centre(self) -> Tensor:
@@ -176,6 +193,7 @@ def fit(
     scales: list[float] | None = None,
     device: torch.device = CPU,
     samples: int = 1,
+    widths: list[float] | None = None,
 ) -> FittedTerms:
     """Fit the coefficients' prior of one ``family`` to ``measured`` (m, T, *obs); score on ``heldout`` (if ``score``).
 
@@ -187,8 +205,9 @@ def fit(
     strong-Wolfe line search) can follow the narrow valleys that correlated terms make. Where its
     last step leaves the prior's parameters non-finite (a line search that ran into coefficients
     whose solves diverge), the fit keeps the best iterate it evaluated. It runs on ``device``; its
-    draws are made on the CPU, the same on every device."""
-    prior = CoefficientPrior(family, init, scales).to(device)
+    draws are made on the CPU, the same on every device. A family that varies starts at ``widths`` where given (a fold's
+    refit, :mod:`otgb.discovery.crossfit`)."""
+    prior = CoefficientPrior(family, init, scales, widths).to(device)
     terms = [LibraryTerm(c.feature, c.component, Constant(v)) for c, v in zip(candidates, init)]
     sample = FitSample.draw(base, measured, family, len(candidates), batch, seed, samples).to(device)
     model, n = Augmented(on_device(base, device), terms).to(device), len(sample.x0)
@@ -219,30 +238,6 @@ def prior_is_finite(prior: CoefficientPrior) -> bool:
     return bool(torch.isfinite(prior.centre).all() and torch.isfinite(prior.width).all())
 
 
-class FoldStarts:
-    """Where each fold's refit of a coefficient starts, so that no fold's score comes from a fit that saw that fold.
-
-    The fits of a discovery run form a chain: a swap starts at the kept terms' values, a family at the constant's, an
-    addition beside the kept ones. Those values are the fits on the training part, which hold most of every fold. So
-    each cross-fitted fit (:meth:`Fitting.cross_fitted`) is remembered by its candidates' fitted centres, with its
-    folds' ends; a later fit started at such a value starts each fold's refit at that fold's end instead. A start no fit
-    ended at (f_phi's slope, zero for a term added) is the same for every fold.
-    """
-
-    def __init__(self) -> None:
-        self.ends: dict[tuple[Candidate, float], list[float]] = {}
-
-    def remember(self, fitted: FittedTerms) -> FittedTerms:
-        for i, (candidate, answer) in enumerate(zip(fitted.candidates, fitted.priors)):
-            if fitted.fold_priors:
-                self.ends[(candidate, centre(answer))] = [centre(fold[i]) for fold in fitted.fold_priors]
-        return fitted
-
-    def start(self, candidates: list[Candidate], init: list[float], fold: int) -> list[float]:
-        """Fold ``fold``'s start for ``candidates`` whose start on the training part is ``init``."""
-        return [self.ends.get((c, float(v)), [float(v)] * (fold + 1))[fold] for c, v in zip(candidates, init)]
-
-
 @dataclass
 class Fitting:
     """How every coefficient fit of one discovery run is made (:func:`fit`): on the training part, scored on the
@@ -262,7 +257,6 @@ class Fitting:
     fallback: str | None = None  # why the fits moved to the CPU
     spread_samples: int = SPREAD_SAMPLES  # simulated samples of a fit of a family that varies
     folds: Folds | None = None  # the folds held-out scores are cross-fitted over (None: scored on the validation part)
-    fold_starts: FoldStarts = field(default_factory=FoldStarts)  # shared by the copies ``replace`` makes
 
     def __call__(
         self, candidates: list[Candidate], init: list[float], family: str = CONSTANT, natural_scales: bool = True,
@@ -281,10 +275,11 @@ class Fitting:
             return fitted if self.folds is None else self.cross_fitted(fitted)
 
         if self.cache is None:
-            return self.fold_starts.remember(run())
+            return run()
         terms = [(c.feature, c.component) for c in candidates]
         inputs = {"terms": terms, "init": init, "family": family, "scales": scales, "steps": self.steps, "batch": self.batch}
         inputs |= {"samples": samples, "folds": self.folds.k if self.folds else 1}
+        inputs |= {"refit_steps": refit_steps(self.steps)} if self.folds else {}
         inputs |= {"device": device_name(self.device), "solver": current_solver()}  # each rounds differently
 
         def stored() -> dict:
@@ -295,23 +290,18 @@ class Fitting:
         record = self.cache.record(self.cache.key(self.physics, self.train, self.val, seed=self.seed, **inputs), stored)
         if record["fallback"] is not None and self.device.type != "cpu":  # the run that made this fit moved to the CPU here
             self.fall_back(record["fallback"])
-        return self.fold_starts.remember(FittedTerms.from_record(record["fitted"]))
+        return FittedTerms.from_record(record["fitted"])
 
     def cross_fitted(self, fitted: FittedTerms) -> FittedTerms:
-        """``fitted`` with its held-out scores cross-fitted over the folds: the same fit (its family, scales and
-        iterations) on each fold's complement, started where that fold's own chain of fits ended
-        (:class:`FoldStarts`), scored on the fold."""
+        """``fitted`` with its held-out scores cross-fitted over the folds: the same fit (its family, scales and samples)
+        on each fold's complement, started where ``fitted`` ended, :func:`~otgb.discovery.crossfit.refit_steps`
+        iterations, scored on the fold; each fold's refit priors kept (:attr:`FittedTerms.fold_priors`)."""
         if not fitted.heldout.finite:
             return replace(fitted, heldout=Scores.diverged(HELDOUT_REPEATS, self.folds.k))
-        settings = {"scales": fitted.scales, "samples": fitted.samples}
         ends: list[list[Prior]] = []
 
-        def score_fold(rest: Tensor, fold: Tensor) -> Scores:  # called for the folds in order: this is fold len(ends)
-            start = self.fold_starts.start(fitted.candidates, fitted.start, len(ends))
-            data = (rest, fold, self.steps, self.batch, self.seed)
-            refit = self.fit_on_device(
-                lambda on: fit(self.physics, fitted.candidates, start, fitted.family, *data, device=on, **settings)
-            )
+        def score_fold(k: int, rest: Tensor, held_out: Tensor) -> Scores:
+            refit = self.fit_on_device(lambda on: refit_on(self.physics, fitted, rest, held_out, self, on))
             ends.append(refit.priors)
             return refit.heldout
 
@@ -320,7 +310,7 @@ class Fitting:
     def alone(self) -> Scores:
         """The held-out scores of this fitting's physics with nothing fitted: on the validation part, or on each fold,
         as a fitted model's are (the same draws)."""
-        score = lambda rest, fold: discrepancies(self.physics, [], [], fold, self.seed, device=self.device)  # noqa: E731
+        score = lambda k, rest, fold: discrepancies(self.physics, [], [], fold, self.seed, device=self.device)  # noqa: E731
         return score(self.train, self.val) if self.folds is None else cross_fitted(self.folds, score)
 
     def evidence_on(self) -> str | None:
@@ -346,6 +336,20 @@ class Fitting:
     def fall_back(self, reason: str) -> None:
         logger.warning(f"discover: the coefficient fits run on the CPU: {reason}")
         self.device, self.fallback = CPU, reason
+
+
+def refit_on(
+    physics: PhysicsModel, fitted: FittedTerms, rest: Tensor, held_out: Tensor, fitting: Fitting,
+    device: torch.device = CPU,
+) -> FittedTerms:  # fmt: skip
+    """``fitted`` fitted again to ``rest`` on ``physics``: its family, scales and samples, started at its centres and
+    widths, :func:`~otgb.discovery.crossfit.refit_steps` iterations with ``fitting``'s batch and seed; scored on
+    ``held_out`` (a fold's refit, :mod:`otgb.discovery.crossfit`)."""
+    n = len(fitted.candidates)
+    scales = [max(abs(v), s) for v, s in zip(fitted.start or [0.0] * n, fitted.scales or [0.0] * n)]  # its units
+    data = (rest, held_out, refit_steps(fitting.steps), fitting.batch, fitting.seed)
+    options = {"scales": scales, "samples": fitted.samples, "widths": fitted.widths, "device": device}
+    return fit(physics, fitted.candidates, fitted.centres, fitted.family, *data, **options)
 
 
 def device_name(device: torch.device) -> str:
