@@ -44,7 +44,8 @@ def answer_step(fitting: Fitting, terms: FittedTerms | None, settings: Discovery
         return Answer(None, False, terms)
     if answers_instead(recalibration, terms):
         if terms is not None:
-            progress("the recalibrated f_p fits the validation part better than f_p plus the terms: the terms are set aside")
+            better = f"the recalibrated f_p fits {fitting.heldout_part} better than f_p plus the terms"
+            progress(f"{better}: the terms are set aside")
         return Answer(recalibration, True, None)
     both = both_step(fitting, recalibration, terms, settings.fits.families, refit_x0) if terms is not None else None
     return Answer(both[0], True, both[1].choice.fitted, both[1]) if both else Answer(recalibration, False, terms)
@@ -112,7 +113,7 @@ def recalibrate_step(fitting: Fitting, refit_x0: bool) -> Recalibration | None:
     if recalibration is not None:
         below, error = recalibration.below_f_p
         priors = ", ".join(f"{r.parameter} {r.prior!r}" for r in recalibration.parameters)
-        progress(f"recalibrated f_p's priors: {priors}; {below:+.3g} +- {error:.2g} below f_p alone on the validation part")
+        progress(f"recalibrated f_p's priors: {priors}; {below:+.3g} +- {error:.2g} below f_p alone on {fitting.heldout_part}")
     return recalibration
 
 

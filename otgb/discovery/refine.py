@@ -311,7 +311,13 @@ class Fitting:
         """The held-out scores of this fitting's physics with nothing fitted: on the validation part, or on each fold,
         as a fitted model's are (the same draws)."""
         score = lambda k, rest, fold: discrepancies(self.physics, [], [], fold, self.seed, device=self.device)  # noqa: E731
-        return score(self.train, self.val) if self.folds is None else cross_fitted(self.folds, score)
+        return score(0, self.train, self.val) if self.folds is None else cross_fitted(self.folds, score)
+
+    @property
+    def heldout_part(self) -> str:
+        """What a held-out score is on, in a log line's words: the validation part, or the folds it is cross-fitted
+        over."""
+        return "the validation part" if self.folds is None else "the held-out folds"
 
     def evidence_on(self) -> str | None:
         """What the held-out scores are cross-fitted over, for the log and the report; None without folds."""

@@ -69,9 +69,15 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
     return parts + undertrained_note(result, so)
 
 
+def heldout_part(result: Discovery) -> str:
+    """What the decisions' held-out scores are on, in a verdict's words."""
+    return "the validation part" if result.evidence_on is None else "the held-out folds"
+
+
 def nothing_found(result: Discovery, physics: PhysicsModel) -> list[str]:
     """The verdict where the measurements differ from f_p but no library term was kept."""
-    why = unscored_search(result) or "no candidate term fits the validation part better than f_p alone by two standard errors"
+    better = f"no candidate term fits {heldout_part(result)} better than f_p alone by two standard errors"
+    why = unscored_search(result) or better
     return [
         f"no missing effect found in the library: the measurements differ from f_p ({result.sentence_before}), but {why}",
         *closest_unkept(result),
@@ -117,7 +123,7 @@ def answer_named(result: Discovery, physics: PhysicsModel, kind: str, blind: str
             else ""
         )
         return [
-            f"{what} named, not confirmed: {names} fit the validation part better than f_p alone, but on the "
+            f"{what} named, not confirmed: {names} fit {heldout_part(result)} better than f_p alone, but on the "
             f"{tested(result)} test trajectories, which no fit saw, the augmented physics is not significantly nearer "
             f"to the measurements than f_p alone ({versus}{closer_clause(result)})",
             result.sentence_after,
