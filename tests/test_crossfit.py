@@ -109,12 +109,15 @@ def test_a_fold_refit_from_the_training_parts_end_reaches_the_other_folds_own_op
             assert abs(got - target) < 0.2 * abs(start - target) + 0.01, (k, got, start, target)
 
 
-def test_a_refit_of_a_family_that_varies_starts_at_the_fitted_width_or_the_usual_start_where_narrower():
-    """A width near zero barely moves (the softplus that keeps it positive is flat there): a refit starts no narrower
-    than a fit from scratch does."""
+def test_a_refit_of_a_family_that_varies_starts_where_its_fit_ended_but_no_narrower_than_a_fit_from_scratch():
+    """A width near zero barely moves (the softplus that keeps it positive is flat there)."""
     usual = CoefficientPrior("uniform", [-0.5]).width.tolist()
-    assert CoefficientPrior("uniform", [-0.5], widths=[1e-7]).width.tolist() == pytest.approx(usual)
-    assert CoefficientPrior("uniform", [-0.5], widths=[0.3]).width.tolist() == pytest.approx([0.3])
+    ended = CoefficientPrior("uniform", [-0.5])
+    ended.shift.data.fill_(0.2)
+    ended.raw_width.data.fill_(-12.0)
+    assert ended.widen_to_start().width.tolist() == pytest.approx(usual) and ended.centre.tolist() == pytest.approx([-0.4])
+    ended.raw_width.data.fill_(1.0)
+    assert ended.widen_to_start().width.tolist() == pytest.approx(ended.width.tolist()) and ended.raw_width.item() == 1.0
 
 
 def test_a_candidate_without_a_natural_scale_moves_in_units_of_its_start():

@@ -90,7 +90,8 @@ def both_on_fold(
     def score_fold(k: int, rest: Tensor, held_out: Tensor) -> Scores:
         held = replace(terms, priors=terms.fold_priors[k]) if terms.fold_priors else terms
         data = (rest, held_out, refit_steps(fitting.steps), fitting.batch, fitting.seed, fitting.spread_samples)
-        again = recalibrate(held.model(beside.physics.base), *data, states=refit_x0, with_intervals=False)
+        options = {"states": refit_x0, "with_intervals": False, "ended": beside.ended}
+        again = recalibrate(held.model(fitting.physics), *data, **options)
         if again is None:
             return Scores.diverged(HELDOUT_REPEATS)
         return refit_on(again.physics.base, together, rest, held_out, fitting).heldout

@@ -16,7 +16,7 @@ validation part (:mod:`otgb.discovery.verdict` words it).
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
@@ -26,7 +26,7 @@ from otgb.discovery.crossfit import Folds, cross_fitted, refit_steps
 from otgb.discovery.discrepancy import Target
 from otgb.discovery.families import CONSTANT, NORMAL, UNIFORM, centre, prior, spread, standard_noise, varies
 from otgb.discovery.intervals import STEP, Z95, sandwich
-from otgb.discovery.lbfgs import minimise
+from otgb.discovery.lbfgs import Curvature, Ended, minimise
 from otgb.discovery.prior_text import prior_text
 from otgb.discovery.scores import HELDOUT_REPEATS, Scores, clears, difference, discrepancies
 from otgb.physics.base import FieldModel, PhysicsModel
@@ -88,6 +88,7 @@ class Recalibration:
     heldout: Scores
     f_p_heldout: Scores
     kept_as_given: list[str]  # parameters whose prior's kind is not refitted
+    ended: Ended | None = field(default=None, repr=False, compare=False)  # where its fit ended, for refits
 
     @property
     def below_f_p(self) -> tuple[float, float]:
@@ -171,23 +172,26 @@ class ThetaPriors(torch.nn.Module):
 
 def recalibrate(
     physics: PhysicsModel, train: Tensor, val: Tensor, steps: int, batch: int, seed: int, samples: int = 1,
-    states: bool = False, folds: Folds | None = None, with_intervals: bool = True,
+    states: bool = False, folds: Folds | None = None, with_intervals: bool = True, ended: Ended | None = None,
 ) -> Recalibration | None:  # fmt: skip
     """f_p's theta priors (and, with ``states``, the priors of its initial state's components, for an ODE whose x0
     is drawn per component) refitted to ``train`` (module docstring) on ``samples`` simulated samples of ``batch``
     (one where no refitted prior varies), scored on ``val`` or, with ``folds``, cross-fitted over them
-    (:mod:`otgb.discovery.crossfit`); without ``with_intervals``, none are computed (a refit whose scores alone count);
-    None where no prior is of a kind it refits or the fit diverged."""
+    (:mod:`otgb.discovery.crossfit`, each fold's refit from where this fit ended); without ``with_intervals``, none are
+    computed (a refit whose scores alone count); from ``ended`` (a recalibration's end, of the same parameters), the fit
+    starts there; None where no prior is of a kind it refits or the fit diverged."""
     own = getattr(physics, "base", physics).theta_names  # f_p's parameters, not an augmented model's coefficients
     components = physics.state_names if states and not isinstance(physics, FieldModel) else ()
     names = [n for n in (*own, *components) if family_of(physics.priors.get(n)) is not None]
     if not names:
         return None
-    theta_priors = ThetaPriors([physics.priors[n] for n in names])
+    start = (ThetaPriors([physics.priors[n] for n in names]), Curvature()) if ended is None else ended.restart()
+    theta_priors, curvature = start
     samples = samples if any(map(varies, theta_priors.families)) else 1
     sample = _sample(physics, names, theta_priors.families, train, batch * samples, seed, samples)
-    if not _fit(physics, names, theta_priors, sample, steps):
+    if not _fit(physics, names, theta_priors, sample, steps, curvature):
         return None
+    end = Ended(theta_priors, curvature)
     fitted = dict(zip(names, theta_priors.priors()))
     recalibrated = physics.with_priors(fitted)
     intervals = _intervals(physics, names, theta_priors, sample) if with_intervals else None
@@ -198,17 +202,17 @@ def recalibrate(
     kept = [n for n in own if n not in names]
     if folds is None:
         scores = discrepancies(recalibrated, [], [], val, seed), discrepancies(physics, [], [], val, seed)
-        return Recalibration(records, recalibrated, *scores, kept)
+        return Recalibration(records, recalibrated, *scores, kept, end)
 
     def refitted(k: int, rest: Tensor, held_out: Tensor) -> Scores:  # the fit again on the other folds, from its end
-        again = ThetaPriors([fitted[n] for n in names])
+        again, memory = end.restart()
         on_rest = _sample(physics, names, again.families, rest, batch * samples, seed, samples)
-        if not _fit(physics, names, again, on_rest, refit_steps(steps)):
+        if not _fit(physics, names, again, on_rest, refit_steps(steps), memory):
             return Scores.diverged(HELDOUT_REPEATS)
         return discrepancies(physics.with_priors(dict(zip(names, again.priors()))), [], [], held_out, seed)
 
     alone = cross_fitted(folds, lambda k, rest, held_out: discrepancies(physics, [], [], held_out, seed))
-    return Recalibration(records, recalibrated, cross_fitted(folds, refitted), alone, kept)
+    return Recalibration(records, recalibrated, cross_fitted(folds, refitted), alone, kept, end)
 
 
 @dataclass(frozen=True)
@@ -252,16 +256,18 @@ def _simulate(physics: PhysicsModel, names: list[str], sample: _Sample, theta_of
     return simulate
 
 
-def _fit(physics: PhysicsModel, names: list[str], theta_priors: ThetaPriors, sample: _Sample, steps: int) -> bool:
-    """L-BFGS on the mean discrepancy of the samples (:func:`otgb.discovery.lbfgs.minimise`); whether it ended at
-    finite priors."""
+def _fit(
+    physics: PhysicsModel, names: list[str], theta_priors: ThetaPriors, sample: _Sample, steps: int, curvature: Curvature
+) -> bool:
+    """L-BFGS on the mean discrepancy of the samples (:func:`otgb.discovery.lbfgs.minimise`, from ``curvature`` and
+    leaving its own there); whether it ended at finite priors."""
     simulate = _simulate(physics, names, sample, lambda index: theta_priors.draw(sample.noise[index].double()))
 
     def is_finite() -> bool:
         return bool(torch.isfinite(theta_priors.centre).all() and torch.isfinite(theta_priors.width).all())
 
     target = Target.of(sample.targets)
-    minimise(list(theta_priors.parameters()), simulate, len(sample.x0), target, sample.samples, steps, is_finite)
+    minimise(list(theta_priors.parameters()), simulate, len(sample.x0), target, sample.samples, steps, is_finite, curvature)
     return is_finite()
 
 

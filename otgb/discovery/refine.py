@@ -27,9 +27,9 @@ from torch import Tensor
 
 from otgb.discovery.crossfit import Folds, cross_fitted, refit_steps
 from otgb.discovery.discrepancy import Target
-from otgb.discovery.families import CONSTANT, centre, prior, spread, standard_noise, varies
+from otgb.discovery.families import CONSTANT, centre, prior, standard_noise, varies
 from otgb.discovery.fit_cache import FitCache
-from otgb.discovery.lbfgs import minimise
+from otgb.discovery.lbfgs import Curvature, Ended, minimise
 from otgb.discovery.library import Candidate
 from otgb.discovery.log import diverged, held_divergences, logger, say_again
 from otgb.discovery.scores import CPU, HELDOUT_REPEATS, Scores, discrepancies, on_device, term_names
@@ -63,15 +63,17 @@ class FittedTerms:
     scales: list[float] | None = None  # the coefficients' natural sizes the fit moved them in
     samples: int = 1  # simulated samples the fit averaged its discrepancy over (``discover.spread_samples``)
     fold_priors: list[list[Prior]] = field(default_factory=list)  # per fold, the priors of its cross-fitting refit
+    ended: Ended | None = field(default=None, repr=False, compare=False)  # where its fit ended (not in its record)
 
     @property
     def centres(self) -> list[float]:
         return [centre(p) for p in self.priors]
 
     @property
-    def widths(self) -> list[float] | None:
-        """The fitted priors' widths (families that vary; None for the constant)."""
-        return [spread(p) for p in self.priors] if varies(self.family) else None
+    def refit_scales(self) -> list[float]:
+        """The units a refit from its centres moves the coefficients in: those its fit moved them in."""
+        n = len(self.candidates)
+        return [max(abs(v), s) for v, s in zip(self.start or [0.0] * n, self.scales or [0.0] * n)]
 
     @property
     def heldout_energy(self) -> float:
@@ -112,16 +114,14 @@ PRIOR_CLASSES = {prior.__name__: prior for prior in (Constant, Uniform, Normal, 
 
 class CoefficientPrior(torch.nn.Module):
     """A differentiable prior family over K coefficients, started at centres ``init`` and widths of
-    :data:`START_RAW_WIDTH` (or ``widths``, where wider).
+    :data:`START_RAW_WIDTH`.
 
     The optimiser moves each coefficient in units of its ``scales`` (default: its start's size):
     a term whose start is far too small (a network that learned drag mostly as linear friction
     gives ``v*|v|`` a tiny slope) must still be able to reach its value.
     """
 
-    def __init__(
-        self, family: str, init: list[float], scales: list[float] | None = None, widths: list[float] | None = None
-    ) -> None:
+    def __init__(self, family: str, init: list[float], scales: list[float] | None = None) -> None:
         super().__init__()
         init = torch.tensor(init, dtype=torch.float32)
         scale = init.abs() if scales is None else torch.maximum(torch.tensor(scales, dtype=torch.float32), init.abs())
@@ -130,10 +130,12 @@ class CoefficientPrior(torch.nn.Module):
         self.register_buffer("scale", torch.where(scale > 0, scale, torch.ones_like(init)))
         self.shift = torch.nn.Parameter(torch.zeros_like(init))
         self.raw_width = torch.nn.Parameter(torch.full_like(init, START_RAW_WIDTH))
-        if widths is not None:  # no narrower than the usual start: a width near zero barely moves (softplus is flat)
-            share = (torch.tensor(widths, dtype=torch.float32) / self.scale - MIN_WIDTH).clamp_min(MIN_WIDTH)
-            raw = torch.where(share > 20, share, torch.log(torch.expm1(share)))
-            self.raw_width.data = torch.maximum(raw, self.raw_width.data)
+
+    def widen_to_start(self) -> CoefficientPrior:
+        """This prior, its widths made no narrower than a fit's start (a refit from where it ended: a width near zero
+        barely moves, the softplus that keeps it positive is flat there)."""
+        self.raw_width.data.clamp_(min=START_RAW_WIDTH)
+        return self
 
     @property
     def centre(self) -> Tensor:
@@ -193,7 +195,7 @@ def fit(
     scales: list[float] | None = None,
     device: torch.device = CPU,
     samples: int = 1,
-    widths: list[float] | None = None,
+    ended: Ended | None = None,
 ) -> FittedTerms:
     """Fit the coefficients' prior of one ``family`` to ``measured`` (m, T, *obs); score on ``heldout`` (if ``score``).
 
@@ -205,9 +207,11 @@ def fit(
     strong-Wolfe line search) can follow the narrow valleys that correlated terms make. Where its
     last step leaves the prior's parameters non-finite (a line search that ran into coefficients
     whose solves diverge), the fit keeps the best iterate it evaluated. It runs on ``device``; its
-    draws are made on the CPU, the same on every device. A family that varies starts at ``widths`` where given (a fold's
-    refit, :mod:`otgb.discovery.crossfit`)."""
-    prior = CoefficientPrior(family, init, scales, widths).to(device)
+    draws are made on the CPU, the same on every device. From ``ended`` (a fold's refit, :mod:`otgb.discovery.crossfit`)
+    the fit starts where that one ended (:meth:`CoefficientPrior.widen_to_start`), with its optimiser's curvature
+    (:class:`otgb.discovery.lbfgs.Curvature`); ``init`` and ``scales`` are then the ended fit's."""
+    prior, curvature = (CoefficientPrior(family, init, scales), Curvature()) if ended is None else ended.restart()
+    prior = prior.widen_to_start().to(device) if ended is not None else prior.to(device)
     terms = [LibraryTerm(c.feature, c.component, Constant(v)) for c, v in zip(candidates, init)]
     sample = FitSample.draw(base, measured, family, len(candidates), batch, seed, samples).to(device)
     model, n = Augmented(on_device(base, device), terms).to(device), len(sample.x0)
@@ -216,12 +220,14 @@ def fit(
     def simulate(rows: slice) -> Tensor:
         return model.observe(model.solve(model.vector_field, x0[rows], torch.cat([theta[rows], prior.draw(noise[rows])], 1)))
 
-    losses = minimise(list(prior.parameters()), simulate, n, target, samples, steps, lambda: prior_is_finite(prior))
+    parameters, is_finite = list(prior.parameters()), lambda: prior_is_finite(prior)
+    losses = minimise(parameters, simulate, n, target, samples, steps, is_finite, curvature)
     if not losses or not prior_is_finite(prior):
         return _diverged_fit(family, candidates, init, losses, scales, samples, n)
     priors = prior.priors()
     scored = discrepancies(base, candidates, priors, heldout, seed, device=device) if score else Scores([])
-    return FittedTerms(family, list(candidates), priors, scored, losses, list(init), scales, samples)
+    fitted = FittedTerms(family, list(candidates), priors, scored, losses, list(init), scales, samples)
+    return replace(fitted, ended=Ended(prior, curvature))
 
 
 def _diverged_fit(
@@ -348,14 +354,13 @@ def refit_on(
     physics: PhysicsModel, fitted: FittedTerms, rest: Tensor, held_out: Tensor, fitting: Fitting,
     device: torch.device = CPU,
 ) -> FittedTerms:  # fmt: skip
-    """``fitted`` fitted again to ``rest`` on ``physics``: its family, scales and samples, started at its centres and
-    widths, :func:`~otgb.discovery.crossfit.refit_steps` iterations with ``fitting``'s batch and seed; scored on
-    ``held_out`` (a fold's refit, :mod:`otgb.discovery.crossfit`)."""
-    n = len(fitted.candidates)
-    scales = [max(abs(v), s) for v, s in zip(fitted.start or [0.0] * n, fitted.scales or [0.0] * n)]  # its units
+    """``fitted`` fitted again to ``rest`` on ``physics`` (a fold's refit, :mod:`otgb.discovery.crossfit`): its family,
+    scales and samples, from where its fit ended (its centres, where it was read from the fit cache),
+    :func:`~otgb.discovery.crossfit.refit_steps` iterations with ``fitting``'s batch and seed; scored on ``held_out``."""
     data = (rest, held_out, refit_steps(fitting.steps), fitting.batch, fitting.seed)
-    options = {"scales": scales, "samples": fitted.samples, "widths": fitted.widths, "device": device}
-    return fit(physics, fitted.candidates, fitted.centres, fitted.family, *data, **options)
+    init, scales = (fitted.start, fitted.scales) if fitted.ended else (fitted.centres, fitted.refit_scales)
+    options = {"scales": scales, "samples": fitted.samples, "ended": fitted.ended, "device": device}
+    return fit(physics, fitted.candidates, init, fitted.family, *data, **options)
 
 
 def device_name(device: torch.device) -> str:
