@@ -210,8 +210,12 @@ def fit(
     draws are made on the CPU, the same on every device. From ``ended`` (a fold's refit, :mod:`otgb.discovery.crossfit`)
     the fit starts where that one ended (:meth:`CoefficientPrior.widen_to_start`), with its optimiser's curvature
     (:class:`otgb.discovery.lbfgs.Curvature`); ``init`` and ``scales`` are then the ended fit's."""
-    prior, curvature = (CoefficientPrior(family, init, scales), Curvature()) if ended is None else ended.restart()
-    prior = prior.widen_to_start().to(device) if ended is not None else prior.to(device)
+    if ended is None:
+        prior, curvature = CoefficientPrior(family, init, scales), Curvature()
+    else:
+        prior, curvature = ended.restart()
+        prior.widen_to_start()
+    prior = prior.to(device)
     terms = [LibraryTerm(c.feature, c.component, Constant(v)) for c, v in zip(candidates, init)]
     sample = FitSample.draw(base, measured, family, len(candidates), batch, seed, samples).to(device)
     model, n = Augmented(on_device(base, device), terms).to(device), len(sample.x0)
