@@ -2,6 +2,7 @@
 
     python scripts/scipy_variation.py --out results/scipy_variation                      # every case, 3000 and 1000
     python scripts/scipy_variation.py --out results/scipy_variation --cases drag_varying --sizes 3000 --seeds 0 1
+    python scripts/scipy_variation.py --out results/scipy_variation --cases drag_varying --sizes 3000 --folds 5
     python scripts/scipy_variation.py --out results/scipy_variation --table docs/discovery.md    # gather only
 
 Each case's file (theta and x0 not recorded) holds a pendulum (``scripts/scipy_pendulum.py``, the angle with noise
@@ -9,7 +10,8 @@ of sd 0.02) or a rod (``scripts/scipy_advdiff.py``, the field with noise of sd 0
 each trajectory draws from a uniform prior (``*_varying``) or is one constant (``*_constant``), given to README's
 discover command. A varying case is right where the term is named with a family that varies, its spread's 95 %
 interval (as a standard deviation) holds the truth's, its centre lies within 10 % and the gap is closed; a constant
-case, where no family that varies is claimed.
+case, where no family that varies is claimed. ``--folds K`` runs them with ``--discover.folds K`` (cross-fitted
+evidence), in folders of their own.
 
 Finished runs (a ``summary.json`` with the run's report.json and report.md) are skipped, so an interrupted benchmark
 resumes; ``--table`` writes the gathered runs between the markers of the page given.
@@ -48,12 +50,13 @@ def measured_file(case: str, folder: Path, n: int, seed: int) -> Path:
     return scipy_advdiff.write(folder / "measured.npz", -centre, half_width, n, seed, 0.01)
 
 
-def run_case(case: str, n: int, seed: int, out: Path) -> dict:
+def run_case(case: str, n: int, seed: int, out: Path, folds: int = 1) -> dict:
     system = CASES[case][0]
-    overrides = PENDULUM if system == "pendulum" else ADVDIFF
-    summary = lambda report: summarise(case, report) | {"n": n, "seed": seed}  # noqa: E731
+    overrides = [*(PENDULUM if system == "pendulum" else ADVDIFF), f"--discover.folds={folds}"]
+    summary = lambda report: summarise(case, report) | {"n": n, "seed": seed, "folds": folds}  # noqa: E731
     write = lambda folder: measured_file(case, folder, n, seed)  # noqa: E731
-    return run_once(out / f"{case}-n{n}-seed{seed}", write, f"{system}.yaml", overrides, seed, summary)
+    folder = out / (f"{case}-n{n}-seed{seed}" + (f"-K{folds}" if folds > 1 else ""))
+    return run_once(folder, write, f"{system}.yaml", overrides, seed, summary)
 
 
 def summarise(case: str, report: dict | None) -> dict:
@@ -96,9 +99,9 @@ def _term(t: dict) -> dict:
 
 def table(out: Path) -> str:
     lines = [
-        "| case | trajectories | seed | truth | named (family) | spread as sd, 95 % (truth) | outcome | C2ST f_p / augmented"
-        " / Reference | right | min |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| case | trajectories | K | seed | truth | named (family) | spread as sd, 95 % (truth) | outcome | C2ST f_p /"
+        " augmented / Reference | right | min |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for path in sorted(out.glob("*/summary.json"), key=_order):
         s = json.loads(path.read_text())
@@ -112,8 +115,8 @@ def table(out: Path) -> str:
         c2st = " / ".join(f"{s['c2st'][k]:.2f}" if k in s.get("c2st", {}) else "-" for k in ("f_p", "augmented", "reference"))
         minutes = f"{s['seconds'] / 60:.1f}"
         lines.append(
-            f"| {s['case']} | {s['n']} | {s['seed']} | {cell(truth)} | {cell(named)} | {spreads} | {s['outcome']} | {c2st} "
-            f"| {s['right']} | {minutes} |"
+            f"| {s['case']} | {s['n']} | {s.get('folds', 1)} | {s['seed']} | {cell(truth)} | {cell(named)} | {spreads} "
+            f"| {s['outcome']} | {c2st} | {s['right']} | {minutes} |"
         )
     return "\n".join(lines + ["", _tally(out)])
 
@@ -125,17 +128,17 @@ def cell(text: str) -> str:
 
 def _order(path: Path) -> tuple:
     s = json.loads(path.read_text())
-    return (s["case"], s["n"], s["seed"])
+    return (s["case"], s["n"], s.get("folds", 1), s["seed"])
 
 
 def _tally(out: Path) -> str:
-    """Per case and size: right in how many of the files run."""
-    counts: dict[tuple[str, int], list[int]] = {}
+    """Per case, size and number of folds: right in how many of the files run."""
+    counts: dict[tuple[str, int, int], list[int]] = {}
     for path in out.glob("*/summary.json"):
         s = json.loads(path.read_text())
-        counts.setdefault((s["case"], s["n"]), []).append(s["right"] == "yes")
-    said = [f"{case} at {n}: right in {sum(v)} of {len(v)}" for (case, n), v in sorted(counts.items())]
-    return "Right, per case and number of trajectories: " + "; ".join(said) + "."
+        counts.setdefault((s["case"], s["n"], s.get("folds", 1)), []).append(s["right"] == "yes")
+    said = [f"{case} at {n}, K = {k}: right in {sum(v)} of {len(v)}" for (case, n, k), v in sorted(counts.items())]
+    return "Right, per case, number of trajectories and folds K: " + "; ".join(said) + "."
 
 
 START, END = "<!-- table: scripts/scipy_variation.py --table -->", "<!-- end variation table -->"
@@ -144,6 +147,7 @@ START, END = "<!-- table: scripts/scipy_variation.py --table -->", "<!-- end var
 def main() -> None:
     parser = case_parser(__doc__.split("\n\n")[0], CASES, [0, 1, 2, 3, 4])
     parser.add_argument("--sizes", nargs="+", type=int, default=[3000, 1000])
+    parser.add_argument("--folds", type=int, default=1, help="discover.folds of the runs (cross-fitted evidence)")
     args = parser.parse_args()
     if args.table:
         write_between(args.table, START, END, table(args.out))
@@ -151,7 +155,7 @@ def main() -> None:
     for n in args.sizes:
         for seed in args.seeds:
             for case in args.cases:
-                run_case(case, n, seed, args.out)
+                run_case(case, n, seed, args.out, args.folds)
 
 
 if __name__ == "__main__":
