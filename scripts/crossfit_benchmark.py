@@ -122,7 +122,19 @@ def _tally(summaries: list[dict]) -> str:
                 minutes = float(np.median([s["seconds"] for s in runs])) / 60
                 counts = f"right in {right} of {len(runs)}, a term added in {extra}"
                 said.append(f"{case}, K = {folds}: {counts}, median {minutes:.1f} min")
-    return "Per case and K: " + "; ".join(said) + "."
+    return "Per case and K: " + "; ".join(said) + ". " + _ratios(summaries)
+
+
+def _ratios(summaries: list[dict]) -> str:
+    """Per case, K = 5's wall time over K = 1's on the same file: the median and the range over the files run with both."""
+    said = []
+    for case in CASES:
+        seconds = {(s["seed"], s["folds"]): s["seconds"] for s in summaries if s["case"] == case}
+        ratios = [seconds[seed, 5] / seconds[seed, 1] for seed, folds in seconds if folds == 5 and (seed, 1) in seconds]
+        if ratios:
+            low, median, high = min(ratios), float(np.median(ratios)), max(ratios)
+            said.append(f"{case}: {median:.2f} (from {low:.2f} to {high:.2f}, {len(ratios)} files)")
+    return "Wall time with K = 5 over K = 1, file by file: " + "; ".join(said) + "."
 
 
 START, END = "<!-- table: scripts/crossfit_benchmark.py --table -->", "<!-- end crossfit table -->"
