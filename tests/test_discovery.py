@@ -1116,7 +1116,7 @@ def test_a_stopped_run_resumed_from_its_fit_cache_reaches_the_result_of_a_run_ne
     stored = sorted((tmp_path / "fits").glob("*.pt"), key=lambda path: path.stat().st_mtime_ns)
     assert len(stored) >= 4 and not list((tmp_path / "fits").glob(".*")), "one file per fit, no partial file left"
     deleted = stored[len(stored) // 2 :]
-    refitted = sum("fitted" in torch.load(path, weights_only=True) for path in deleted)  # not the intervals' records
+    refitted = sum("fitted" in torch.load(path, weights_only=True)["record"] for path in deleted)  # not intervals
     for path in deleted:
         path.unlink()
     fits = []
