@@ -88,7 +88,7 @@ def test_a_bad_number_of_folds_is_refused_in_one_line(folds):
 def test_a_fold_refit_from_the_training_parts_end_reaches_the_other_folds_own_optimum():
     """A fold's refit starts where the fit on the training part ended (which saw most of the fold) and takes a fifth of
     its iterations: two correlated frictions must end where a full fit on the other folds alone ends, not near the
-    start (the start is 0.03 to 0.07 from that end; the refit's evaluations are a third of the full fit's)."""
+    start (the start is 0.03 to 0.07 from that end), in fewer evaluations than that full fit."""
     pendulum = Pendulum()
     frictions = [
         LibraryTerm("velocity", "velocity", Constant(-0.5)),

@@ -47,6 +47,11 @@ def refit_steps(steps: int) -> int:
     return max(1, math.ceil(steps / REFIT_SHARE))
 
 
+def heldout_part(cross_fitted: bool) -> str:
+    """What the held-out scores of a run's decisions are on, in the words of its log and verdict."""
+    return "the held-out folds" if cross_fitted else "the validation part"
+
+
 @dataclass(frozen=True)
 class Folds:
     """The pooled training and validation trajectories (n, T, *obs) and each fold's rows in that pool."""

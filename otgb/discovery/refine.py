@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from otgb.discovery.crossfit import Folds, cross_fitted, refit_steps
+from otgb.discovery.crossfit import Folds, cross_fitted, heldout_part, refit_steps
 from otgb.discovery.discrepancy import Target
 from otgb.discovery.families import CONSTANT, centre, prior, standard_noise, varies
 from otgb.discovery.fit_cache import FitCache
@@ -325,9 +325,8 @@ class Fitting:
 
     @property
     def heldout_part(self) -> str:
-        """What a held-out score is on, in a log line's words: the validation part, or the folds it is cross-fitted
-        over."""
-        return "the validation part" if self.folds is None else "the held-out folds"
+        """What a held-out score is on, in a log line's words (:func:`otgb.discovery.crossfit.heldout_part`)."""
+        return heldout_part(self.folds is not None)
 
     def evidence_on(self) -> str | None:
         """What the held-out scores are cross-fitted over, for the log and the report; None without folds."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+from otgb.discovery.crossfit import heldout_part
 from otgb.discovery.families import centre
 from otgb.discovery.library import fixed_in_space, implausible, term_name
 from otgb.discovery.record import Discovery
@@ -69,14 +70,9 @@ def verdict(result: Discovery, physics: PhysicsModel) -> list[str]:
     return parts + undertrained_note(result, so)
 
 
-def heldout_part(result: Discovery) -> str:
-    """What the decisions' held-out scores are on, in a verdict's words."""
-    return "the validation part" if result.evidence_on is None else "the held-out folds"
-
-
 def nothing_found(result: Discovery, physics: PhysicsModel) -> list[str]:
     """The verdict where the measurements differ from f_p but no library term was kept."""
-    better = f"no candidate term fits {heldout_part(result)} better than f_p alone by two standard errors"
+    better = f"no candidate term fits {heldout_part(result.evidence_on is not None)} better than f_p alone by two standard errors"
     why = unscored_search(result) or better
     return [
         f"no missing effect found in the library: the measurements differ from f_p ({result.sentence_before}), but {why}",
@@ -122,8 +118,9 @@ def answer_named(result: Discovery, physics: PhysicsModel, kind: str, blind: str
             if test
             else ""
         )
+        part = heldout_part(result.evidence_on is not None)
         return [
-            f"{what} named, not confirmed: {names} fit {heldout_part(result)} better than f_p alone, but on the "
+            f"{what} named, not confirmed: {names} fit {part} better than f_p alone, but on the "
             f"{tested(result)} test trajectories, which no fit saw, the augmented physics is not significantly nearer "
             f"to the measurements than f_p alone ({versus}{closer_clause(result)})",
             result.sentence_after,
