@@ -88,8 +88,19 @@ class BestAndLastCheckpoint(ModelCheckpoint):
 
 
 def source_batches(t_max: int, critic_steps: int) -> int:
-    """Source batches a training step uses: one per map update, one per critic update after the first."""
-    return t_max + critic_steps - 1
+    """Source batches a training step uses: one per map update, one per critic update after the first (at least 1: a
+    t_max or critic_steps below 1 is the model's error to name, once it is built)."""
+    return max(1, t_max + critic_steps - 1)
+
+
+def measured_batches(critic_steps: int) -> int:
+    """Measured batches a training step uses: one per critic update (at least 1, as :func:`source_batches`)."""
+    return max(1, critic_steps)
+
+
+def physics_of(datamodule: Any) -> Any:
+    """The data module's f_p, as the model gets it: read at the measured file's own times where they are not its grid."""
+    return datamodule.physics
 
 
 DESCRIPTION = "otgb: grey-box maps that complete an incomplete physics model from unpaired measurements."
@@ -142,8 +153,8 @@ class OTGBCLI(LightningCLI):
 
     def add_arguments_to_parser(self, parser) -> None:
         parser.link_arguments(("model.t_max", "model.critic_steps"), "data.batches_per_step", compute_fn=source_batches)
-        parser.link_arguments("model.critic_steps", "data.measured_batches_per_step")
-        parser.link_arguments("data.physics", "model.physics", apply_on="instantiate")
+        parser.link_arguments("model.critic_steps", "data.measured_batches_per_step", compute_fn=measured_batches)
+        parser.link_arguments("data", "model.physics", compute_fn=physics_of, apply_on="instantiate")
         parser.add_lightning_class_args(Evaluation, "evaluation")
         parser.add_lightning_class_args(BestAndLastCheckpoint, "checkpoint")
         parser.add_lightning_class_args(ComponentAnalysis, "components")

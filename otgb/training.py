@@ -34,6 +34,7 @@ from torch import Tensor, nn
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from otgb.compiling import new_training_step
+from otgb.data.gaps import comparable, has_gaps
 from otgb.data.measured import with_measurement_noise
 from otgb.data.seeding import derive_seed
 from otgb.errors import InputError
@@ -241,7 +242,7 @@ class MapTraining(LightningModule):
         self.toggle_optimizer(map_opt)
         y_hat, parts = None, {}
         for k in range(self.t_max):
-            y_hat_k, parts_k = self._map_update(map_opt, batch["x"][k], batch["x0"][k], batch["theta"][k])
+            y_hat_k, parts_k = self._map_update(map_opt, batch["x"][k], batch["x0"][k], batch["theta"][k], batch["y"][0])
             if y_hat_k is not None:
                 y_hat, parts = y_hat_k, parts_k
         self.untoggle_optimizer(map_opt)
@@ -268,7 +269,7 @@ class MapTraining(LightningModule):
         if y_hat is None:  # no map output to train the critic on: the map is what diverged
             critic_parts, blame = {}, ("map", "every map update of the step gave NaN/Inf")
         else:
-            y_hat = self._as_measured(y_hat.detach()).flatten(0, 1)
+            y_hat, y = self._as_measured(y_hat.detach().flatten(0, 1), y)
             loss, critic_parts = critic_loss(self.critic, y, y_hat, self.gp_weight, self.generator, self.gp_one_sided)
             critic_parts["critic_loss"], blame = loss, ("critic", "loss or gradients NaN/Inf")
         if self._guarded_backward(opt, self.critic, blame[0], critic_parts.get("critic_loss"), blame[1]):
@@ -283,16 +284,18 @@ class MapTraining(LightningModule):
     def _measurement_noise(self) -> float:
         return getattr(self.trainer.datamodule, "measurement_noise", 0.0)  # a Trainer fed loaders alone: none
 
-    def _as_measured(self, y_hat: Tensor) -> Tensor:
-        """The map's outputs as the critic compares them with the measurements: with their noise
-        (``data.measurement_noise``), which a solve cannot produce and the map must not be pushed to imitate."""
-        return with_measurement_noise(y_hat, self._measurement_noise, self.generator)
+    def _as_measured(self, y_hat: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+        """The map's outputs (B, T, *obs) and the measured batch ``y`` as the critic compares them: the outputs with the
+        measurements' noise (``data.measurement_noise``), which a solve cannot produce and the map must not be pushed
+        to imitate, and both with the measured batch's missing values, 0 on both sides (:mod:`otgb.data.gaps`)."""
+        return comparable(with_measurement_noise(y_hat, self._measurement_noise, self.generator), y)
 
-    def _critic_of_outputs(self) -> Callable[[Tensor], Tensor]:
-        """The critic as the map's loss applies it to the map's outputs: after :meth:`_as_measured`."""
-        if self._measurement_noise == 0:
+    def _critic_of_outputs(self, y: Tensor) -> Callable[[Tensor], Tensor]:
+        """The critic as the map's loss applies it to the map's outputs: after :meth:`_as_measured` with the measured
+        batch ``y``'s missing values."""
+        if self._measurement_noise == 0 and not has_gaps(y):
             return self.critic
-        return lambda y_hat: self.critic(self._as_measured(y_hat))
+        return lambda y_hat: self.critic(self._as_measured(y_hat, y)[0])
 
     def _generate_or_none(self, x: Tensor, x0: Tensor, theta: Tensor) -> Tensor | None:
         try:
@@ -300,14 +303,15 @@ class MapTraining(LightningModule):
         except SimulationDiverged:
             return None
 
-    def _map_update(self, opt: Any, x: Tensor, x0: Tensor, theta: Tensor) -> tuple[Tensor | None, dict[str, Tensor]]:
-        """One map update; (None, {}) when it was skipped (its solve or its gradients not finite)."""
+    def _map_update(self, opt: Any, x: Tensor, x0: Tensor, theta: Tensor, y: Tensor) -> tuple[Tensor | None, dict[str, Tensor]]:
+        """One map update, its critic applied as to the measured batch ``y`` (its missing values); (None, {}) when it
+        was skipped (its solve or its gradients not finite)."""
         try:
             y_hat = self.generate(x, x0, theta, self.n_z, averaged=False)
         except SimulationDiverged as error:
             y_hat, loss, parts, reason = None, None, {}, str(error)
         else:
-            loss, parts = self.objective.map_loss(x, y_hat, self._critic_of_outputs())
+            loss, parts = self.objective.map_loss(x, y_hat, self._critic_of_outputs(y))
             reason = "loss or gradients NaN/Inf"
         if not self._guarded_backward(opt, self.transport_map, "map", loss, reason):
             return None, {}

@@ -1599,7 +1599,7 @@ def test_discover_finds_an_effect_outside_the_library_on_the_recorded_inputs_and
 
 
 def _bad_file(tmp_path: Path, kind: str) -> Path:
-    """A measured file with one mistake: too few trajectories, all NaN, or another time grid."""
+    """A measured file with one mistake: too few trajectories, all NaN (nothing measured), or times past the horizon."""
     y = generate_measured(Pendulum(), 200, 7)["y"].numpy()
     path = tmp_path / "measured.npz"
     if kind == "too small":
@@ -1615,8 +1615,8 @@ def _bad_file(tmp_path: Path, kind: str) -> Path:
     ("mistake", "expected"),
     [
         (("file", "too small"), "30 trajectories split by"),
-        (("file", "all NaN"), "NaN/Inf in"),
-        (("file", "time grid"), "the time grid [0, 0.2, 0.4"),
+        (("file", "all NaN"), "trajectory 0 has 0 measured time(s) with a value, expected at least 3"),
+        (("file", "time grid"), "trajectory 0: t=5 lies outside the model's horizon [0, 4.9]"),
         (("setting", "--discover.alpha=2"), "discover: need"),
         (("setting", "--discover.families=[constant,gamma]"), "discover.families=['constant', 'gamma']: expected"),
         (("setting", "--discover.fit_cache=measured.npz"), "discover.fit_cache='measured.npz': expected a folder"),

@@ -9,7 +9,7 @@ import torch
 from logcapture import records_of
 
 from otgb.data import SimulationDataModule, read_measured, split_indices
-from otgb.data.files import check_time_grid
+from otgb.data.times import on_common_times
 from otgb.errors import InputError
 from otgb.physics import AdvectionDiffusion, Constant, Pendulum, ViscousFriction
 
@@ -64,13 +64,36 @@ def test_csv_keeps_trajectories_in_file_order_and_reads_partial_inputs(tmp_path,
 
 
 BAD_CONTENT = {
-    "wrong shape": ({"y": torch.randn(12, 40, 1)}, r"'y': measured trajectories have shape \(12, 40, 1\), expected \(N, 50, 1\)"),
+    "wrong shape": (
+        {"y": torch.randn(12, 40, 1)},
+        r"'y': measured trajectories have shape \(12, 40, 1\), expected \(N, 50, 1\) on",
+    ),
+    "wrong obs": ({"y": torch.randn(12, 50, 2)}, r"'y': measured trajectories have shape \(12, 50, 2\), expected \(N, T, 1\)"),
     "empty": ({"y": torch.zeros(0, 50, 1)}, "no trajectories"),
-    "nan": ({"y": torch.full((3, 50, 1), float("nan"))}, r"NaN/Inf in 3 of 3 trajectories, the first at position 0"),
+    "nan": (
+        {"y": torch.full((3, 50, 1), float("nan"))},
+        r"trajectory 0 has 0 measured time\(s\) with a value, expected at least 3 \(3 of 3",
+    ),
+    "inf": (
+        {"y": torch.tensor([0.0, float("inf")]).repeat(3, 25)[..., None]},
+        r"trajectory 0: an infinite value, expected finite",
+    ),
+    "t shape": (
+        {"y": torch.randn(3, 50, 1), "t": torch.zeros(2, 50)},
+        r"'t' has shape \(2, 50\), expected \(50,\) .* or \(3, 50\)",
+    ),
+    "decreasing": (
+        {"y": torch.randn(2, 3, 1), "t": torch.tensor([[0.0, 0.2, 0.1], [0.0, 0.1, 0.2]])},
+        r"trajectory 0: times not increasing, t=0.1 after t=0.2",
+    ),
+    "value without time": (
+        {"y": torch.randn(2, 4, 1), "t": torch.tensor([[0.0, 0.1, 0.2, float("nan")], [0.0, 0.1, 0.2, 0.3]])},
+        r"trajectory 0: a value without a time \(NaN in 't'\)",
+    ),
     "missing key": ({"z": torch.randn(3, 50, 1)}, r"unknown entries \['z'\]"),
     "no y": ({"t": torch.arange(50.0)}, "no entry 'y'"),
     "bool dtype": ({"y": torch.ones(3, 50, 1, dtype=torch.bool)}, "'y' has dtype (torch.)?bool, expected real numbers"),
-    "grid": ({"y": torch.randn(3, 50, 1), "t": torch.arange(50.0) * 0.2}, r"grid \[0, 0.2, 0.4, ..., 9.8\].*model's \[0, 0.1"),
+    "grid": ({"y": torch.randn(3, 50, 1), "t": torch.arange(50.0) * 0.2}, r"trajectory 0: t=5 lies outside the model's horizon"),
     "theta width": ({"y": torch.randn(3, 50, 1), "theta": torch.ones(3, 2)}, r"'theta' has shape \(3, 2\), expected \(3, 1\)"),
     "theta inf": (
         {"y": torch.randn(3, 50, 1), "theta": torch.tensor([[1.0], [float("inf")], [1.0]])},
@@ -103,7 +126,16 @@ def test_bad_files_are_named_in_one_line(tmp_path, pendulum, case):
         ("trajectory,t,angle,t\n0,0,1,0\n", r"header \[.*\]: repeated \['t'\]; expected columns"),
         ("trajectory,t,angle\n0,0,1\n0,0.1\n", "line 3: 2 fields, expected 3"),
         ("trajectory,t,angle\n0,0,x\n", r"line 2: a field is not a number"),
-        ("trajectory,t,angle\n0,0,1\n0,0.1,1\n1,0,1\n", r"trajectory 1 has 1 row\(s\), expected 2 as most trajectories have"),
+        (
+            "trajectory,t,angle\n0,0,1\n0,0.1,1\n0,0.2,1\n1,0,1\n",
+            r"trajectory 1 has 1 measured time\(s\) with a value, expected at least 3",
+        ),
+        ("trajectory,t,angle\n4,0,1\n4,0.2,1\n4,0.1,1\n", r"trajectory 4: times not increasing, t=0.1 after t=0.2"),
+        ("trajectory,t,angle\n4,0,1\n4,0.2,1\n4,7.5,1\n", r"trajectory 4: t=7.5 lies outside the model's horizon \[0, 4.9\]"),
+        (
+            "trajectory,t,angle\n4,0,1\n4,0.2,\n4,0.3,1\n",
+            r"trajectory 4 has 2 measured time\(s\) with a value, expected at least 3",
+        ),
         ("trajectory,t,angle,x0_angle\n0,0,1,1\n", r"\['x0_angle'\] given without \['x0_velocity'\]"),
     ],
 )
@@ -205,15 +237,24 @@ def test_mode_settings_are_checked(tmp_path, measurements):
                 "trajectory,t,angle\n"
                 + "".join(f"{7 + i},{k / 10},{'nan' if (i, k) == (1, 3) else 0.1}\n" for i in range(2) for k in range(50))
             ),
-            r"m.csv, line 55: trajectory 8 at t=0.3: 'angle' is nan, expected a finite number",
+            None,
+        ),
+        (
+            lambda p: p.write_text(
+                "trajectory,t,angle\n"
+                + "".join(f"{7 + i},{k / 10},{'inf' if (i, k) == (1, 3) else 0.1}\n" for i in range(2) for k in range(50))
+            ),
+            r"m.csv, line 55: trajectory 8 at t=0.3: 'angle' is inf, expected a finite number \(an empty cell or NaN is a",
         ),
     ],
 )
 def test_csv_variants(tmp_path, pendulum, write, match):
-    """A byte-order mark and trailing blank lines are fine; a NaN or a word as an id is named."""
+    """A byte-order mark and trailing blank lines are fine, a NaN measurement is missing; a NaN or a word as an id and
+    an infinite measurement are named."""
     write(tmp_path / "m.csv")
     if match is None:
-        assert read_measured(tmp_path / "m.csv", pendulum).y.shape == (1, 50, 1)
+        content = read_measured(tmp_path / "m.csv", pendulum)
+        assert content.y.shape[1:] == (50, 1) and int(torch.isnan(content.y).sum()) == (len(content.y) == 2)
     else:
         with pytest.raises(InputError, match=match):
             read_measured(tmp_path / "m.csv", pendulum)
@@ -274,18 +315,43 @@ def test_a_checkpoint_of_other_measurements_is_named_once_and_the_same_data_else
 @pytest.mark.parametrize(
     "times, hint",
     [
-        (np.arange(50) * 100.0, r"the file's step is 1000 x the model's dt, in another unit\? \(the model's is s\)$"),
-        (np.arange(50) * 0.1 / 60, r"the file's step is 0.0166667 x the model's dt, in another unit\? \(the model's is s\)$"),
-        (np.arange(50) * 0.2, r"the file's step is 0.2, the model's dt 0.1 \(data.physics.init_args.dt\)$"),
-        (np.arange(25) * 0.2, r"the file's step is 0.2, the model's dt 0.1 \(data.physics.init_args.dt\)$"),
-        (np.arange(25) * 0.1, r"the model's step with 25 points; set data.physics.init_args.n_obs to 25 to match it$"),
-        (np.float32(np.arange(100) * 0.1), r"the model's step with 100 points; set data.physics.init_args.n_obs to 100"),
-        (np.arange(50) * 0.1 + 0.05, r"\(physics dt=0.1, n_obs=50\)$"),
-        (np.zeros(1), r"\(physics dt=0.1, n_obs=50\)$"),
+        (
+            np.arange(50) * 100.0,
+            r"t=100 lies outside .* the file's step is 1000 x the model's dt, in another unit\? \(the model's is s\)$",
+        ),
+        (
+            np.arange(50) * 0.2,
+            r"t=5 lies outside the model's horizon \[0, 4.9\].*last until t=9.8; set data.physics.init_args.n_obs to 99",
+        ),
+        (np.float32(np.arange(100) * 0.1), r"set data.physics.init_args.n_obs to 100 to cover them$"),
+        (
+            np.arange(50) * 0.1 + 0.05,
+            r"trajectory 0: t=4.95 lies outside the model's horizon \[0, 4.9\] \(physics dt=0.1, n_obs=50\)",
+        ),
     ],
 )
-def test_a_time_grid_that_differs_says_how(pendulum, times, hint):
-    """Times in another unit, another step, or the model's step over another span: the error says which it looks like;
-    a grid that is not evenly spaced from the model's first time (or has one point) gets no guess."""
+def test_times_outside_the_horizon_say_how(pendulum, times, hint):
+    """Times in another unit or a longer recording: the error names the trajectory and the time and says which it looks
+    like."""
+    y = torch.zeros(2, len(times), 1)
     with pytest.raises(InputError, match=hint):
-        check_time_grid(torch.tensor(times), pendulum, "lab.npz")
+        on_common_times("lab.npz", y, torch.tensor(times), ["0", "1"], pendulum)
+
+
+@pytest.mark.parametrize(
+    "times",
+    [np.arange(25) * 0.2, np.arange(25) * 0.1, np.arange(147) / 30, np.sort(np.random.default_rng(0).uniform(0, 4.9, 40))],
+)
+def test_times_inside_the_horizon_are_read_where_they_are(tmp_path, pendulum, times):
+    """A file's own times inside the model's horizon: on the model's grid where every time is one of its observation
+    times (the rest of the grid missing), else the model is read at the file's times."""
+    y = torch.randn(3, len(times), 1)
+    np.savez(tmp_path / "m.npz", y=y.numpy(), t=times)
+    content = read_measured(tmp_path / "m.npz", pendulum)
+    on_grid = bool(np.allclose(np.round(times * 10), times * 10))
+    assert (content.times is None) == on_grid
+    if on_grid:
+        index = np.round(times * 10).astype(int)
+        assert torch.equal(content.y[:, index], y) and int(torch.isnan(content.y).sum()) == 3 * (50 - len(times))
+    else:
+        assert torch.allclose(content.times, torch.tensor(times, dtype=torch.float64)) and torch.equal(content.y, y)

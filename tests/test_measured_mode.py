@@ -129,7 +129,7 @@ def test_recorded_inputs_give_joint_metrics_on_real_data(tmp_path):
         ({"y": np.zeros((30, 50, 1))}, r"30 trajectories split .* 22 train / 4 validation / 4 test"),
         (
             {"y": np.zeros((200, 50, 1)), "t": np.arange(50) * 0.2},
-            r"the time grid \[0, 0.2, 0.4, ..., 9.8\] \(50 points\) differs",
+            r"t=5 lies outside the model's horizon \[0, 4.9\] .* last until t=9.8; set data.physics.init_args.n_obs to 99",
         ),
     ],
 )

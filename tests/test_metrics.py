@@ -99,8 +99,18 @@ def test_mmd_metric_accumulates_batches(generator):
     out = metric.compute()
     assert torch.isclose(out["mmd"], mmd_multiscale(p.double(), q.double()).float())
     assert torch.isclose(out["mmd2_median"], mmd_median(p.double(), q.double()).float())
-    with pytest.raises(ValueError, match="NaN/Inf"):
-        metric.update(p, torch.full_like(q, float("nan")))
+    with pytest.raises(ValueError, match=r"sample q contains Inf \(NaN: a missing value\)"):
+        metric.update(p, torch.full_like(q, float("inf")))
+
+
+def test_a_missing_value_is_zero_in_both_samples_of_a_whole_row_score(generator):
+    p, q = torch.randn(40, 4, generator=generator), torch.randn(40, 4, generator=generator) + 0.3
+    gaps = torch.rand(40, 4, generator=generator) < 0.2
+    gappy, filled = MMD(), MMD()
+    gappy.update(p.masked_fill(gaps, float("nan")), q.masked_fill(gaps, float("nan")))
+    filled.update(p.masked_fill(gaps, 0.0), q.masked_fill(gaps, 0.0))
+    assert torch.isfinite(gappy.compute()["mmd"])
+    assert torch.equal(gappy.compute()["mmd"], filled.compute()["mmd"])
 
 
 @pytest.mark.parametrize("paired", [False, True])

@@ -62,10 +62,11 @@ def trajectory_error(y_hat: Tensor, y: Tensor, datamodule: SimulationDataModule)
     mean |y_hat - y| over inputs, draws and observed components. A stochastic DGP or a
     measured file has no pointwise counterpart: the energy distance between the two samples
     at each time step (:func:`otgb.metrics.energy.energy_per_time`), averaged over components,
-    paired where both sides share recorded inputs.
+    paired where both sides share recorded inputs; over the trajectories measured at that step
+    (NaN where fewer than 2 are).
     """
     if datamodule.source.pointwise_process is not None:
-        return per_time(y_hat.flatten(0, 1) - y.flatten(0, 1)), "abs_err"
+        return per_time(y_hat.flatten(0, 1) - y.flatten(0, 1)), "abs_err"  # generated measurements: never missing
     rows = lambda v: v.flatten(0, 1).flatten(1)  # noqa: E731
     paired = bool(datamodule.recorded_inputs)
     return energy_per_time(rows(y_hat), rows(y), tuple(y.shape[2:]), paired).mean(1), "energy"
@@ -129,7 +130,7 @@ def component_analysis(model: MapTraining, datamodule: SimulationDataModule, n: 
     func_err = None if truth is None else per_time(f_p + f_phi - truth)
     func_err_fp = None if truth is None else per_time(f_p - truth)
     f_p_abs, f_phi_abs = per_time(f_p), per_time(f_phi)
-    mean = lambda v: None if v is None else float(v.mean())  # noqa: E731
+    mean = lambda v: None if v is None else float(v.nanmean())  # noqa: E731 (NaN: a time too few measured it)
     return {
         "mode": datamodule.mode,
         "n_inputs": len(data["y"]),

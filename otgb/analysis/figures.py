@@ -104,7 +104,7 @@ def distribution_figure(
             continue
         for i, (source, (values, _)) in enumerate(series.items()):
             colour, style = STYLE.get(source, ("tab:purple", "-"))
-            q = torch.quantile(values[..., k], torch.tensor([0.05, 0.25, 0.5, 0.75, 0.95]), dim=0).numpy()
+            q = torch.nanquantile(values[..., k], torch.tensor([0.05, 0.25, 0.5, 0.75, 0.95]), dim=0).numpy()
             if i == 0:
                 ax.fill_between(t, q[0], q[4], color=colour, alpha=0.10, lw=0)
                 ax.fill_between(t, q[1], q[3], color=colour, alpha=0.22, lw=0)
@@ -112,8 +112,8 @@ def distribution_figure(
                 for edge, line in ((0, ":"), (1, "-"), (3, "-"), (4, ":")):
                     ax.plot(t, q[edge], color=colour, ls=line, lw=0.8)
             ax.plot(t, q[2], color=colour, ls=style, lw=1.8, label=f"{source} (n={len(values)})")
-            for path in values[:2, :, k]:
-                ax.plot(t, path.numpy(), color=colour, ls=style, lw=0.5, alpha=0.45)
+            for path in values[:2, :, k].numpy():
+                _plot_path(ax, t, path, color=colour, ls=style, lw=0.5, alpha=0.45)
         ax.set_title(labels[k], fontsize=8)
         ax.set_xlabel(time_label, fontsize=8)
         ax.set_ylabel(labels[k], fontsize=8)
@@ -127,9 +127,20 @@ def distribution_figure(
     handles = axes.flat[0].get_legend_handles_labels()[0] + styles
     figure.legend(handles=handles, fontsize=7, loc="lower center", ncol=4, frameon=False)  # below the panels, off the data
     what = f"median, 25-75 % and 5-95 % over time ({first} filled), 2 paths each (unpaired)"
+    if any(bool(torch.isnan(values).any()) for values, _ in series.values()):
+        what += "; with missing values, each time's bands over the trajectories measured there, measured paths as dots"
     title(figure, what, step)
     figure.tight_layout(rect=(0, LEGEND_BELOW / height, 1, 1))
     return figure
+
+
+def _plot_path(ax: plt.Axes, t: np.ndarray, path: np.ndarray, **style: Any) -> None:
+    """One trajectory over time: a line, or its measured points as dots where some values are missing (NaN)."""
+    measured = ~np.isnan(path)
+    if measured.all():
+        ax.plot(t, path, **style)
+    else:
+        ax.plot(t[measured], path[measured], ".", ms=2.5, **{k: v for k, v in style.items() if k not in ("ls", "lw")})
 
 
 def trajectory_figure(
@@ -150,7 +161,7 @@ def trajectory_figure(
         ax.plot(t, x[:, component].flatten(), color="tab:orange", ls="--", lw=1, label="f_p")
         for j in range(y.shape[0]):
             measured, generated = ("measured", "generated") if j == 0 else (None, None)
-            ax.plot(t, y[j, :, component].flatten(), color="black", lw=1, alpha=0.6, label=measured)
+            _plot_path(ax, t, y[j, :, component].flatten().numpy(), color="black", lw=1, alpha=0.6, label=measured)
             ax.plot(t, y_hat[i, j, :, component].flatten(), color="tab:green", lw=1, alpha=0.8, label=generated)
         ax.set_title(theta_label(physics, data["theta"][i]), fontsize=8)
         ax.set_xlabel(physics.axis_label("t"), fontsize=7)

@@ -137,7 +137,6 @@ class SimulationDataModule(LightningDataModule):
                 "data: no measured data: set data.measured_path to a file of measurements, or data.hidden_effect to the "
                 "terms that generate synthetic measurements from physics + terms"
             )
-        self.physics = physics
         self.batch_size, self.batches_per_step = batch_size, batches_per_step
         self.measured_batch_size, self.measured_batches_per_step = measured_batch_size, measured_batches_per_step
         self.simulation_budget = simulation_budget
@@ -155,7 +154,8 @@ class SimulationDataModule(LightningDataModule):
             if measured_path is None
             else FileMeasurements(physics, measured_path, val_fraction, test_fraction, seed, measurement_noise)
         )
-        rank_zero_info(f"otgb: evaluation mode '{self.mode}': {self.describe()}")
+        self.physics = self.source.physics  # f_p, read at the file's own times where they are not its grid
+        self._announced = False  # whether the evaluation mode has been logged (at the first setup, once the model is built)
 
     # --- the source of the measurements ----------------------------------------------------
     @property
@@ -184,6 +184,9 @@ class SimulationDataModule(LightningDataModule):
 
     # --- sets ---------------------------------------------------------------------------
     def setup(self, stage: str) -> None:
+        if not self._announced:
+            rank_zero_info(f"otgb: evaluation mode '{self.mode}': {self.describe()}")
+            self._announced = True
         if stage == "fit" and self.measured is None:
             self.measured = self._measured_set()
         if stage in ("fit", "validate") and self.val_set is None:

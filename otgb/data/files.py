@@ -4,7 +4,9 @@ What a file holds (names as the physics model declares them):
 
 - ``y`` (required): the measured trajectories, (N, T, *obs_shape), e.g. (N, 50, 1) for the
   pendulum's angle at t = 0, 0.1, ..., 4.9, or (N, 50, 1, 20) for an advection-diffusion field;
-- ``t`` (optional): the observation times (T,); checked against the model's grid;
+  NaN is a missing value;
+- ``t`` (optional): the observation times, (T,) for every trajectory or (N, T) for each its own
+  (NaN after a shorter trajectory's last time); without it, the model's observation times;
 - ``theta`` (optional): the physics parameters each trajectory was recorded with, (N, P), in
   the order of the model's ``theta_names``;
 - ``x0`` (optional): each trajectory's full initial state, (N, *state_shape).
@@ -16,7 +18,12 @@ time, with a header
     trajectory, t, <observed variables>[, <theta names>][, x0_<state variables>]
 
 e.g. ``trajectory,t,angle,omega`` for the pendulum with recorded omega. Rows of one trajectory
-share its id; the per-trajectory columns (theta, x0_*) must be constant within it.
+share its id, each trajectory has its own times (any number, in increasing order) and an
+empty cell or NaN in an observed column is a missing value; the per-trajectory columns (theta,
+x0_*) must be constant within it.
+
+Trajectories on their own times are placed on one grid of times (:mod:`otgb.data.times`): the
+model's own where every time is one of its observation times, else the union of the file's.
 
 Every problem is an :class:`otgb.errors.InputError` naming the file, what was found and what
 was expected. The file is only read, never written.
@@ -35,6 +42,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from otgb.data.times import on_common_times
 from otgb.errors import InputError, first_line
 from otgb.physics.base import PhysicsModel
 
@@ -44,12 +52,14 @@ SUFFIXES = (".pt", ".npz", ".csv")
 
 @dataclass(frozen=True)
 class MeasuredFile:
-    """The validated content of a measurement file: y (N, T, *obs), and the recorded inputs if any."""
+    """The validated content of a measurement file: y (N, T, *obs) with NaN where a value is missing, the times ``times``
+    (T,) it is on where they are not the model's observation times (None: they are), and the recorded inputs if any."""
 
     path: str
     y: Tensor
     theta: Tensor | None = None
     x0: Tensor | None = None
+    times: Tensor | None = None
 
     def __len__(self) -> int:
         return len(self.y)
@@ -79,69 +89,28 @@ def read_measured(path: str | os.PathLike, physics: PhysicsModel) -> MeasuredFil
     if not path.is_file():
         raise InputError(f"measured data file {str(path)!r} is not a file (expected a {'/'.join(SUFFIXES)} file)")
     content = _read_csv(path, physics) if path.suffix == ".csv" else {".pt": _read_pt, ".npz": _read_npz}[path.suffix](path)
-    unknown = sorted(set(content) - set(KEYS))
+    unknown = sorted(set(content) - set(KEYS) - {"ids"})
     if unknown:
         raise InputError(f"{path}: unknown entries {unknown}; a measurement file holds {list(KEYS)} (only 'y' is required)")
     if "y" not in content:
         raise InputError(f"{path}: no entry 'y' (the measured trajectories); found {sorted(content)}")
-    tensors = {key: _as_tensor(path, key, value) for key, value in content.items()}
-    if "t" in tensors:  # first: a wrong grid also explains a wrong number of steps
-        check_time_grid(tensors["t"], physics, str(path))
-    y = check_trajectories(tensors["y"], tuple(physics.trajectory_shape), f"{path}: 'y'")
+    tensors = {key: _as_tensor(path, key, value) for key, value in content.items() if key != "ids"}
+    ids = content.get("ids") or [str(i) for i in range(len(tensors["y"]))]  # a CSV's own ids; else positions
+    y = check_trajectories(tensors["y"], tuple(physics.obs_shape), f"{path}: 'y'")
+    common = on_common_times(str(path), y, tensors.get("t"), ids, physics)
     theta = _per_trajectory(path, tensors, "theta", (physics.theta_dim,), len(y), f"theta_names {tuple(physics.theta_names)}")
     x0 = _per_trajectory(path, tensors, "x0", tuple(physics.state_shape), len(y), "the model's full initial state")
-    return MeasuredFile(str(path), y, theta, x0)
+    return MeasuredFile(str(path), common.y, theta, x0, common.times)
 
 
-def check_trajectories(y: Tensor, trajectory_shape: tuple[int, ...], where: str) -> Tensor:
-    """Check shape (N, *trajectory_shape), N >= 1, and finiteness; return y as float32."""
-    expected = "(N, " + ", ".join(map(str, trajectory_shape)) + ")"
-    if y.dim() != len(trajectory_shape) + 1 or tuple(y.shape[1:]) != tuple(trajectory_shape):
+def check_trajectories(y: Tensor, obs_shape: tuple[int, ...], where: str) -> Tensor:
+    """Check shape (N, T, *obs_shape) with N, T >= 1 (NaN: a missing value); return y as float32."""
+    expected = "(N, T, " + ", ".join(map(str, obs_shape)) + ")"
+    if y.dim() != len(obs_shape) + 2 or tuple(y.shape[2:]) != tuple(obs_shape):
         raise InputError(f"{where}: measured trajectories have shape {tuple(y.shape)}, expected {expected}")
-    if len(y) == 0:
-        raise InputError(f"{where}: no trajectories, expected {expected} with N >= 1")
-    _check_finite(y, where, "trajectories")
+    if len(y) == 0 or y.shape[1] == 0:
+        raise InputError(f"{where}: no trajectories, expected {expected} with N, T >= 1")
     return y.float()
-
-
-def check_time_grid(t: Tensor, physics: PhysicsModel, where: str) -> None:
-    """The file's observation times must be the model's (T,) grid (to 1e-6 relative)."""
-    expected = physics.observation_times().double()
-    if t.dim() != 1:
-        raise InputError(f"{where}: 't' has shape {tuple(t.shape)}, expected ({physics.n_obs},): one time per step")
-    t = t.double()
-    if t.shape != expected.shape or not torch.allclose(t, expected, rtol=1e-6, atol=1e-6 * float(expected.abs().max())):
-        raise InputError(
-            f"{where}: the time grid {_grid(t)} differs from the model's {_grid(expected)} "
-            f"(physics dt={physics.dt}, n_obs={physics.n_obs}){_grid_hint(t, expected, physics)}"
-        )
-
-
-UNIT_FACTORS = (1e-3, 1e3, 60.0, 1 / 60, 3600.0, 1 / 3600, 1e-6, 1e6)  # s <-> ms, min, h, us: a grid in another unit
-
-
-def _grid_hint(t: Tensor, expected: Tensor, physics: PhysicsModel) -> str:
-    """Why an evenly spaced time grid that starts at the model's first time may differ: another unit (its step is the
-    model's dt times a usual unit factor), another step, or the model's step over another number of points."""
-    if len(t) < 2:
-        return ""
-    spacing, tol = torch.diff(t), 1e-6 * float(t.abs().max())
-    if abs(float(t[0] - expected[0])) > tol or not torch.allclose(spacing, spacing[:1].expand_as(spacing), rtol=1e-6, atol=tol):
-        return ""
-    step = float(spacing[0])
-    ratio = step / physics.dt
-    if any(abs(ratio / factor - 1) < 1e-5 for factor in UNIT_FACTORS):
-        unit = f" (the model's is {physics.units['t']})" if "t" in physics.units else ""
-        return f": the file's step is {ratio:.6g} x the model's dt, in another unit?{unit}"
-    if abs(ratio - 1) > 1e-6:
-        return f": the file's step is {step:.6g}, the model's dt {physics.dt:.6g} (data.physics.init_args.dt)"
-    n = len(t)
-    return f": the file has the model's step with {n} points; set data.physics.init_args.n_obs to {n} to match it"
-
-
-def _grid(t: Tensor) -> str:
-    values = ", ".join(f"{v:.6g}" for v in t[:3].tolist())
-    return f"[{values}, ..., {float(t[-1]):.6g}] ({len(t)} points)" if len(t) > 3 else f"[{values}] ({len(t)} points)"
 
 
 def _check_finite(values: Tensor, where: str, what: str) -> None:
@@ -231,33 +200,24 @@ def _read_csv(path: Path, physics: PhysicsModel) -> dict[str, Any]:
         if not np.isfinite(column[name]).all():
             line = int(np.flatnonzero(~np.isfinite(column[name]))[0]) + 2
             raise InputError(f"{path}, line {line}: the '{name}' column holds NaN/Inf, expected a number in every row")
-    for name in header[2:]:
-        if not np.isfinite(column[name]).all():
-            row = int(np.flatnonzero(~np.isfinite(column[name]))[0])
+    per_trajectory = [name for name in header[2:] if name not in observed]
+    for name in [*observed, *per_trajectory]:
+        bad = np.isinf(column[name]) if name in observed else ~np.isfinite(column[name])
+        if bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            missing = " (an empty cell or NaN is a missing value)" if name in observed else ""
             raise InputError(
                 f"{path}, line {row + 2}: trajectory {column['trajectory'][row]:g} at t={column['t'][row]:g}: "
-                f"'{name}' is {column[name][row]}, expected a finite number"
+                f"'{name}' is {column[name][row]}, expected a finite number{missing}"
             )
-    ids, starts, counts = np.unique(column["trajectory"], return_index=True, return_counts=True)
+    ids, starts, inverse, counts = np.unique(column["trajectory"], return_index=True, return_inverse=True, return_counts=True)
     order = np.argsort(starts)  # trajectories in the order they appear in the file
-    ids, counts = ids[order], counts[order]
-    if len(set(counts.tolist())) != 1:
-        usual = max(set(counts.tolist()), key=lambda count: (int((counts == count).sum()), count))
-        odd = int(np.flatnonzero(counts != usual)[0])
-        raise InputError(
-            f"{path}: trajectory {ids[odd]:g} has {counts[odd]} row(s), expected {usual} as most trajectories have: one "
-            "row per time of the grid"
-        )
-    n, steps = len(ids), int(counts[0])
-    index = np.concatenate([np.flatnonzero(column["trajectory"] == i) for i in ids])  # grouped, file order within
-    table = {name: torch.from_numpy(col[index].reshape(n, steps)) for name, col in column.items()}
-    times = table["t"]
-    if not torch.equal(times, times[:1].expand_as(times)):
-        first = int((times != times[:1]).any(dim=1).nonzero()[0])
-        raise InputError(
-            f"{path}: trajectory {ids[first]:g} has times {_grid(times[first])}, trajectory {ids[0]:g} {_grid(times[0])}"
-        )
-    content: dict[str, Any] = {"t": times[0], "y": torch.stack([table[name] for name in observed], dim=-1)}
+    grouped = np.split(np.argsort(inverse, kind="stable"), np.cumsum(counts)[:-1])  # each id's rows, in file order
+    ids, rows = ids[order], [grouped[i] for i in order]
+    steps = max(len(r) for r in rows)
+    table = {name: torch.from_numpy(_padded(col, rows, steps)) for name, col in column.items()}
+    content: dict[str, Any] = {"t": table["t"], "y": torch.stack([table[name] for name in observed], dim=-1)}
+    content["ids"] = [f"{i:g}" for i in ids]
     for key, names in (("theta", thetas), ("x0", initial)):
         present = [name for name in names if name in table]
         if present and present != names:
@@ -267,6 +227,14 @@ def _read_csv(path: Path, physics: PhysicsModel) -> dict[str, Any]:
         if present:
             content[key] = _constant_per_trajectory(path, table, names, ids)
     return content
+
+
+def _padded(values: np.ndarray, rows: list[np.ndarray], steps: int) -> np.ndarray:
+    """``values`` of each trajectory's ``rows`` as one row of (N, steps), NaN after a shorter trajectory's last."""
+    out = np.full((len(rows), steps), np.nan)
+    for i, index in enumerate(rows):
+        out[i, : len(index)] = values[index]
+    return out
 
 
 def _header_problems(header: list[str], required: list[str], allowed: list[str]) -> str:
@@ -293,15 +261,15 @@ def _numeric_rows(path: Path, rows: list[list[str]], width: int) -> np.ndarray:
         if len(row) != width:
             raise InputError(f"{path}, line {line}: {len(row)} fields, expected {width} (as in the header)")
         try:
-            values[line - 2] = [float(field) for field in row]
+            values[line - 2] = [float(field) if field.strip() else np.nan for field in row]  # empty: missing
         except ValueError:
             raise InputError(f"{path}, line {line}: a field is not a number (trajectory ids are numbers too): {row}") from None
     return values
 
 
 def _constant_per_trajectory(path: Path, table: dict[str, Tensor], names: list[str], ids: np.ndarray) -> Tensor:
-    block = torch.stack([table[name] for name in names], dim=-1)  # (N, T, K)
-    varying = (block != block[:, :1]).any(dim=(1, 2))
+    block = torch.stack([table[name] for name in names], dim=-1)  # (N, T, K), NaN after a shorter trajectory's last
+    varying = ((block != block[:, :1]) & ~torch.isnan(block)).any(dim=(1, 2))
     if bool(varying.any()):
         raise InputError(
             f"{path}: {names} change within trajectory {ids[int(varying.nonzero()[0])]:g}; they are per-trajectory values"

@@ -223,8 +223,8 @@ class FileMeasurements(MeasurementSource):
         self, physics: PhysicsModel, path: str, val_fraction: float, test_fraction: float, seed: int,
         measurement_noise: float = 0.0,
     ) -> None:  # fmt: skip
-        super().__init__(physics, seed)
         self.path, self.file, self.measurement_noise = path, read_measured(path, physics), float(measurement_noise)
+        super().__init__(physics if self.file.times is None else physics.read_at(self.file.times), seed)
         self.parts = split_indices(len(self.file), val_fraction, test_fraction, seed, path)
 
     def describe(self) -> str:

@@ -27,6 +27,7 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import Tensor
 
+from otgb.data.gaps import with_gaps_of
 from otgb.discovery.locate import permutation_labels, z_scored
 from otgb.metrics.energy import batched_energy
 
@@ -79,8 +80,10 @@ def closer(
     augmented: Tensor, f_p: Tensor, measured: Tensor, n_permutations: int, alpha: float, seed: int, diverged: int = 0
 ) -> Closeness:
     """Whether ``augmented`` (n, ...) is nearer to ``measured`` (m, ...) than ``f_p`` (k, ...), by the energy distance;
-    rows of either model that are not finite are dropped and, for the augmented physics, added to ``diverged``."""
-    finite = [rows[rows.flatten(1).isfinite().all(1)] for rows in (augmented, f_p)]
+    rows of either model that are not finite are dropped and, for the augmented physics, added to ``diverged``. Where
+    measured values are missing (NaN), both models take the measured gaps and every sample is 0 there
+    (:mod:`otgb.data.gaps`): the permutations stay exact, the two models holding values at like places."""
+    finite = [with_gaps_of(rows[rows.flatten(1).isfinite().all(1)], measured) for rows in (augmented, f_p)]
     diverged += len(augmented) - len(finite[0])
     (augmented, f_p), n, k, m = finite, len(finite[0]), len(finite[1]), len(measured)
     if min(n, k, m) < 4:

@@ -31,6 +31,7 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import Tensor
 
+from otgb.data.gaps import comparable, filled
 from otgb.discovery.chunked import Simulate, backward_in_chunks, chunk_size
 from otgb.discovery.discrepancy import batched_discrepancy, row_terms
 from otgb.discovery.families import centre, spread, varies
@@ -182,7 +183,8 @@ def _pair_terms(s: Tensor, y: Tensor, samples: int = 1) -> tuple[Tensor, Tensor]
     twice its mean distance to the other simulated ones) (n,), over the discrepancy's parts (:func:`row_terms`). Where
     s holds ``samples`` independent samples (a fit's mean over them, ``discover.spread_samples``), a
     simulated trajectory's terms are within its own sample and a measured one's are averaged over the samples."""
-    blocks = s.chunk(samples)
+    blocks = [comparable(block, y)[0] for block in s.chunk(samples)]  # each sample with y's gaps (otgb.data.gaps)
+    y = filled(y)
     measured = torch.stack([row_terms(block, y) for block in blocks]).mean(0)
     simulated = [row_terms(y, block) - row_terms(block, block) * len(block) / (len(block) - 1) for block in blocks]
     return measured, torch.cat(simulated)

@@ -7,6 +7,14 @@ of statistics based on distances"), its p-value comes from permutations of the s
 Benjamini-Hochberg procedure ("Controlling the false discovery rate", 1995; scipy's
 ``false_discovery_control``) at level ``alpha``. :func:`describe` turns the map into a plain
 sentence; :func:`draw` into a figure.
+
+Where measured values are missing (NaN), the model's trajectories take the measured sample's gaps
+(:mod:`otgb.data.gaps`) and both samples are 0 there: a cell's test then compares the trajectories
+measured in it, with an equal point mass at 0 on both sides, and stays exact under the permutations
+(values missing at random, not because of what they would have been). Its distance is that of the
+measured values times the square of the share measured there; a cell with fewer than two measured
+values holds nothing to compare (statistic 0, p-value 1), and one with few has little power. The
+summaries (mean, spread, amplitude) are over the measured values.
 """
 
 from __future__ import annotations
@@ -19,6 +27,7 @@ import torch
 from scipy.stats import false_discovery_control
 from torch import Tensor
 
+from otgb.data.gaps import filled, observed, with_gaps_of
 from otgb.discovery.paired import PairedCheck
 
 DISTANCE_BYTES = 2**29  # the cells' distance matrices held at once, at most (at least one cell's)
@@ -161,14 +170,25 @@ def permutation_labels(n: int, total: int, n_permutations: int, seed: int) -> Te
 
 
 def z_scored(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
-    """Rows of both samples with each feature centred and scaled by the pooled samples' mean and standard deviation;
-    a spread below ``SPREAD_FLOOR`` of the features' RMS spread (a boundary value fixed in both, up to rounding) is
-    raised to it, so that rounding does not weigh as much as a real feature."""
+    """Rows of both samples with each feature centred and scaled by the pooled samples' mean and standard deviation
+    (over the values present: a missing one, NaN, is 0 afterwards); a spread below ``SPREAD_FLOOR`` of the features'
+    RMS spread (a boundary value fixed in both, up to rounding) is raised to it, so that rounding does not weigh as
+    much as a real feature."""
     pooled = torch.cat([a, b])
-    mean, spread = pooled.mean(0), pooled.std(0)
+    mean, spread = pooled.nanmean(0), nan_std(pooled, 0).nan_to_num(0.0)
     floor = max(SPREAD_FLOOR * float(spread.pow(2).mean().sqrt()), 1e-300)
     spread = spread.clamp_min(floor)
-    return (a - mean) / spread, (b - mean) / spread
+    return filled((a - mean) / spread), filled((b - mean) / spread)
+
+
+def nan_std(x: Tensor, dim: int | tuple[int, ...]) -> Tensor:
+    """The standard deviation (n - 1 in the denominator) over ``dim`` of the values present (not NaN); NaN where fewer
+    than two are."""
+    present = observed(x)
+    count = present.sum(dim, keepdim=True)
+    centred = torch.where(present, x - x.nanmean(dim, keepdim=True), 0.0)
+    variance = centred.pow(2).sum(dim, keepdim=True) / (count - 1).clamp_min(1)
+    return variance.where(count > 1, float("nan")).sqrt().squeeze(dim)
 
 
 def locate(
@@ -192,9 +212,10 @@ def locate(
     if a.dim() < 3 or a.shape[1:] != b.shape[1:]:
         raise ValueError(f"locate: expected trajectories (n, T, C, ...) of one shape, got {tuple(a.shape)} and {tuple(b.shape)}")
     steps, channels, grid = a.shape[1], a.shape[2], tuple(a.shape[3:])
+    b = with_gaps_of(b, a)  # the measured gaps on the model's side (module docstring)
     cells_a, regions = cell_values(a, grid, regions_per_axis)
     cells_b, _ = cell_values(b, grid, regions_per_axis)
-    statistic, pvalue = permutation_energy(cells_a, cells_b, n_permutations, seed)
+    statistic, pvalue = permutation_energy(filled(cells_a), filled(cells_b), n_permutations, seed)
     whole_a, whole_b = z_scored(a.flatten(1).double(), b.flatten(1).double())
     whole, whole_pvalue = permutation_energy(whole_a[None], whole_b[None], n_permutations, seed)
     # two families, alpha split between them (Bonferroni): one whole-trajectory p-value inside the cells'
@@ -207,9 +228,9 @@ def locate(
     shape = (steps, channels, len(regions))
     summary = {}
     for side, cells in (("a", cells_a), ("b", cells_b)):
-        summary[f"mean_{side}"] = cells.mean((1, 2)).reshape(shape).float()
-        summary[f"spread_{side}"] = cells.std(1).mean(1).reshape(shape).float()
-        summary[f"amplitude_{side}"] = cells.abs().mean((1, 2)).reshape(shape).float()
+        summary[f"mean_{side}"] = cells.nanmean((1, 2)).reshape(shape).float()
+        summary[f"spread_{side}"] = nan_std(cells, 1).nanmean(1).reshape(shape).float()
+        summary[f"amplitude_{side}"] = cells.abs().nanmean((1, 2)).reshape(shape).float()
     return DisagreementMap(
         times=times.float().cpu(),
         components=tuple(components),

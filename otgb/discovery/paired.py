@@ -71,11 +71,13 @@ class PairedCheck:
 
 @torch.no_grad()
 def paired_check(physics: PhysicsModel, measured: Tensor, x0: Tensor, theta: Tensor, noise: float, **names: str) -> PairedCheck:
-    """The check of the module docstring: ``measured`` (n, T, *obs), their inputs x0 (n, *state) and theta (n, P);
-    ``names``: the :class:`PairedCheck`'s ``model`` and ``part``, for its sentence."""
-    residuals = (measured.double() - simulate_in_chunks(physics, x0, theta).double()).flatten(1)
-    finite = torch.isfinite(residuals).all(dim=1)
-    kept = residuals[finite].flatten()
+    """The check of the module docstring over the measured values: ``measured`` (n, T, *obs; NaN where missing), their
+    inputs x0 (n, *state) and theta (n, P); ``names``: the :class:`PairedCheck`'s ``model`` and ``part``, for its sentence."""
+    simulated = simulate_in_chunks(physics, x0, theta).double().flatten(1)
+    residuals = measured.double().flatten(1) - simulated
+    finite = (torch.isfinite(simulated) & ~torch.isinf(residuals)).all(dim=1)
+    kept = residuals[finite]
+    kept = kept[~torch.isnan(kept)]  # a missing measured value (NaN) has no residual
     statistic = float(kept.pow(2).sum()) / noise**2
     pvalue = float(chi2.sf(statistic, kept.numel())) if bool(finite.all()) else 0.0  # a diverging solve is no noise
     rms = float(kept.pow(2).mean().sqrt()) if kept.numel() else float("nan")

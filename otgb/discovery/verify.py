@@ -8,6 +8,7 @@ from dataclasses import replace
 import torch
 from torch import Tensor
 
+from otgb.data.gaps import filled, with_gaps_of
 from otgb.discovery.closer import Closeness, closer
 from otgb.discovery.draws import at_most, simulate_candidate, simulate_from_priors
 from otgb.discovery.families import varies
@@ -24,8 +25,9 @@ from otgb.physics.base import PhysicsModel
 
 def gap_step(sources: dict[str, Tensor], test: Tensor, settings: DiscoverySettings, seeds: Seeds) -> dict[str, dict[str, float]]:
     """MMD, C2ST and energy distance of each source's draws against the test measurements, and the Reference (one
-    random half of the test part against the other)."""
-    gap = {name: scores(draws, test, settings.c2st_classifier, seeds) for name, draws in sources.items()}
+    random half of the test part against the other). Where test values are missing (NaN), each source's draws take the
+    test part's gaps (:mod:`otgb.data.gaps`); the Reference's halves have theirs."""
+    gap = {name: scores(with_gaps_of(draws, test), test, settings.c2st_classifier, seeds) for name, draws in sources.items()}
     order = torch.randperm(len(test), generator=stream(seeds.root))
     half = len(test) // 2
     gap["reference"] = scores(test[order[:half]], test[order[half : 2 * half]], settings.c2st_classifier, seeds)
@@ -33,8 +35,9 @@ def gap_step(sources: dict[str, Tensor], test: Tensor, settings: DiscoverySettin
 
 
 def scores(p: Tensor, q: Tensor, classifier: str, seeds: Seeds) -> dict[str, float]:
+    """MMD, C2ST and energy distance of two samples, a missing value (NaN) 0 in both."""
     shape = tuple(p.shape[1:])
-    p, q = p.flatten(1).double(), q.flatten(1).double()
+    p, q = filled(p.flatten(1).double()), filled(q.flatten(1).double())
     judge = c2st(p.float(), q.float(), folds=5, seed=seeds.root, classifier=classifier, trajectory_shape=shape)
     return {
         "mmd": float(mmd_multiscale(p, q)),

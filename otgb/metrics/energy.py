@@ -14,7 +14,9 @@ bandwidth, and is smooth in the samples, so it is a stable selection metric.
   so inputs and trajectory features of different units weigh alike.
 - :func:`energy_per_time`: on the trajectory part of the rows, one distance per time step and
   observed component (per frame and channel for fields, over the spatial cells), in the
-  observation's own units: where in time, and in which variable, two samples disagree.
+  observation's own units: where in time, and in which variable, two samples disagree. Where
+  values are missing (NaN), each step's distance is over the rows measured there (NaN where
+  a sample has fewer than 2), the whole rows' with a missing value as 0 on both samples.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import torch
 from torch import Tensor
 
 from otgb.compiling import EagerFallback, compile_generic
+from otgb.data.gaps import filled
 from otgb.metrics.mmd import _as_float, standardise
 from otgb.metrics.samples import TwoSampleMetric
 
@@ -218,7 +221,21 @@ def energy_per_time(p: Tensor, q: Tensor, trajectory_shape: tuple[int, ...], pai
     def cells(rows: Tensor) -> Tensor:  # (n, width) -> (T * C, n, space)
         return rows[:, -width:].reshape(len(rows), steps * channels, -1).transpose(0, 1).double()
 
-    return batched_energy(cells(p), cells(q), paired).reshape(steps, channels).float()
+    if not (bool(torch.isnan(p).any()) or bool(torch.isnan(q).any())):
+        return batched_energy(cells(p), cells(q), paired).reshape(steps, channels).float()
+    return torch.stack([_measured_energy(a, b, paired) for a, b in zip(cells(p), cells(q))]).reshape(steps, channels).float()
+
+
+def _measured_energy(a: Tensor, b: Tensor, paired: bool) -> Tensor:
+    """The energy distance of one cell over the rows measured there (no NaN; paired: measured on both sides); NaN where
+    a side has fewer than 2 such rows, too few for the statistic."""
+    keep_a, keep_b = ~torch.isnan(a).any(dim=1), ~torch.isnan(b).any(dim=1)
+    if paired:
+        keep_a = keep_b = keep_a & keep_b
+    a, b = a[keep_a], b[keep_b]
+    if len(a) < 2 or len(b) < 2:
+        return a.new_tensor(float("nan"))
+    return batched_energy(a[None], b[None], paired)[0]
 
 
 class EnergyDistance(TwoSampleMetric):
@@ -231,8 +248,10 @@ class EnergyDistance(TwoSampleMetric):
         self.trajectory_shape = None if trajectory_shape is None else tuple(trajectory_shape)
         self.paired = paired
 
+    reads_missing = True  # the whole rows' distance sees a missing value as 0, each time step's the rows measured there
+
     def score(self, p: Tensor, q: Tensor) -> dict[str, Tensor]:
-        results = {"energy": energy_distance(p, q, self.paired).float()}
+        results = {"energy": energy_distance(filled(p), filled(q), self.paired).float()}
         if self.trajectory_shape is not None:
             results["energy_per_time"] = energy_per_time(p, q, self.trajectory_shape, self.paired)
         return results

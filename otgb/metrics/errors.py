@@ -6,7 +6,8 @@ Deep Grey-Box Meets Optimal Transport", ICLR 2025).
     N-RMSE  = mean_i [ sqrt(mean_t (y_hat_i(t) - y_i(t))^2) ] / (max(y) - min(y)),
 
 with max/min taken over the whole evaluation set of targets y. The mean over t runs over
-every non-batch dimension (time and observed components). The metrics also report the
+every non-batch dimension (time and observed components), over the measured values only where
+a target has missing ones (NaN), and max/min over its measured values. The metrics also report the
 standard deviation over the inputs i (``<name>_std``), the spread in the paper's tables.
 """
 
@@ -20,15 +21,16 @@ from torchmetrics import Metric
 def abs_err(pred: Tensor, target: Tensor) -> Tensor:
     """Per-sample mean absolute error, (N, ...) x (N, ...) -> (N,)."""
     _check_pair(pred, target)
-    return (pred - target).abs().flatten(1).mean(dim=1)
+    return (pred - target).abs().flatten(1).nanmean(dim=1)
 
 
 def nrmse(pred: Tensor, target: Tensor, value_range: float | Tensor | None = None) -> Tensor:
     """Per-sample RMSE divided by the target range (default: the range of ``target``), -> (N,)."""
     _check_pair(pred, target)
     if value_range is None:
-        value_range = target.max() - target.min()
-    return ((pred - target) ** 2).flatten(1).mean(dim=1).sqrt() / value_range
+        measured = target[~torch.isnan(target)]
+        value_range = measured.max() - measured.min()
+    return ((pred - target) ** 2).flatten(1).nanmean(dim=1).sqrt() / value_range
 
 
 def _check_pair(pred: Tensor, target: Tensor) -> None:
@@ -84,8 +86,9 @@ class NRMSE(_PerSampleMean):
 
     def update(self, pred: Tensor, target: Tensor) -> None:
         self._accumulate(nrmse(pred, target, value_range=1.0))
-        self.target_max = torch.maximum(self.target_max, target.max().double())
-        self.target_min = torch.minimum(self.target_min, target.min().double())
+        measured = target[~torch.isnan(target)]
+        self.target_max = torch.maximum(self.target_max, measured.max().double())
+        self.target_min = torch.minimum(self.target_min, measured.min().double())
 
     def compute(self) -> dict[str, Tensor]:
         return self._mean_std(scale=self.target_max - self.target_min)

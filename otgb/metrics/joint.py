@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 from torchmetrics import MetricCollection
 
+from otgb.data.gaps import has_gaps
 from otgb.metrics.c2st import C2ST
 from otgb.metrics.energy import EnergyDistance
 from otgb.metrics.errors import NRMSE, AbsErr
@@ -129,6 +130,7 @@ class JointEvaluator:
         cond = self._conditioning(batch)
         cond_hat = cond if candidate is None else self._conditioning(candidate)
         compared = y_hat if as_measured is None else move(as_measured)
+        compared, y = comparable_draws(compared, y)
         self.two_sample.update(sample_rows(move(cond), y), sample_rows(move(cond_hat), compared))
 
     def _conditioning(self, batch: dict[str, Tensor]) -> Tensor:
@@ -216,3 +218,13 @@ def split_half_scores(
 def _check_repeats(repeats: int) -> None:
     if repeats < 1:
         raise ValueError(f"reference_repeats={repeats}: expected >= 1")
+
+
+def comparable_draws(draws: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+    """Draws (B, M, T, *obs) and measurements y (B, M', T, *obs) as the two-sample metrics compare them: row b of both
+    missing (NaN) wherever either misses a value (y's gaps, and the draws' own where they are measured, as a
+    Reference's half is), so that both samples hold values at like places (:mod:`otgb.data.gaps`)."""
+    if not (has_gaps(y) or has_gaps(draws)):
+        return draws, y
+    missing = torch.isnan(y).any(dim=1, keepdim=True) | torch.isnan(draws).any(dim=1, keepdim=True)
+    return draws.masked_fill(missing, float("nan")), y.masked_fill(missing, float("nan"))

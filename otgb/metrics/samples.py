@@ -15,6 +15,8 @@ from torch import Tensor
 from torchmetrics import Metric
 from torchmetrics.utilities import dim_zero_cat
 
+from otgb.data.gaps import filled
+
 
 def joint_samples(theta: Tensor, x0: Tensor, y: Tensor) -> Tensor:
     """Rows (theta_i, x0_i, y_ij) for every input i and draw j.
@@ -39,10 +41,13 @@ class TwoSampleMetric(Metric):
 
     ``update(p, q)`` appends rows (p is the reference sample, e.g. the measured/DGP draws;
     q the candidate, e.g. the model's); ``compute`` scores the whole samples with
-    :meth:`score`, which subclasses define and which returns named scalars.
+    :meth:`score`, which subclasses define and which returns named scalars. A NaN is a
+    missing value, at like places in both samples (:mod:`otgb.data.gaps`): a score of whole
+    rows sees it as 0, one that sets ``reads_missing`` reads it itself.
     """
 
     full_state_update = False
+    reads_missing = False  # whether score reads missing values (NaN) itself; else it gets them as 0
 
     def __init__(self, **kwargs) -> None:
         super().__init__(**kwargs)
@@ -54,13 +59,15 @@ class TwoSampleMetric(Metric):
         if p.dim() != 2 or q.dim() != 2 or p.shape[1] != q.shape[1]:
             raise ValueError(f"{type(self).__name__}.update: expected (n, D) and (m, D), got {tuple(p.shape)}, {tuple(q.shape)}")
         for name, rows in (("p", p), ("q", q)):
-            if not torch.isfinite(rows).all():
-                raise ValueError(f"{type(self).__name__}.update: sample {name} contains NaN/Inf")
+            if bool(torch.isinf(rows).any()):
+                raise ValueError(f"{type(self).__name__}.update: sample {name} contains Inf (NaN: a missing value)")
         self.p.append(p.detach())
         self.q.append(q.detach())
 
     def compute(self) -> dict[str, Tensor]:
         p, q = dim_zero_cat(self.p), dim_zero_cat(self.q)
+        if not self.reads_missing:  # a missing value (NaN, on both samples at like places: otgb.data.gaps) is 0
+            p, q = filled(p), filled(q)
         repeats, seed = self.across_halves
         return across_halves(self.score, p, q, repeats, seed) if repeats else self.score(p, q)
 

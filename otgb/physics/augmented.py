@@ -69,6 +69,7 @@ class Augmented(PhysicsModel):
             object.__setattr__(self, attr, getattr(base, attr))
         object.__setattr__(self, "theta_names", (*base.theta_names, *names))
         super().__init__(base.dt, base.n_obs, base.include_initial, base.step_size, base.method)
+        self._read_times = base._read_times
         self.base = base
         self.added = nn.ModuleList(terms)
         for term in terms:

@@ -17,6 +17,7 @@ Shapes: state (B, *state_shape), theta (B, P), observed trajectory (B, T, *obs_s
 from __future__ import annotations
 
 import copy
+import hashlib
 import math
 import numbers
 from abc import ABC, abstractmethod
@@ -30,6 +31,7 @@ from torch import Tensor, nn
 from otgb.errors import InputError
 from otgb.physics.arguments import RecordsInitArgs, invalid
 from otgb.physics.priors import Prior, check_prior, sample_joint
+from otgb.physics.reading import read_between_steps, steps_to_cover
 from otgb.physics.solvers import integrate
 from otgb.physics.stencils import central_difference, laplacian, second_difference
 
@@ -116,6 +118,7 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
 
     _measurement_noise: tuple[float, int] | None = None  # (sd, seed) while measured_with_noise is in force
     _first_row = 0  # the index of the observations' first trajectory in the set they are part of (rows_from)
+    _read_times: Tensor | None = None  # the times it is observed at where they are not its own grid (read_at)
 
     state_names: ClassVar[tuple[str, ...]]
     observed: ClassVar[tuple[str, ...]]
@@ -256,8 +259,35 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
         return torch.arange(n, device=device, dtype=torch.float32) * self.dt
 
     def observation_times(self, device: torch.device | None = None) -> Tensor:
-        """The times of the observed trajectory, (n_obs,)."""
+        """The times of the observed trajectory, (n_obs,): its grid, or the times it is read at (:meth:`read_at`)."""
+        if self._read_times is not None:
+            return self._read_times.to(device=device, dtype=torch.float32)
         return self.times(device)[-self.n_obs :]
+
+    def read_at(self, times: Tensor) -> PhysicsModel:
+        """A copy of this model observed at ``times`` (T,) instead of its own grid (a file's own observation times,
+        :mod:`otgb.data.times`): solved on its own step and read between steps at the solver's order
+        (:mod:`otgb.physics.reading`). The times increase and lie in [0, this model's last observation time]."""
+        times = torch.as_tensor(times, dtype=torch.float64).cpu()
+        horizon = float(self.observation_times()[-1])
+        if times.dim() != 1 or len(times) == 0 or bool((torch.diff(times) <= 0).any()):
+            raise InputError(f"{type(self).__name__}.read_at: expected increasing times (T,), got shape {tuple(times.shape)}")
+        if float(times[0]) < 0 or float(times[-1]) > horizon * (1 + 1e-6):
+            raise InputError(
+                f"{type(self).__name__}.read_at: times in [{float(times[0]):g}, {float(times[-1]):g}] leave [0, {horizon:g}]"
+            )
+        model = copy.deepcopy(self)
+        model._read_times, model.n_obs = times, len(times)
+        return model
+
+    def __repr__(self) -> str:
+        """The recorded constructor call, and the times the model is read at where they are not its grid."""
+        text = super().__repr__()
+        if self._read_times is None:
+            return text
+        digest = hashlib.sha256(self._read_times.numpy().tobytes()).hexdigest()[:12]
+        times = self._read_times
+        return f"{text}.read_at({len(times)} times in [{float(times[0]):g}, {float(times[-1]):g}], {digest})"
 
     def axis_label(self, name: str) -> str:
         """``name`` ("t", a state or theta name) with its unit where the model declares one: "angle (rad)"."""
@@ -332,10 +362,14 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
         return dstate
 
     def solve(self, field: VectorField, initial_state: Tensor, *args: Tensor) -> Tensor:
-        """Integrate d(state)/dt = field(state, *args) on this model's grid: (B, T, *state_shape).
+        """Integrate d(state)/dt = field(state, *args) and read it at the observation times: (B, T, *state_shape).
 
         The path (compiled, eager or torchdiffeq's) is :mod:`otgb.physics.solvers`'s setting.
         """
+        if self._read_times is not None:
+            steps = steps_to_cover(self._read_times, self.step_size)
+            states = integrate(field, initial_state, args, self.method, self.step_size, self.step_size, steps + 1)
+            return read_between_steps(states, field, args, self.step_size, self._read_times)
         n_times = self.n_obs if self.include_initial else self.n_obs + 1
         states = integrate(field, initial_state, args, self.method, self.step_size, self.dt, n_times)
         return states if self.include_initial else states[:, 1:]
