@@ -2,6 +2,7 @@
 
     python scripts/walkthroughs.py run --page own-data          # docs/own-data.md's commands in bench/walkthroughs/
     python scripts/walkthroughs.py table --page own-data        # its results between the page's markers
+    python scripts/walkthroughs.py run --page lab-data          # docs/lab-data.md: a lab's file, fitted and discovered
 
 A page's files are its fenced blocks with a title (```python title="my_oscillator.py"), its commands
 the lines of its ```bash blocks, run in order from a fresh folder as a shell would (``otgb`` is
@@ -83,9 +84,11 @@ def walk(page: str, folder: Path) -> None:
         if done.returncode != 0:
             raise SystemExit(f"walkthroughs: {command!r} failed (exit {done.returncode}):\n{done.stderr[-2000:]}")
         timings.append({"command": command, "wall_s": time.time() - started})
-        if _words(command)[:2] == ["otgb", "test"]:
-            report = max(folder.glob("runs/*/version_*/metrics.md"), key=lambda p: p.stat().st_mtime)
-            shutil.copy(report, out / f"test-{len(timings)}.md")
+        kind = _words(command)[:2]
+        if kind in (["otgb", "test"], ["otgb", "discover"]):
+            name = "metrics.md" if kind[1] == "test" else "report.md"
+            report = max(folder.glob(f"runs/*/version_*/{name}"), key=lambda p: p.stat().st_mtime)
+            shutil.copy(report, out / f"{kind[1]}-{len(timings)}.md")
     for name, pattern in FIGURES.get(page, {}).items():  # the page's figure: the run's last of its kind
         shutil.copy(sorted(folder.glob(pattern))[-1], ROOT / "docs" / "figures" / name)
     (out / "timings.json").write_text(json.dumps({"commands": timings, "machine": machine()}, indent=1))
@@ -94,13 +97,17 @@ def walk(page: str, folder: Path) -> None:
 
 def sections(page: str) -> dict[str, str]:
     """What the page shows from its run: per ``otgb test`` (``test-N``, N its command's place) the report's summary
-    sentence, metric table and legend; and the commands' wall times (``timings``)."""
+    sentence, metric table and legend; per ``otgb discover`` (``discover-N``) its report's verdict, named terms and
+    gap table; and the commands' wall times (``timings``)."""
     out = RESULTS / page
     shown = {}
     for report in out.glob("test-*.md"):
         paragraphs = report.read_text().split("\n\n")
         at = next(i for i, p in enumerate(paragraphs) if p.startswith("| metric |"))
         shown[report.stem] = "\n\n".join(p for p in paragraphs[at - 1 : at + 2] if not p.startswith("checkpoint "))
+    for report in out.glob("discover-*.md"):
+        summary = report.read_text().split("## Where f_p", 1)[0].split("\n", 1)[1].strip()
+        shown[report.stem] = re.sub(r"^## (.+)$", r"**\1**", summary, flags=re.M)  # the page's headings stay its own
     timing = json.loads((out / "timings.json").read_text())
     walls = "; ".join(f"`{_short(t['command'])}` {_duration(t['wall_s'])}" for t in timing["commands"])
     shown["timings"] = f"Wall times of the commands above, in order ({timing['machine']}): {walls}."
@@ -136,7 +143,7 @@ def _duration(seconds: float) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("step", choices=["run", "table"])
-    parser.add_argument("--page", required=True, choices=["own-data", "own-physics"])
+    parser.add_argument("--page", required=True, choices=["own-data", "own-physics", "lab-data"])
     parser.add_argument("--folder", type=Path, default=ROOT / "bench" / "walkthroughs", help="run: where the page runs")
     args = parser.parse_args()
     if args.step == "run":

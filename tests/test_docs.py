@@ -10,6 +10,7 @@ import ast
 import csv
 import importlib.util
 import json
+import math
 import os
 import re
 import shlex
@@ -26,6 +27,9 @@ _SPEC.loader.exec_module(walkthroughs)
 
 DOC = ROOT / "docs" / "own-physics.md"
 OWN_DATA = ROOT / "docs" / "own-data.md"
+LAB_DATA = ROOT / "docs" / "lab-data.md"
+DISCOVER_TINY = ["--discover.n_permutations=199", "--discover.n_trajectories=48", "--discover.n_bootstrap=5"]
+DISCOVER_TINY += ["--discover.fit_steps=30", "--discover.fit_batch=256", "--discover.strong_candidates=1"]
 TINY = [  # a seconds-long run of the same config: 6 steps, validation at 3 and 6, small sets
     "--trainer.enable_progress_bar=false",
     "--trainer.max_steps=6",
@@ -185,12 +189,42 @@ def test_own_data_walkthrough_as_written(tmp_path):
     assert sorted(p.name for p in (tmp_path / "runs" / "my_pendulum").iterdir()) == before, "nothing written"
 
 
+def test_lab_data_walkthrough_as_written(tmp_path):
+    """docs/lab-data.md: a SciPy script's file of runs at their own times with lost frames, fitted and discovered as
+    written (at the tests' size); the file is left as it was."""
+    text = LAB_DATA.read_text()
+    files = walkthroughs.files(text)
+    assert sorted(files) == ["film_pendulum.py"]
+    (tmp_path / "film_pendulum.py").write_text(files["film_pendulum.py"])
+    commands = walkthroughs.commands(text)
+    assert [shlex.split(c)[:2] for c in commands] == [["python", "film_pendulum.py"], ["otgb", "fit"], ["otgb", "discover"]]
+    assert _run(commands[0], tmp_path).returncode == 0
+    with open(tmp_path / "lab.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    lengths = {}
+    for row in rows:
+        lengths[row["trajectory"]] = float(row["t"])
+    assert len(lengths) == 1000 and len(set(lengths.values())) > 40, "each run stops at its own time"
+    empty = sum(row["angle"] == "" for row in rows) / len(rows)
+    assert 0.05 < empty < 0.15 and len(rows) < 0.95 * sum(round(t * 30) + 1 for t in lengths.values()), "lost frames"
+    before = (tmp_path / "lab.csv").read_bytes()
+    fit = _run(commands[1], tmp_path)
+    assert fit.returncode == 0, fit.stderr[-3000:]
+    energies = [float(r["val/energy"]) for r in _rows(tmp_path / "runs" / "pendulum" / "version_0") if r.get("val/energy")]
+    assert energies and all(math.isfinite(e) for e in energies)
+    found = walkthroughs.run(commands[2], tmp_path, [*TINY, *DISCOVER_TINY], env={"OMP_NUM_THREADS": "1"})
+    assert found.returncode == 0, found.stderr[-3000:]
+    report = json.loads(next((tmp_path / "runs" / "pendulum").glob("version_*/report.json")).read_text())
+    assert report["locate"]["before"]["significant_cells"] > 0, "f_p without friction differs from the filmed runs"
+    assert (tmp_path / "lab.csv").read_bytes() == before
+
+
 def test_the_pages_show_the_committed_walkthrough_results():
     """Every number the tutorials show from their own run is what scripts/walkthroughs.py writes from results/."""
-    for page in ("own-data", "own-physics"):
+    for page in ("own-data", "own-physics", "lab-data"):
         text = (ROOT / "docs" / f"{page}.md").read_text()
         shown = walkthroughs.sections(page)
-        assert "test-2" in shown or "test-3" in shown, sorted(shown)
+        assert {"test-2", "test-3", "discover-3"} & set(shown), sorted(shown)
         for name, section in shown.items():
             start = f"<!-- results: scripts/walkthroughs.py {name} -->"
             if start in text:
