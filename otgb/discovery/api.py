@@ -72,9 +72,10 @@ class MissingEffect:
         return finder
 
     def fit(self, measurements: Any, run_dir: str | Path | None = None) -> DiscoveryResult:
-        """Discover what the physics lacks from ``measurements``: a file (``.csv``, ``.npz``, ``.pt``), a numpy array or
-        torch tensor ``(N, T, *obs)`` on the model's time grid, or a run of :func:`otgb.runs.load_run` (its
-        measurements, and its loaded checkpoint as the grey-box). With ``run_dir``, the report's files, the grey-box's
+        """Discover what the physics lacks from ``measurements``: a file (``.csv``, ``.npz``, ``.pt``; each trajectory at
+        its own times), a numpy array or torch tensor ``(N, T, *obs)`` on the model's time grid (NaN where a value was
+        not measured), or a run of :func:`otgb.runs.load_run` (its measurements, and its loaded checkpoint as the
+        grey-box). With ``run_dir``, the report's files, the grey-box's
         logs and checkpoints (``runs/<config stem>/version_N``) and the fit cache (``runs/<config stem>/fit_cache``:
         the same call resumes) go there; without, nothing is kept. Relative paths (the measurements' file, an override
         ending in ``_path``) are read from the working directory."""
