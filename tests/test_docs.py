@@ -18,6 +18,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import yaml
 
 ROOT = Path(__file__).parents[1]
@@ -189,34 +190,46 @@ def test_own_data_walkthrough_as_written(tmp_path):
     assert sorted(p.name for p in (tmp_path / "runs" / "my_pendulum").iterdir()) == before, "nothing written"
 
 
-def test_lab_data_walkthrough_as_written(tmp_path):
-    """docs/lab-data.md: a SciPy script's file of runs at their own times with lost frames, fitted and discovered as
-    written (at the tests' size); the file is left as it was."""
+def _filmed(tmp_path: Path) -> list[str]:
+    """docs/lab-data.md's script run as written (200 runs filmed, not 1000) in ``tmp_path``, its file checked: runs
+    that stop at their own times, lost frames left out or empty; the page's commands."""
     text = LAB_DATA.read_text()
     files = walkthroughs.files(text)
-    assert sorted(files) == ["film_pendulum.py"]
-    (tmp_path / "film_pendulum.py").write_text(files["film_pendulum.py"])
+    assert sorted(files) == ["film_pendulum.py"] and "for run in range(1000):" in files["film_pendulum.py"]
+    (tmp_path / "film_pendulum.py").write_text(files["film_pendulum.py"].replace("range(1000)", "range(200)"))
     commands = walkthroughs.commands(text)
     assert [shlex.split(c)[:2] for c in commands] == [["python", "film_pendulum.py"], ["otgb", "fit"], ["otgb", "discover"]]
     assert _run(commands[0], tmp_path).returncode == 0
     with open(tmp_path / "lab.csv") as handle:
         rows = list(csv.DictReader(handle))
-    lengths = {}
-    for row in rows:
-        lengths[row["trajectory"]] = float(row["t"])
-    assert len(lengths) == 1000 and len(set(lengths.values())) > 40, "each run stops at its own time"
+    lengths = {row["trajectory"]: float(row["t"]) for row in rows}  # each run's last time
+    assert len(lengths) == 200 and len(set(lengths.values())) > 40, "each run stops at its own time"
     empty = sum(row["angle"] == "" for row in rows) / len(rows)
     assert 0.05 < empty < 0.15 and len(rows) < 0.95 * sum(round(t * 30) + 1 for t in lengths.values()), "lost frames"
+    return commands
+
+
+def test_lab_data_walkthrough_fits_as_written(tmp_path):
+    """docs/lab-data.md: the SciPy script's file of runs at their own times with lost frames, fitted as written (at the
+    tests' size); the file is left as it was."""
+    commands = _filmed(tmp_path)
     before = (tmp_path / "lab.csv").read_bytes()
     fit = _run(commands[1], tmp_path)
     assert fit.returncode == 0, fit.stderr[-3000:]
     energies = [float(r["val/energy"]) for r in _rows(tmp_path / "runs" / "pendulum" / "version_0") if r.get("val/energy")]
     assert energies and all(math.isfinite(e) for e in energies)
+    assert (tmp_path / "lab.csv").read_bytes() == before
+
+
+@pytest.mark.slow
+def test_lab_data_walkthrough_discovers_as_written(tmp_path):
+    """docs/lab-data.md's `otgb discover` on the script's file (at the tests' size; about 4 minutes on 2 cores): f_p
+    without friction differs from the filmed runs, and the report is written."""
+    commands = _filmed(tmp_path)
     found = walkthroughs.run(commands[2], tmp_path, [*TINY, *DISCOVER_TINY], env={"OMP_NUM_THREADS": "1"})
     assert found.returncode == 0, found.stderr[-3000:]
     report = json.loads(next((tmp_path / "runs" / "pendulum").glob("version_*/report.json")).read_text())
     assert report["locate"]["before"]["significant_cells"] > 0, "f_p without friction differs from the filmed runs"
-    assert (tmp_path / "lab.csv").read_bytes() == before
 
 
 def test_the_pages_show_the_committed_walkthrough_results():
