@@ -355,3 +355,16 @@ def test_times_inside_the_horizon_are_read_where_they_are(tmp_path, pendulum, ti
         assert torch.equal(content.y[:, index], y) and int(torch.isnan(content.y).sum()) == 3 * (50 - len(times))
     else:
         assert torch.allclose(content.times, torch.tensor(times, dtype=torch.float64)) and torch.equal(content.y, y)
+
+
+def test_own_times_per_trajectory_in_an_npz_meet_on_the_union_of_their_times(tmp_path, pendulum):
+    """``t`` (N, T), NaN after a trajectory's last time: every trajectory on the union of the times, missing where it
+    has no value."""
+    t = np.array([[0.0, 0.05, 0.5, np.nan], [0.0, 0.3, 0.5, 1.25]])
+    y = np.array([[1.0, 2.0, 3.0, np.nan], [4.0, 5.0, 6.0, 7.0]])[..., None]
+    np.savez(tmp_path / "m.npz", y=y, t=t)
+    content = read_measured(tmp_path / "m.npz", pendulum)
+    assert torch.allclose(content.times, torch.tensor([0.0, 0.05, 0.3, 0.5, 1.25], dtype=torch.float64))
+    nan = float("nan")
+    expected = torch.tensor([[1.0, 2.0, nan, 3.0, nan], [4.0, nan, 5.0, 6.0, 7.0]])
+    assert torch.allclose(content.y[..., 0], expected, equal_nan=True)
