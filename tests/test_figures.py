@@ -1,6 +1,8 @@
 """Every kind of figure the project writes, opened: axis labels, a title saying what and at which step, a legend or a
 colour bar, a readable size, and shared scales where a reader compares panels by eye."""
 
+from dataclasses import replace
+
 import matplotlib.image
 import pytest
 import torch
@@ -154,6 +156,9 @@ def test_a_disagreement_map_says_its_sizes_and_lists_significant_cells_only_wher
     titles = [ax.get_title().splitlines()[-1] for ax in figure.axes]
     assert differ.whole_significant and titles[0] == f"whole trajectories: differ (permutation p = {differ.whole_pvalue:.2g})"
     assert titles[1] == f"whole trajectories: no difference seen (permutation p = {same.whole_pvalue:.2g})", titles
+    dips = replace(same, statistic=same.statistic - 0.01)  # an unbiased distance below 0 on the first panel only
+    for ax in disagreement_figure([(dips, "before"), (differ, "after")]).axes:
+        assert ax.get_ylim()[0] <= float(dips.statistic.min()), "every panel shows every value on the shared scale"
 
 
 def test_discovery_draws_before_and_after_on_the_same_test_trajectories():

@@ -267,15 +267,16 @@ def disagreement_figure(maps: list[tuple[Any, str]], time_label: str = "t") -> p
     ``time_label``: the time axis's label, with its unit."""
     figure, axes = plt.subplots(1, len(maps), figsize=(6.5 * len(maps), 3.8), squeeze=False, sharey=True)
     top = max(float(m.statistic.max()) for m, _ in maps) or 1.0
+    bottom = min(0.0, *(float(m.statistic.min()) for m, _ in maps))  # the unbiased distance dips below 0 by chance
     for ax, (disagreement, panel_title) in zip(axes[0], maps):
-        _draw_disagreement(ax, disagreement, panel_title, top)
+        _draw_disagreement(ax, disagreement, panel_title, top, bottom)
         ax.set_xlabel(time_label)
     title(figure, "energy distance between the model's simulations and the measurements (dots: significant)")
     figure.tight_layout()
     return figure
 
 
-def _draw_disagreement(ax: plt.Axes, result: Any, title: str, top: float) -> None:
+def _draw_disagreement(ax: plt.Axes, result: Any, title: str, top: float, bottom: float) -> None:
     times = result.times.numpy()
     if len(result.regions) == 1:
         for c, name in enumerate(result.components):
@@ -283,7 +284,7 @@ def _draw_disagreement(ax: plt.Axes, result: Any, title: str, top: float) -> Non
             (line,) = ax.plot(times, stat, label=name)
             if sig.any():
                 ax.plot(times[sig], stat[sig], "o", color=line.get_color(), ms=4, label=f"{name}: significant")
-        ax.set_ylim(min(0.0, float(result.statistic.min())), 1.05 * top)
+        ax.set_ylim(bottom, 1.05 * top)  # one scale for all panels (the axes are shared)
         ax.set_ylabel("energy distance per time step")
         ax.legend(fontsize=7)
     else:
