@@ -217,16 +217,19 @@ class MapTraining(LightningModule):
         """The map that evaluation uses: the moving average of its weights when there is one, else the map itself."""
         return self.map_average.module if self.map_average is not None else self.transport_map
 
-    def generate(self, x: Tensor, x0: Tensor, theta: Tensor, n_draws: int, averaged: bool = True) -> Tensor:
-        """``n_draws`` outputs of the map per input: (B, n_draws, T, *obs).
+    def generate(
+        self, x: Tensor, x0: Tensor, theta: Tensor, n_draws: int, averaged: bool = True, signals: Tensor | None = None
+    ) -> Tensor:
+        """``n_draws`` outputs of the map per input: (B, n_draws, T, *obs); ``signals`` (B, T_u, I) are the inputs' signals
+        of a driven model.
 
         ``averaged`` selects the moving average of the map's weights when there is one (for
         evaluation); training passes False.
         """
         batch = x.shape[0]
-        rep = lambda v: v.repeat_interleave(n_draws, dim=0)  # noqa: E731
+        rep = lambda v: None if v is None else v.repeat_interleave(n_draws, dim=0)  # noqa: E731
         transport_map = self.evaluation_map() if averaged else self.transport_map
-        y_hat = transport_map(rep(x), rep(x0), rep(theta), self.sample_z(batch * n_draws))
+        y_hat = transport_map(rep(x), rep(x0), rep(theta), self.sample_z(batch * n_draws), signals=rep(signals))
         return y_hat.reshape(batch, n_draws, *y_hat.shape[1:])
 
     # --- Algorithm 1 --------------------------------------------------------------------
@@ -242,7 +245,7 @@ class MapTraining(LightningModule):
         self.toggle_optimizer(map_opt)
         y_hat, parts = None, {}
         for k in range(self.t_max):
-            y_hat_k, parts_k = self._map_update(map_opt, batch["x"][k], batch["x0"][k], batch["theta"][k], batch["y"][0])
+            y_hat_k, parts_k = self._map_update(map_opt, _inputs(batch, k), batch["y"][0])
             if y_hat_k is not None:
                 y_hat, parts = y_hat_k, parts_k
         self.untoggle_optimizer(map_opt)
@@ -252,7 +255,7 @@ class MapTraining(LightningModule):
             if j > 0:  # a fresh source batch for each further critic update
                 k = self.t_max + j - 1
                 with torch.no_grad():
-                    y_hat = self._generate_or_none(batch["x"][k], batch["x0"][k], batch["theta"][k])
+                    y_hat = self._generate_or_none(_inputs(batch, k))
             critic_parts = self._critic_update(critic_opt, batch["y"][j], y_hat, last=j == self.critic_steps - 1)
         self.untoggle_optimizer(critic_opt)
 
@@ -297,21 +300,24 @@ class MapTraining(LightningModule):
             return self.critic
         return lambda y_hat: self.critic(self._as_measured(y_hat, y)[0])
 
-    def _generate_or_none(self, x: Tensor, x0: Tensor, theta: Tensor) -> Tensor | None:
+    def _generate_or_none(self, inputs: dict[str, Tensor]) -> Tensor | None:
         try:
-            return self.generate(x, x0, theta, self.n_z, averaged=False)
+            return self._generate_for_training(inputs)
         except SimulationDiverged:
             return None
 
-    def _map_update(self, opt: Any, x: Tensor, x0: Tensor, theta: Tensor, y: Tensor) -> tuple[Tensor | None, dict[str, Tensor]]:
-        """One map update, its critic applied as to the measured batch ``y`` (its missing values); (None, {}) when it
-        was skipped (its solve or its gradients not finite)."""
+    def _generate_for_training(self, inputs: dict[str, Tensor]) -> Tensor:
+        return self.generate(inputs["x"], inputs["x0"], inputs["theta"], self.n_z, False, inputs.get("signals"))
+
+    def _map_update(self, opt: Any, inputs: dict[str, Tensor], y: Tensor) -> tuple[Tensor | None, dict[str, Tensor]]:
+        """One map update on a source batch's ``inputs`` (x, x0, theta, signals), its critic applied as to the measured
+        batch ``y`` (its missing values); (None, {}) when it was skipped (its solve or its gradients not finite)."""
         try:
-            y_hat = self.generate(x, x0, theta, self.n_z, averaged=False)
+            y_hat = self._generate_for_training(inputs)
         except SimulationDiverged as error:
             y_hat, loss, parts, reason = None, None, {}, str(error)
         else:
-            loss, parts = self.objective.map_loss(x, y_hat, self._critic_of_outputs(y))
+            loss, parts = self.objective.map_loss(inputs["x"], y_hat, self._critic_of_outputs(y))
             reason = "loss or gradients NaN/Inf"
         if not self._guarded_backward(opt, self.transport_map, "map", loss, reason):
             return None, {}
@@ -457,7 +463,7 @@ class MapTraining(LightningModule):
     def _evaluation_draws(self, batch: dict[str, Tensor], stage: str) -> Tensor:
         """The map's draws for an evaluation batch; a map whose solve diverges there stops the run with a diagnosis."""
         try:
-            return self.generate(batch["x"], batch["x0"], batch["theta"], batch["y"].shape[1])
+            return self.generate(batch["x"], batch["x0"], batch["theta"], batch["y"].shape[1], signals=batch.get("signals"))
         except SimulationDiverged as error:  # the weights are those of a diverged map: no checkpoint of them
             checkpoint = self.trainer.checkpoint_callback
             last = Path(checkpoint.dirpath) / "last.ckpt" if checkpoint is not None and checkpoint.dirpath else None
@@ -490,3 +496,8 @@ class MapTraining(LightningModule):
         self.draw_seed = state.get("draw_seed", self.draw_seed)
         self.guard.skipped = state.get("skipped_steps", 0)
         self._generator = None
+
+
+def _inputs(batch: dict[str, Tensor], k: int) -> dict[str, Tensor]:
+    """The map's inputs of a training item's ``k``-th source batch: x, x0, theta and, for a driven model, signals."""
+    return {key: batch[key][k] for key in ("x", "x0", "theta", "signals") if key in batch}

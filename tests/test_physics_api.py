@@ -109,7 +109,7 @@ def test_declarations_are_validated_when_the_class_is_made():
         type("Hidden", (Oscillator,), {"observed": ("w",)})
     with pytest.raises(TypeError, match="Backwards.observed .* must follow the order of state_names"):
         type("Backwards", (Oscillator,), {"observed": ("velocity", "position")})
-    with pytest.raises(TypeError, match=r"Clash: \['position'\] named both in theta_names and in state_names"):
+    with pytest.raises(TypeError, match=r"Clash: \[.position.\] named twice among theta_names, state_names and input_names"):
         type("Clash", (Oscillator,), {"theta_names": ("position",)})
     with pytest.raises(TypeError, match="Loose.theta_names must be a tuple of names"):
         type("Loose", (Oscillator,), {"theta_names": "k"})
@@ -186,7 +186,7 @@ def test_defaults_print_like_the_explicit_arguments():
         == repr(explicit)
         == (
             "Pendulum(omega=Uniform(low=0.785, high=3.14), angle=Uniform(low=-1.57, high=1.57), velocity=Constant(value=0.0), "
-            "dt=0.1, n_obs=50, step_size=None, method='rk4', hidden_effect=())"
+            "drive=None, dt=0.1, n_obs=50, step_size=None, method='rk4', hidden_effect=())"
         )
     )
     assert repr(Pendulum(hidden_effect=[ViscousFriction(Choice([0.6, 1.5]))])) == repr(

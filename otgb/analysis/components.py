@@ -33,13 +33,16 @@ def per_time(values: Tensor) -> Tensor:
     return values.abs().transpose(0, 1).flatten(1).mean(1)
 
 
-def solve_components(model: MapTraining, x0: Tensor, theta: Tensor, seed: int) -> dict[str, Tensor]:
-    """The evaluation map's components along its solve for x0 (B, *state), theta (B, P), on the CPU.
+def solve_components(
+    model: MapTraining, x0: Tensor, theta: Tensor, seed: int, signals: Tensor | None = None
+) -> dict[str, Tensor]:
+    """The evaluation map's components along its solve for x0 (B, *state), theta (B, P) [and the input signals of a
+    driven model], on the CPU.
 
     z comes from ``model.sample_z`` with ``model.generator`` seeded by ``seed`` for the draw
     and put back afterwards, so training's draws do not move. Returns ``states``, ``physics``
     (f_p) and ``correction`` (f_phi put into state space by ``physics.add_correction``), each
-    (B, T, *state).
+    (B, T, *state), and a driven model's ``inputs`` (B, T, I) along them.
     """
     transport_map = model.evaluation_map()
     rng = model.generator.get_state()
@@ -48,11 +51,13 @@ def solve_components(model: MapTraining, x0: Tensor, theta: Tensor, seed: int) -
         z = model.sample_z(len(x0))
     finally:
         model.generator.set_state(rng)
-    parts = transport_map.components(x0.to(model.device), theta.to(model.device), z)
+    signals = None if signals is None else signals.to(model.device)
+    parts = transport_map.components(x0.to(model.device), theta.to(model.device), z, signals)
     parts = {k: v.cpu() for k, v in parts.items()}
     f_p, physics = parts["physics"], transport_map.physics
     correction = physics.add_correction(torch.zeros_like(f_p.flatten(0, 1)), parts["correction"].flatten(0, 1))
-    return {"states": parts["states"], "physics": f_p, "correction": correction.reshape(f_p.shape)}
+    out = {"states": parts["states"], "physics": f_p, "correction": correction.reshape(f_p.shape)}
+    return out if "inputs" not in parts else {**out, "inputs": parts["inputs"]}
 
 
 def trajectory_error(y_hat: Tensor, y: Tensor, datamodule: SimulationDataModule) -> tuple[Tensor, str]:
@@ -72,8 +77,10 @@ def trajectory_error(y_hat: Tensor, y: Tensor, datamodule: SimulationDataModule)
     return energy_per_time(rows(y_hat), rows(y), tuple(y.shape[2:]), paired).mean(1), "energy"
 
 
-def true_field(dgp: PhysicsModel | None, states: Tensor, theta: Tensor, seed: int) -> tuple[Tensor | None, str | None]:
-    """The DGP's vector field at states (B, T, *state) for theta (B, P), or None and why not.
+def true_field(
+    dgp: PhysicsModel | None, states: Tensor, theta: Tensor, seed: int, inputs: Tensor | None = None
+) -> tuple[Tensor | None, str | None]:
+    """The DGP's vector field at states (B, T, *state) for theta (B, P) [and inputs (B, T, I)], or None and why not.
 
     It exists only in the joint mode with a deterministic DGP: a measured file has no known
     field, and a DGP whose hidden-effect parameters are random (one-to-many, e.g. the friction
@@ -86,7 +93,8 @@ def true_field(dgp: PhysicsModel | None, states: Tensor, theta: Tensor, seed: in
         return None, "the hidden effect's parameters are random: the true field of a trajectory is not identified"
     steps = states.shape[1]
     effect = dgp.sample_effect_params(len(states) * steps, torch.Generator().manual_seed(seed))
-    field = dgp.vector_field(states.flatten(0, 1), theta.repeat_interleave(steps, dim=0), effect)
+    flat_inputs = None if inputs is None else inputs.flatten(0, 1)
+    field = dgp.vector_field(states.flatten(0, 1), theta.repeat_interleave(steps, dim=0), effect, flat_inputs)
     return field.reshape(states.shape), None
 
 
@@ -119,13 +127,17 @@ def component_analysis(model: MapTraining, datamodule: SimulationDataModule, n: 
         raise ValueError(f"component_analysis needs at least 2 validation inputs, got {len(data['y'])}")
     draws = data["y"].shape[1]
     x0, theta = data["x0"].repeat_interleave(draws, dim=0), data["theta"].repeat_interleave(draws, dim=0)
-    parts = solve_components(model, x0, theta, seed)
+    signals = data["signals"].repeat_interleave(draws, dim=0) if "signals" in data else None
+    parts = solve_components(model, x0, theta, seed, signals)
     y_hat = datamodule.physics.observe(parts["states"]).reshape(data["y"].shape)
     traj_err, kind = trajectory_error(y_hat, data["y"], datamodule)
     physics = model.evaluation_map().physics
-    y_fp = simulate_in_chunks(physics, x0.to(model.device), theta.to(model.device)).cpu().reshape(data["y"].shape)
+    on_device = None if signals is None else signals.to(model.device)
+    y_fp = (
+        simulate_in_chunks(physics, x0.to(model.device), theta.to(model.device), signals=on_device).cpu().reshape(data["y"].shape)
+    )
     traj_err_fp, _ = trajectory_error(y_fp, data["y"], datamodule)
-    truth, unavailable = true_field(datamodule.dgp, parts["states"], theta, seed)
+    truth, unavailable = true_field(datamodule.dgp, parts["states"], theta, seed, parts.get("inputs"))
     f_p, f_phi = parts["physics"], parts["correction"]
     func_err = None if truth is None else per_time(f_p + f_phi - truth)
     func_err_fp = None if truth is None else per_time(f_p - truth)

@@ -54,7 +54,9 @@ class ValidationFigure(Callback):
             tag, figure = "distributions", self._distributions(datamodule, pl_module, trainer.global_step)
         else:
             data = {k: v[: self.n_inputs].to(pl_module.device) for k, v in datamodule.val_set.items()}
-            y_hat = pl_module.generate(data["x"], data["x0"], data["theta"], data["y"].shape[1]).cpu()
+            y_hat = pl_module.generate(
+                data["x"], data["x0"], data["theta"], data["y"].shape[1], signals=data.get("signals")
+            ).cpu()
             data = {k: v.cpu() for k, v in data.items()}
             tag, figure = self.tag, self.draw(data, y_hat, datamodule.physics, trainer.global_step)
         for logger in trainer.loggers:
@@ -69,9 +71,10 @@ class ValidationFigure(Callback):
     def _distributions(self, datamodule, pl_module: LightningModule, step: int) -> plt.Figure:
         """Measured vs generated vs f_p as distributions over time, for the whole validation set (nothing is paired)."""
         data, chunk = datamodule.val_set, datamodule.eval_batch_size
+        rows = lambda key, i: None if key not in data else data[key][i : i + chunk].to(pl_module.device)  # noqa: E731
         y_hat = torch.cat(
             [
-                pl_module.generate(*(data[k][i : i + chunk].to(pl_module.device) for k in ("x", "x0", "theta")), 1).cpu()
+                pl_module.generate(*(rows(k, i) for k in ("x", "x0", "theta")), 1, signals=rows("signals", i)).cpu()
                 for i in range(0, len(data["x"]), chunk)
             ]
         )

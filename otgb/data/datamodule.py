@@ -242,9 +242,11 @@ class SimulationDataModule(LightningDataModule):
         """Simulate f_p for a training item on the device it landed on, and count it."""
         if not (isinstance(batch, dict) and "index" in batch and "x" not in batch):
             return batch
-        x0, theta = batch["x0"], batch["theta"]
+        x0, theta, signals = batch["x0"], batch["theta"], batch.get("signals")
         with torch.no_grad():
-            x = self.physics.simulate(x0.flatten(0, 1), theta.flatten(0, 1))
+            x = self.physics.simulate(
+                x0.flatten(0, 1), theta.flatten(0, 1), signals=None if signals is None else signals.flatten(0, 1)
+            )
         batch["x"] = x.reshape(*x0.shape[:2], *x.shape[1:])
         self.items_consumed = int(batch["index"]) + 1
         return batch

@@ -9,15 +9,19 @@ What a file holds (names as the physics model declares them):
   (NaN after a shorter trajectory's last time); without it, the model's observation times;
 - ``theta`` (optional): the physics parameters each trajectory was recorded with, (N, P), in
   the order of the model's ``theta_names``;
-- ``x0`` (optional): each trajectory's full initial state, (N, *state_shape).
+- ``x0`` (optional): each trajectory's full initial state, (N, *state_shape);
+- ``u`` (optional): inputs recorded beside the states, (N, T, I) at the times of ``y``, in the order of
+  the model's ``input_names`` (the pendulum's ``drive``); NaN is a missing value, read linearly
+  between the recorded ones. A model driven this way needs no other setting.
 
 ``.pt``: a tensor (``y``) or a dict of tensors with those keys. ``.npz``: arrays with those
 keys. ``.csv`` (low-dimensional series only): the long layout, one row per trajectory and
 time, with a header
 
-    trajectory, t, <observed variables>[, <theta names>][, x0_<state variables>]
+    trajectory, t, <observed variables>[, <input names>][, <theta names>][, x0_<state variables>]
 
-e.g. ``trajectory,t,angle,omega`` for the pendulum with recorded omega. Rows of one trajectory
+e.g. ``trajectory,t,angle,omega`` for the pendulum with recorded omega, ``trajectory,t,angle,drive``
+with its recorded drive (one value per row, like the observed ones). Rows of one trajectory
 share its id, each trajectory has its own times (any number, in increasing order) and an
 empty cell or NaN in an observed column is a missing value; the per-trajectory columns (theta,
 x0_*) must be constant within it.
@@ -46,20 +50,22 @@ from otgb.data.times import on_common_times
 from otgb.errors import InputError, first_line
 from otgb.physics.base import PhysicsModel
 
-KEYS = ("y", "t", "theta", "x0")
+KEYS = ("y", "t", "theta", "x0", "u")
 SUFFIXES = (".pt", ".npz", ".csv")
 
 
 @dataclass(frozen=True)
 class MeasuredFile:
     """The validated content of a measurement file: y (N, T, *obs) with NaN where a value is missing, the times ``times``
-    (T,) it is on where they are not the model's observation times (None: they are), and the recorded inputs if any."""
+    (T,) it is on where they are not the model's observation times (None: they are), the recorded map inputs
+    (theta, x0) if any, and the recorded input signals ``u`` (N, T, I) on the same times, NaN where missing."""
 
     path: str
     y: Tensor
     theta: Tensor | None = None
     x0: Tensor | None = None
     times: Tensor | None = None
+    u: Tensor | None = None
 
     def __len__(self) -> int:
         return len(self.y)
@@ -71,7 +77,7 @@ class MeasuredFile:
 
     def subset(self, index: Tensor) -> MeasuredFile:
         pick = lambda v: None if v is None else v[index]  # noqa: E731
-        return replace(self, y=self.y[index], theta=pick(self.theta), x0=pick(self.x0))
+        return replace(self, y=self.y[index], theta=pick(self.theta), x0=pick(self.x0), u=pick(self.u))
 
 
 def read_measured(path: str | os.PathLike, physics: PhysicsModel) -> MeasuredFile:
@@ -97,10 +103,12 @@ def read_measured(path: str | os.PathLike, physics: PhysicsModel) -> MeasuredFil
     tensors = {key: _as_tensor(path, key, value) for key, value in content.items() if key != "ids"}
     ids = content.get("ids") or [str(i) for i in range(len(tensors["y"]))]  # a CSV's own ids; else positions
     y = check_trajectories(tensors["y"], tuple(physics.obs_shape), f"{path}: 'y'")
-    common = on_common_times(str(path), y, tensors.get("t"), ids, physics)
+    if "u" in tensors and not physics.input_names:
+        raise InputError(f"{path}: 'u' holds recorded inputs, but {type(physics).__name__} declares none (input_names)")
+    common = on_common_times(str(path), y, tensors.get("t"), ids, physics, tensors.get("u"))
     theta = _per_trajectory(path, tensors, "theta", (physics.theta_dim,), len(y), f"theta_names {tuple(physics.theta_names)}")
     x0 = _per_trajectory(path, tensors, "x0", tuple(physics.state_shape), len(y), "the model's full initial state")
-    return MeasuredFile(str(path), common.y, theta, x0, common.times)
+    return MeasuredFile(str(path), common.y, theta, x0, common.times, common.u)
 
 
 def check_trajectories(y: Tensor, obs_shape: tuple[int, ...], where: str) -> Tensor:
@@ -174,25 +182,25 @@ def _read_npz(path: Path) -> dict[str, Any]:
 
 
 def _read_csv(path: Path, physics: PhysicsModel) -> dict[str, Any]:
-    """The long layout: trajectory, t, <observed>[, <theta names>][, x0_<state names>] (module docstring)."""
+    """The long layout: trajectory, t, <observed>[, <inputs>][, <theta names>][, x0_<state names>] (module docstring)."""
     if len(physics.obs_shape) != 1:
         raise InputError(
             f"{path}: CSV holds low-dimensional series; {type(physics).__name__} observes fields of shape "
             f"{tuple(physics.obs_shape)}: use a .npz or .pt file with 'y' of shape (N, *{tuple(physics.trajectory_shape)})"
         )
-    observed, thetas = list(physics.observed), list(physics.theta_names)
+    observed, thetas, inputs = list(physics.observed), list(physics.theta_names), list(physics.input_names)
     initial = [f"x0_{name}" for name in physics.state_names]
     with open(path, newline="", encoding="utf-8-sig") as handle:  # -sig: a byte-order mark is not part of a name
         rows = [row for row in csv.reader(handle) if any(field.strip() for field in row)]
     if not rows:
         raise InputError(f"{path}: the file is empty, expected a header 'trajectory,t,{','.join(observed)}' and rows")
     header = [name.strip() for name in rows[0]]
-    allowed = ["trajectory", "t", *observed, *thetas, *initial]
+    allowed = ["trajectory", "t", *observed, *inputs, *thetas, *initial]
     problems = _header_problems(header, ["trajectory", "t", *observed], allowed)
     if problems:
         raise InputError(
             f"{path}: header {header}: {problems}; expected columns 'trajectory', 't', "
-            f"{observed} and optionally {thetas} and {initial}, each once"
+            f"{observed} and optionally {inputs + thetas} and {initial}, each once"
         )
     values = _numeric_rows(path, rows[1:], len(header))
     column = {name: values[:, i] for i, name in enumerate(header)}
@@ -200,12 +208,13 @@ def _read_csv(path: Path, physics: PhysicsModel) -> dict[str, Any]:
         if not np.isfinite(column[name]).all():
             line = int(np.flatnonzero(~np.isfinite(column[name]))[0]) + 2
             raise InputError(f"{path}, line {line}: the '{name}' column holds NaN/Inf, expected a number in every row")
-    per_trajectory = [name for name in header[2:] if name not in observed]
-    for name in [*observed, *per_trajectory]:
-        bad = np.isinf(column[name]) if name in observed else ~np.isfinite(column[name])
+    per_row = [*observed, *(name for name in inputs if name in header)]
+    per_trajectory = [name for name in header[2:] if name not in per_row]
+    for name in [*per_row, *per_trajectory]:
+        bad = np.isinf(column[name]) if name in per_row else ~np.isfinite(column[name])
         if bad.any():
             row = int(np.flatnonzero(bad)[0])
-            missing = " (an empty cell or NaN is a missing value)" if name in observed else ""
+            missing = " (an empty cell or NaN is a missing value)" if name in per_row else ""
             raise InputError(
                 f"{path}, line {row + 2}: trajectory {column['trajectory'][row]:g} at t={column['t'][row]:g}: "
                 f"'{name}' is {column[name][row]}, expected a finite number{missing}"
@@ -218,6 +227,13 @@ def _read_csv(path: Path, physics: PhysicsModel) -> dict[str, Any]:
     table = {name: torch.from_numpy(_padded(col, rows, steps)) for name, col in column.items()}
     content: dict[str, Any] = {"t": table["t"], "y": torch.stack([table[name] for name in observed], dim=-1)}
     content["ids"] = [f"{i:g}" for i in ids]
+    recorded = [name for name in inputs if name in table]
+    if recorded and recorded != inputs:
+        raise InputError(
+            f"{path}: columns {recorded} given without {[m for m in inputs if m not in recorded]}: give all of {inputs} or none"
+        )
+    if recorded:
+        content["u"] = torch.stack([table[name] for name in inputs], dim=-1)
     for key, names in (("theta", thetas), ("x0", initial)):
         present = [name for name in names if name in table]
         if present and present != names:

@@ -32,10 +32,13 @@ def with_measurement_noise(values: Tensor, sd: float, generator: torch.Generator
 
 @torch.no_grad()
 def generate_measured(dgp: PhysicsModel, n: int, seed: int) -> dict[str, Tensor]:
-    """|Y| = n trajectories of the DGP from its priors: y (n, T, *obs) and the inputs x0, theta they came from."""
+    """|Y| = n trajectories of the DGP from its priors: y (n, T, *obs) and the inputs x0, theta (and the input signals of
+    a driven DGP) they came from."""
     g = generator_for(seed, "measured")
     x0, theta, effect = dgp.sample_initial_state(n, g), dgp.sample_theta(n, g), dgp.sample_effect_params(n, g)
-    return {"y": simulate_in_chunks(dgp, x0, theta, effect), "x0": x0, "theta": theta}
+    signals = dgp.sample_signals(n, g)
+    out = {"y": simulate_in_chunks(dgp, x0, theta, effect, signals), "x0": x0, "theta": theta}
+    return out if signals is None else {**out, "signals": signals}
 
 
 @torch.no_grad()
@@ -43,20 +46,23 @@ def generate_joint(physics: PhysicsModel, dgp: PhysicsModel, n: int, draws: int,
     """Joint samples (x0, theta, x, {y_j}): the same (x0, theta) through f_p and ``draws`` times through the DGP.
 
     Returns x0 (n, *state), theta (n, P), x (n, T, *obs), y (n, draws, T, *obs) and y_ref, another
-    ``draws`` independent DGP draws per input (the Reference of the evaluation: DGP against DGP).
+    ``draws`` independent DGP draws per input (the Reference of the evaluation: DGP against DGP); a driven
+    DGP's input ``signals`` (n, T_u, I) are inputs too, the same for f_p and every draw.
     """
     g = generator_for(seed, split)
     x0, theta = physics.sample_initial_state(n, g), physics.sample_theta(n, g)
     effect = dgp.sample_effect_params(n * draws, g).reshape(n, draws, -1)
     effect_ref = dgp.sample_effect_params(n * draws, g).reshape(n, draws, -1)
-    dgp_draws = lambda e: torch.stack([simulate_in_chunks(dgp, x0, theta, e[:, j]) for j in range(draws)], dim=1)  # noqa: E731
-    return {
+    signals = dgp.sample_signals(n, g)
+    dgp_draws = lambda e: torch.stack([simulate_in_chunks(dgp, x0, theta, e[:, j], signals) for j in range(draws)], 1)  # noqa: E731
+    out = {
         "x0": x0,
         "theta": theta,
-        "x": simulate_in_chunks(physics, x0, theta),
+        "x": simulate_in_chunks(physics, x0, theta, signals=signals),
         "y": dgp_draws(effect),
         "y_ref": dgp_draws(effect_ref),
     }
+    return out if signals is None else {**out, "signals": signals}
 
 
 def cache_key(*parts: object) -> str:
@@ -108,13 +114,20 @@ def split_indices(n: int, val_fraction: float, test_fraction: float, seed: int, 
 
 
 @torch.no_grad()
-def simulate_in_chunks(model: PhysicsModel, x0: Tensor, theta: Tensor, effect: Tensor | None = None) -> Tensor:
-    """Trajectories (n, T, *obs) of ``model`` for the inputs x0 (n, *state), theta (n, P) [and effect parameters]."""
+def simulate_in_chunks(
+    model: PhysicsModel, x0: Tensor, theta: Tensor, effect: Tensor | None = None, signals: Tensor | None = None
+) -> Tensor:
+    """Trajectories (n, T, *obs) of ``model`` for the inputs x0 (n, *state), theta (n, P) [, effect parameters and
+    input signals (n, T_u, I)]."""
     chunks = range(0, len(x0), CHUNK)
     part = lambda v, i: None if v is None else v[i : i + CHUNK]  # noqa: E731
-    return torch.cat([_simulate_rows(model, i, x0[i : i + CHUNK], theta[i : i + CHUNK], part(effect, i)) for i in chunks])
+    return torch.cat(
+        [_simulate_rows(model, i, x0[i : i + CHUNK], theta[i : i + CHUNK], part(effect, i), part(signals, i)) for i in chunks]
+    )
 
 
-def _simulate_rows(model: PhysicsModel, first: int, x0: Tensor, theta: Tensor, effect: Tensor | None) -> Tensor:
+def _simulate_rows(
+    model: PhysicsModel, first: int, x0: Tensor, theta: Tensor, effect: Tensor | None, signals: Tensor | None
+) -> Tensor:  # fmt: skip
     with model.rows_from(first):
-        return model.simulate(x0, theta, effect)
+        return model.simulate(x0, theta, effect, signals)

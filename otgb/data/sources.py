@@ -26,6 +26,7 @@ from otgb.data.files import read_measured
 from otgb.data.measured import cache_key, cached, generate_joint, generate_measured, simulate_in_chunks, split_indices
 from otgb.data.seeding import generator_for
 from otgb.physics.base import PhysicsModel, Term
+from otgb.physics.signals import Recorded
 
 CACHE_FORMAT = 3  # 2: joint sets hold y_ref; 3: measured sets hold their inputs
 
@@ -81,6 +82,12 @@ class MeasurementSource(ABC):
         """x0 and theta of each trajectory of :meth:`measured_set` where the measurements recorded both, else None."""
         return None
 
+    records_signals = False  # whether each measured trajectory comes with its own recorded input signals
+
+    def training_signals(self) -> Tensor | None:
+        """The recorded input signals of each trajectory of :meth:`measured_set` (N, T_u, I), else None."""
+        return None
+
     @property
     def draws_pair_with_inputs(self) -> bool:
         """Whether each measured draw belongs to its evaluation input (a figure per input) or not (distributions)."""
@@ -90,11 +97,11 @@ class MeasurementSource(ABC):
         """Metric-name prefix -> (conditioning inputs, paired, across halves): the comparisons every evaluation makes.
 
         Across halves (:func:`otgb.metrics.samples.across_halves`): the draws of an unpaired comparison were made
-        on the measured trajectories' own recorded inputs, so each is scored against the other half's
-        measurements, never its own."""
+        on the measured trajectories' own recorded inputs (theta, x0 or input signals), so each is scored against
+        the other half's measurements, never its own."""
         if self.reference_on_same_inputs:
             return {"": (("theta", "x0"), True, False)}
-        plan = {"": ((), False, bool(self.recorded_inputs))}
+        plan = {"": ((), False, bool(self.recorded_inputs) or self.records_signals)}
         if self.recorded_inputs:
             plan["joint_"] = (tuple(self.recorded_inputs), True, False)
         return plan
@@ -224,8 +231,11 @@ class FileMeasurements(MeasurementSource):
         measurement_noise: float = 0.0,
     ) -> None:  # fmt: skip
         self.path, self.file, self.measurement_noise = path, read_measured(path, physics), float(measurement_noise)
-        super().__init__(physics if self.file.times is None else physics.read_at(self.file.times), seed)
+        physics = physics if self.file.times is None else physics.read_at(self.file.times)
         self.parts = split_indices(len(self.file), val_fraction, test_fraction, seed, path)
+        self.recorded = None if self.file.u is None else Recorded(physics.observation_times(), self.file.u)
+        # the simulations of training take the recorded inputs of the training part's trajectories
+        super().__init__(physics if self.recorded is None else physics.driven_by(self.recorded.rows(self.parts["train"])), seed)
 
     def describe(self) -> str:
         sizes = " / ".join(f"{len(self.parts[p])} {p}" for p in ("train", "val", "test"))
@@ -235,6 +245,9 @@ class FileMeasurements(MeasurementSource):
         inputs = ", ".join(parts + ([f"{' and '.join(drawn)} drawn from the priors"] if drawn else []))
         sd = self.measurement_noise
         noise = f", the map's and f_p's with the measurements' white noise (sd {sd:.4g}) added" if sd else ""
+        if self.recorded is not None:
+            names = ", ".join(self.physics.input_names)
+            noise += f"; every simulation is driven by a trajectory's recorded {names} (the held-out draws by their own)"
         halves = (
             " (the rows without recorded inputs across halves, as the Reference: the draws on one half's inputs against "
             "the other half's measurements, so that no draw meets its own measurement)"
@@ -245,6 +258,13 @@ class FileMeasurements(MeasurementSource):
             f"{len(self.file)} measured trajectories from {self.path} ({sizes}); no DGP is known: the map's draws "
             f"({inputs}) are compared with held-out measurements by two-sample metrics{halves}{noise}"
         )
+
+    @property
+    def records_signals(self) -> bool:
+        return self.recorded is not None
+
+    def training_signals(self) -> Tensor | None:
+        return None if self.recorded is None else self.recorded.values[self.parts["train"]]
 
     def _what(self) -> str:
         return f"the measurements in {Path(self.path).resolve()}"
@@ -267,7 +287,10 @@ class FileMeasurements(MeasurementSource):
         size, g = len(part), generator_for(self.seed, split, "inputs")
         x0 = part.x0 if part.x0 is not None else self.physics.sample_initial_state(size, g)
         theta = part.theta if part.theta is not None else self.physics.sample_theta(size, g)
-        return {"x0": x0, "theta": theta, "x": simulate_in_chunks(self.physics, x0, theta), "y": part.y.unsqueeze(1)}
+        signals = None if self.recorded is None else self.recorded.values[self.parts[split]]
+        x = simulate_in_chunks(self.physics, x0, theta, signals=signals)
+        out = {"x0": x0, "theta": theta, "x": x, "y": part.y.unsqueeze(1)}
+        return out if signals is None else {**out, "signals": signals}
 
     @property
     def recorded_inputs(self) -> tuple[str, ...]:

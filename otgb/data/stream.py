@@ -25,7 +25,8 @@ from otgb.physics.base import PhysicsModel
 
 
 class SourceStream(IterableDataset):
-    """Yields dicts with ``index``, ``x0`` (K, B, *state), ``theta`` (K, B, P) and ``y`` (K_y, B_y, T, *obs).
+    """Yields dicts with ``index``, ``x0`` (K, B, *state), ``theta`` (K, B, P), ``y`` (K_y, B_y, T, *obs) and, for a
+    driven model, ``signals`` (K, B, T_u, I), the inputs' signals of each simulation.
 
     Args:
         physics: f_p, whose priors are sampled.
@@ -86,12 +87,14 @@ class SourceStream(IterableDataset):
         x0 = self.physics.sample_initial_state(n, g)
         theta = self.physics.sample_theta(n, g)
         pick = torch.randint(len(self.measured), (self.measured_batches_per_step, self.measured_batch_size), generator=g)
-        return {
+        signals = self.physics.sample_signals(n, g)
+        item = {
             "index": index,
             "x0": x0.reshape(k, self.batch_size, *x0.shape[1:]),
             "theta": theta.reshape(k, self.batch_size, -1),
             "y": self.measured[pick],
         }
+        return item if signals is None else {**item, "signals": signals.reshape(k, self.batch_size, *signals.shape[1:])}
 
 
 class StreamLoader(DataLoader):

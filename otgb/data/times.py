@@ -34,20 +34,27 @@ UNIT_FACTORS = (1e-3, 1e3, 60.0, 1 / 60, 3600.0, 1 / 3600, 1e-6, 1e6)  # s <-> m
 
 @dataclass(frozen=True)
 class CommonTimes:
-    """Trajectories on one grid: ``y`` (N, T, *obs) with NaN where missing, and ``times`` (T,) where they are not the
-    model's observation times (None: they are, and y is on the model's grid)."""
+    """Trajectories on one grid: ``y`` (N, T, *obs) with NaN where missing, ``times`` (T,) where they are not the
+    model's observation times (None: they are, and y is on the model's grid), and the recorded inputs ``u`` (N, T, I)
+    on the same grid, NaN where missing (None: none recorded)."""
 
     y: Tensor
     times: Tensor | None
+    u: Tensor | None = None
 
 
-def on_common_times(where: str, y: Tensor, t: Tensor | None, ids: list[str], physics: PhysicsModel) -> CommonTimes:
-    """Place trajectories ``y`` (N, T, *obs) measured at ``t`` on one grid (the module docstring).
+def on_common_times(
+    where: str, y: Tensor, t: Tensor | None, ids: list[str], physics: PhysicsModel, u: Tensor | None = None
+) -> CommonTimes:
+    """Place trajectories ``y`` (N, T, *obs) measured at ``t`` on one grid (the module docstring), and the inputs ``u``
+    (N, T, I) recorded beside them (in the order of the model's ``input_names``) with them.
 
     ``t`` is None (the model's observation times), (T,) shared by every trajectory or (N, T), each row a
     trajectory's own times with NaN after its last (a shorter trajectory, padded); ``y`` is NaN where ``t`` is.
     ``ids`` names the trajectories in errors.
     """
+    if u is not None:
+        _check_inputs(where, u, y, ids, physics)
     model_times = physics.observation_times().double()
     if t is None:
         if y.shape[1] != len(model_times):
@@ -57,18 +64,42 @@ def on_common_times(where: str, y: Tensor, t: Tensor | None, ids: list[str], phy
                 f"{len(model_times)} times (or give their times 't')"
             )
         _check_samples(where, y, ids)
-        return CommonTimes(y.float(), None)
+        return CommonTimes(y.float(), None, None if u is None else u.float())
     times = _per_trajectory_times(where, t.double(), len(y), y.shape[1])
     _check_times(where, times, y, ids, physics, model_times)
     grid = _model_grid_index(times, model_times)
     union = model_times if grid is not None else torch.from_numpy(np.unique(times[torch.isfinite(times)].numpy()))
     index = grid if grid is not None else torch.searchsorted(union, times.nan_to_num(float(union[-1])))
-    placed = torch.full((len(y), len(union), *y.shape[2:]), float("nan"), dtype=torch.float32)
-    rows = torch.arange(len(y))[:, None].expand_as(index)
-    present = torch.isfinite(times)
-    placed[rows[present], index[present]] = y[present].float()
+    rows, present = torch.arange(len(y))[:, None].expand_as(index), torch.isfinite(times)
+
+    def place(values: Tensor) -> Tensor:
+        placed = torch.full((len(values), len(union), *values.shape[2:]), float("nan"), dtype=torch.float32)
+        placed[rows[present], index[present]] = values[present].float()
+        return placed
+
+    placed = place(y)
     _check_samples(where, placed, ids)
-    return CommonTimes(placed, None if grid is not None else union)
+    return CommonTimes(placed, None if grid is not None else union, None if u is None else place(u))
+
+
+def _check_inputs(where: str, u: Tensor, y: Tensor, ids: list[str], physics: PhysicsModel) -> None:
+    """Recorded inputs: (N, T, I) beside y, finite or NaN (missing), at least one value of each per trajectory."""
+    names = tuple(physics.input_names)
+    if tuple(u.shape) != (*y.shape[:2], len(names)):
+        raise InputError(
+            f"{where}: 'u' has shape {tuple(u.shape)}, expected ({y.shape[0]}, {y.shape[1]}, {len(names)}): the inputs "
+            f"{names} recorded at each time of 'y'"
+        )
+    if bool(torch.isinf(u).any()):
+        row, _, column = (int(i) for i in torch.isinf(u).nonzero()[0])
+        raise InputError(f"{where}: trajectory {ids[row]}: '{names[column]}' is infinite, expected finite numbers (NaN: missing)")
+    never = torch.isnan(u).all(dim=1)
+    if bool(never.any()):
+        row, column = (int(i) for i in never.nonzero()[0])
+        raise InputError(
+            f"{where}: trajectory {ids[row]} has no recorded value of '{names[column]}', expected at least one (the input "
+            "is read linearly between its recorded values)"
+        )
 
 
 def _per_trajectory_times(where: str, t: Tensor, n: int, steps: int) -> Tensor:

@@ -21,15 +21,18 @@ def simulate_from_priors(physics: PhysicsModel, n: int, seeds: Seeds, name: str)
     """n observed trajectories of ``physics`` with inputs from its priors drawn from the stream ``name``, (n, T, *obs)."""
     g = seeds.simulation(name)
     x0, theta = physics.sample_initial_state(n, g), physics.sample_theta(n, g)
-    return simulate_in_chunks(physics, x0, theta)
+    return simulate_in_chunks(physics, x0, theta, signals=physics.sample_signals(n, g))
 
 
 @torch.no_grad()
 def simulate_candidate(model: Augmented, n: int, seeds: Seeds, name: str) -> Tensor:
     """:func:`simulate_from_priors` for a candidate model: the trajectories that diverge are dropped and logged."""
     g = seeds.simulation(name)
-    x0, theta = model.sample_initial_state(n, g), model.sample_theta(n, g)
-    kept, bad = zip(*(_simulate_finite_rows(model, i, x0[i : i + CHUNK], theta[i : i + CHUNK]) for i in range(0, n, CHUNK)))
+    x0, theta, signals = model.sample_initial_state(n, g), model.sample_theta(n, g), model.sample_signals(n, g)
+    rows = lambda v, i: None if v is None else v[i : i + CHUNK]  # noqa: E731
+    kept, bad = zip(
+        *(_simulate_finite_rows(model, i, x0[i : i + CHUNK], theta[i : i + CHUNK], rows(signals, i)) for i in range(0, n, CHUNK))
+    )
     bad = torch.cat(bad)
     if bool(bad.any()):
         first, coefficients = theta[int(bad.nonzero()[0])].tolist(), [repr(t.priors["coefficient"]) for t in model.added]
@@ -37,9 +40,11 @@ def simulate_candidate(model: Augmented, n: int, seeds: Seeds, name: str) -> Ten
     return torch.cat(kept)
 
 
-def _simulate_finite_rows(model: Augmented, first: int, x0: Tensor, theta: Tensor) -> tuple[Tensor, Tensor]:
+def _simulate_finite_rows(
+    model: Augmented, first: int, x0: Tensor, theta: Tensor, signals: Tensor | None
+) -> tuple[Tensor, Tensor]:  # fmt: skip
     with model.rows_from(first):
-        return simulate_finite(model, x0, theta)
+        return simulate_finite(model, x0, theta, signals)
 
 
 GREYBOX = "greybox"  # the grey-box's stream of inputs; f_p simulated from it gets the same (x0, theta)
@@ -47,16 +52,18 @@ GREYBOX = "greybox"  # the grey-box's stream of inputs; f_p simulated from it ge
 
 @torch.no_grad()
 def greybox_draws(module: Any, n: int, seeds: Seeds) -> dict[str, Tensor]:
-    """The grey-box's states, f_p and f_phi (in state space) along n generated trajectories from the priors."""
+    """The grey-box's states, f_p and f_phi (in state space) along n generated trajectories from the priors (and, for a
+    driven model, the inputs along them)."""
     physics = module.physics
     g = seeds.simulation(GREYBOX)
-    x0, theta = physics.sample_initial_state(n, g), physics.sample_theta(n, g)
+    x0, theta, signals = physics.sample_initial_state(n, g), physics.sample_theta(n, g), physics.sample_signals(n, g)
     transport_map, device = module.evaluation_map(), module.device
     rng = module.generator.get_state()
     parts = []
     for i in range(0, n, CHUNK):
         z = module.sample_z(len(x0[i : i + CHUNK]))
-        parts.append(transport_map.components(x0[i : i + CHUNK].to(device), theta[i : i + CHUNK].to(device), z))
+        rows = None if signals is None else signals[i : i + CHUNK].to(device)
+        parts.append(transport_map.components(x0[i : i + CHUNK].to(device), theta[i : i + CHUNK].to(device), z, rows))
     module.generator.set_state(rng)
     out = {key: torch.cat([p[key] for p in parts]).cpu() for key in parts[0]}
     flat = out["correction"].flatten(0, 1)

@@ -362,7 +362,8 @@ class _Problem:
         def simulate(rows: slice) -> Tensor:
             index = torch.arange(variants * n)[rows]
             theta = torch.cat([sample.theta[index % n], rows_of(index).float()], 1)
-            return model.observe(model.solve(model.vector_field, sample.x0[index % n], theta))
+            signals = sample.signals_of(index % n)
+            return model.observe(model.solve(model.vector_field, sample.x0[index % n], theta, signals=signals))
 
         return simulate
 

@@ -172,7 +172,8 @@ def _simulator(base: PhysicsModel, fitted: FittedTerms, variants: Tensor, sample
         widths = variant[:, k:] if varies(fitted.family) else torch.zeros_like(variant[:, :k])
         coefficients = variant[:, :k] + widths * sample.noise.double()[trajectory]
         theta = torch.cat([sample.theta[trajectory], coefficients.float()], 1)
-        return model.observe(model.solve(model.vector_field, sample.x0[trajectory], theta)).double()
+        signals = sample.signals_of(trajectory)
+        return model.observe(model.solve(model.vector_field, sample.x0[trajectory], theta, signals=signals)).double()
 
     return simulate
 

@@ -42,11 +42,15 @@ def pointwise_errors(module: Any, dgp: PhysicsModel, augmented: Augmented | None
     g = torch.Generator().manual_seed(seed)
     out: dict[str, dict[str, float]] = {}
     with horizon(dgp, 2 * n_obs):
-        truth = dgp.simulate(x0, theta, dgp.sample_effect_params(len(x0), g) if dgp.effect_dim else None)
-    sources = {"f_p": lambda: physics.simulate(x0, theta), "greybox": lambda: _greybox(module, x0, theta)}
+        signals = held_to(test.get("signals"), dgp)  # beyond the training horizon, each input holds its last value
+        truth = dgp.simulate(x0, theta, dgp.sample_effect_params(len(x0), g) if dgp.effect_dim else None, signals)
+    sources = {
+        "f_p": lambda: physics.simulate(x0, theta, signals=signals),
+        "greybox": lambda: _greybox(module, x0, theta, signals),
+    }
     if augmented is not None:
         coefficients = augmented.sample_theta(len(x0), g)[:, physics.theta_dim :]
-        sources["augmented"] = lambda: augmented.simulate(x0, torch.cat([theta, coefficients], 1))
+        sources["augmented"] = lambda: augmented.simulate(x0, torch.cat([theta, coefficients], 1), signals=signals)
     models = {physics, module.evaluation_map().physics, *([augmented] if augmented is not None else [])}
     with ExitStack() as stack:
         for model in models:
@@ -59,12 +63,21 @@ def pointwise_errors(module: Any, dgp: PhysicsModel, augmented: Augmented | None
     return out
 
 
-def _greybox(module: Any, x0: Tensor, theta: Tensor) -> Tensor:
+def _greybox(module: Any, x0: Tensor, theta: Tensor, signals: Tensor | None) -> Tensor:
     rng = module.generator.get_state()
     z = module.sample_z(len(x0))
     module.generator.set_state(rng)
     transport_map = module.evaluation_map()
-    return transport_map(None, x0.to(module.device), theta.to(module.device), z).cpu()
+    signals = None if signals is None else signals.to(module.device)
+    return transport_map(None, x0.to(module.device), theta.to(module.device), z, signals=signals).cpu()
+
+
+def held_to(signals: Tensor | None, model: PhysicsModel) -> Tensor | None:
+    """Input signals (n, T_u, I) extended to ``model``'s signal times, each holding its last value after its own."""
+    if signals is None:
+        return None
+    extra = len(model.signal_times()) - signals.shape[1]
+    return torch.cat([signals, signals[:, -1:].expand(-1, max(extra, 0), -1)], dim=1)
 
 
 def _errors(prediction: Tensor, truth: Tensor, n_obs: int) -> dict[str, float]:

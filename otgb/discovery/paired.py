@@ -70,10 +70,14 @@ class PairedCheck:
 
 
 @torch.no_grad()
-def paired_check(physics: PhysicsModel, measured: Tensor, x0: Tensor, theta: Tensor, noise: float, **names: str) -> PairedCheck:
+def paired_check(
+    physics: PhysicsModel, measured: Tensor, x0: Tensor, theta: Tensor, noise: float, signals: Tensor | None = None,
+    **names: str,
+) -> PairedCheck:  # fmt: skip
     """The check of the module docstring over the measured values: ``measured`` (n, T, *obs; NaN where missing), their
-    inputs x0 (n, *state) and theta (n, P); ``names``: the :class:`PairedCheck`'s ``model`` and ``part``, for its sentence."""
-    simulated = simulate_in_chunks(physics, x0, theta).double().flatten(1)
+    inputs x0 (n, *state), theta (n, P) and recorded input signals (n, T_u, I; None: none); ``names``: the
+    :class:`PairedCheck`'s ``model`` and ``part``, for its sentence."""
+    simulated = simulate_in_chunks(physics, x0, theta, signals=signals).double().flatten(1)
     residuals = measured.double().flatten(1) - simulated
     finite = (torch.isfinite(simulated) & ~torch.isinf(residuals)).all(dim=1)
     kept = residuals[finite]

@@ -40,7 +40,7 @@ def discover(session: Session) -> DiscoveryResult:
     datamodule, settings, physics, context = session.datamodule, session.settings, session.physics, session.context
     data = Measurements.from_datamodule(datamodule)
     Folds.of(data.train, data.val, settings.fits.folds, context.seeds.root)  # too many folds: said before any training
-    paired = paired_check(physics, data.train, *data.train_inputs, data.noise) if data.pairable() else None
+    paired = paired_check(physics, data.train, *data.train_inputs, data.noise, data.train_signals) if data.pairable() else None
     with context.as_measured(physics, data.noise):
         before = locate_step(physics, data.train, settings, context, paired=paired)
     progress(describe(before))

@@ -222,6 +222,7 @@ class _Sample:
     theta: Tensor  # the config's draws, whose columns of the refitted parameters are replaced
     noise: Tensor  # (n, k) standard draws of the refitted parameters
     samples: int = 1  # independent samples of equal size, one after the other
+    signals: Tensor | None = None  # a driven model's input signals of each simulated trajectory
 
 
 def _sample(
@@ -231,7 +232,7 @@ def _sample(
     targets = measured[torch.randperm(len(measured), generator=g)[:n]].float()
     x0, theta = physics.sample_initial_state(n, g), physics.sample_theta(n, g)
     noise = torch.stack([standard_noise(f, (n,), g) for f in families], 1)
-    return _Sample(targets, x0, theta, noise, samples)
+    return _Sample(targets, x0, theta, noise, samples, physics.sample_signals(n, g))
 
 
 def _simulate(physics: PhysicsModel, names: list[str], sample: _Sample, theta_of_rows: Callable[[Tensor], Tensor]) -> Simulate:
@@ -251,7 +252,8 @@ def _simulate(physics: PhysicsModel, names: list[str], sample: _Sample, theta_of
             x0 = x0.clone().double()
             x0[:, components] = values[:, in_x0]
             x0 = x0.float()
-        return physics.observe(physics.solve(physics.vector_field, x0, theta.float()))
+        signals = None if sample.signals is None else sample.signals[rows]
+        return physics.observe(physics.solve(physics.vector_field, x0, theta.float(), signals=signals))
 
     return simulate
 
@@ -292,8 +294,9 @@ def _intervals(
             width[:, where_width] = variant[:, k:]
             return variant[:, :k] + width * sample.noise[row].double()
 
-        grid = _Sample(sample.targets, sample.x0.repeat(len(variants), *[1] * (sample.x0.dim() - 1)),
-                       sample.theta.repeat(len(variants), 1), sample.noise.repeat(len(variants), 1), sample.samples)  # fmt: skip
+        repeat = lambda v: None if v is None else v.repeat(len(variants), *[1] * (v.dim() - 1))  # noqa: E731
+        grid = _Sample(sample.targets, repeat(sample.x0), repeat(sample.theta), repeat(sample.noise), sample.samples,
+                       repeat(sample.signals))  # fmt: skip
         simulate = _simulate(physics, names, grid, theta_of_rows)
         return lambda rows: simulate(rows).double()
 

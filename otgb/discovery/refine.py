@@ -157,14 +157,20 @@ class CoefficientPrior(torch.nn.Module):
 
 @dataclass
 class FitSample:
-    """The fixed samples of one fit: measured targets (m, T, *obs), inputs of the simulated trajectories, coefficient
-    noise; ``samples`` independent simulated samples of equal size, one after the other."""
+    """The fixed samples of one fit: measured targets (m, T, *obs), inputs of the simulated trajectories (x0, theta and
+    a driven model's input signals), coefficient noise; ``samples`` independent simulated samples of equal size, one
+    after the other."""
 
     targets: Tensor
     x0: Tensor
     theta: Tensor
     noise: Tensor
     samples: int = 1
+    signals: Tensor | None = None
+
+    def signals_of(self, rows: slice | Tensor) -> Tensor | None:
+        """The input signals of ``rows`` of the simulated trajectories (None: the model is not driven)."""
+        return None if self.signals is None else self.signals[rows]
 
     @classmethod
     def draw(
@@ -175,10 +181,12 @@ class FitSample:
         n = batch * samples
         targets = measured[torch.randperm(len(measured), generator=g)[:n]].float()
         x0, theta = base.sample_initial_state(n, g), base.sample_theta(n, g)
-        return cls(targets, x0, theta, standard_noise(family, (n, terms), g), samples)
+        noise = standard_noise(family, (n, terms), g)
+        return cls(targets, x0, theta, noise, samples, base.sample_signals(n, g))
 
     def to(self, device: torch.device) -> FitSample:
-        return FitSample(*(t.to(device) for t in (self.targets, self.x0, self.theta, self.noise)), self.samples)
+        signals = None if self.signals is None else self.signals.to(device)
+        return FitSample(*(t.to(device) for t in (self.targets, self.x0, self.theta, self.noise)), self.samples, signals)
 
 
 def fit(
@@ -222,7 +230,8 @@ def fit(
     target, x0, theta, noise = Target.of(sample.targets), sample.x0, sample.theta, sample.noise
 
     def simulate(rows: slice) -> Tensor:
-        return model.observe(model.solve(model.vector_field, x0[rows], torch.cat([theta[rows], prior.draw(noise[rows])], 1)))
+        theta_of_rows = torch.cat([theta[rows], prior.draw(noise[rows])], 1)
+        return model.observe(model.solve(model.vector_field, x0[rows], theta_of_rows, signals=sample.signals_of(rows)))
 
     parameters, is_finite = list(prior.parameters()), lambda: prior_is_finite(prior)
     losses = minimise(parameters, simulate, n, target, samples, steps, is_finite, curvature)

@@ -54,10 +54,12 @@ class Scores:
         return cls([float("inf")] * repeats, folds=folds)
 
 
-def simulate_finite(model: Augmented, x0: Tensor, theta: Tensor) -> tuple[Tensor, Tensor]:
-    """Observed trajectories (n', T, *obs) of the augmented model without those that diverged (a coefficient
-    that makes the model blow up, e.g. a growing cubic), and which of the n inputs diverged (n,)."""
-    trajectories = model.observe(model.solve(model.vector_field, x0, theta))
+def simulate_finite(
+    model: Augmented, x0: Tensor, theta: Tensor, signals: Tensor | None = None
+) -> tuple[Tensor, Tensor]:  # fmt: skip
+    """Observed trajectories (n', T, *obs) of the augmented model [driven by ``signals``] without those that diverged
+    (a coefficient that makes the model blow up, e.g. a growing cubic), and which of the n inputs diverged (n,)."""
+    trajectories = model.observe(model.solve(model.vector_field, x0, theta, signals=signals))
     finite = torch.isfinite(trajectories.flatten(1)).all(1)
     return trajectories[finite], ~finite
 
@@ -94,11 +96,13 @@ def discrepancies(
     n, values, rows = len(measured), [], torch.zeros(len(measured), dtype=torch.float64, device=device)
     target = Target.of(measured.double().to(device))
     for _ in range(repeats):
-        x0, theta = base.sample_initial_state(n, inputs), base.sample_theta(n, inputs)
+        x0, theta, signals = base.sample_initial_state(n, inputs), base.sample_theta(n, inputs), base.sample_signals(n, inputs)
         coefficients = (
             torch.stack([p.quantile(torch.rand(n, generator=noise)) for p in priors], 1) if priors else torch.zeros(n, 0)
         )
-        simulated, bad = simulate_finite(model, x0.to(device), torch.cat([theta, coefficients.float()], dim=1).to(device))
+        signals = None if signals is None else signals.to(device)
+        theta_rows = torch.cat([theta, coefficients.float()], dim=1).to(device)
+        simulated, bad = simulate_finite(model, x0.to(device), theta_rows, signals)
         if bad.any():
             first = int(bad.nonzero()[0])
             diverged("score", term_names(candidates), int(bad.sum()), n, theta[first].tolist(), list(map(repr, priors)))

@@ -91,9 +91,9 @@ def fitted_correction(physics: PhysicsModel, dense: FittedTerms, n: int, seed: i
     """States (n, T, *state), theta and the fitted terms' correction (n, T, *state) along n trajectories of the fitted model."""
     model = dense.model(physics)
     g = stream(seed, FITTED_CORRECTION)
-    x0, theta = physics.sample_initial_state(n, g), physics.sample_theta(n, g)
+    x0, theta, signals = physics.sample_initial_state(n, g), physics.sample_theta(n, g), physics.sample_signals(n, g)
     coefficients = torch.tensor([centre(p) for p in dense.priors]).expand(n, -1)
-    states = model.solve(model.vector_field, x0, torch.cat([theta, coefficients], 1))
+    states = model.solve(model.vector_field, x0, torch.cat([theta, coefficients], 1), signals=signals)
     steps = states.shape[1]
     flat, theta_rows = states.flatten(0, 1), theta.repeat_interleave(steps, 0)
     with_terms = model.vector_field(flat, torch.cat([theta_rows, coefficients[:1].expand(len(flat), -1)], 1))

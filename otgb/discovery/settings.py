@@ -225,7 +225,8 @@ class Context:
 @dataclass(frozen=True)
 class Measurements:
     """The measured trajectories (n, T, *obs) of each part of the split, the training and test parts' x0 and theta
-    where the measurements recorded both, and the sd of their noise (0: noise-free or not given)."""
+    where the measurements recorded both, the sd of their noise (0: noise-free or not given) and the training and
+    test parts' recorded input signals (None: none recorded)."""
 
     train: Tensor
     val: Tensor
@@ -233,6 +234,8 @@ class Measurements:
     train_inputs: tuple[Tensor, Tensor] | None = None
     test_inputs: tuple[Tensor, Tensor] | None = None
     noise: float = 0.0
+    train_signals: Tensor | None = None
+    test_signals: Tensor | None = None
 
     @classmethod
     def from_datamodule(cls, datamodule: Any) -> Measurements:
@@ -241,7 +244,8 @@ class Measurements:
         val, test = datamodule.val_set["y"].flatten(0, 1), datamodule.test_set["y"].flatten(0, 1)
         train_inputs = datamodule.source.training_inputs()
         test_inputs = None if train_inputs is None else (datamodule.test_set["x0"], datamodule.test_set["theta"])
-        return cls(datamodule.measured, val, test, train_inputs, test_inputs, datamodule.measurement_noise)
+        signals = datamodule.source.training_signals(), datamodule.test_set.get("signals")
+        return cls(datamodule.measured, val, test, train_inputs, test_inputs, datamodule.measurement_noise, *signals)
 
     def pairable(self) -> bool:
         """Whether the paired check (:mod:`otgb.discovery.paired`) applies: inputs recorded and the noise given."""

@@ -76,7 +76,7 @@ def paired_after(fitted: FittedTerms, physics: PhysicsModel, data: Measurements,
     model, (x0, theta) = fitted.model(physics), data.test_inputs
     coefficients = model.sample_theta(len(theta), torch.Generator())[:, theta.shape[1] :]  # constants: the same each row
     names = {"model": "the augmented physics", "part": "the test part's"}
-    check = paired_check(model, data.test, x0, torch.cat([theta, coefficients], dim=1), data.noise, **names)
+    check = paired_check(model, data.test, x0, torch.cat([theta, coefficients], dim=1), data.noise, data.test_signals, **names)
     return replace(check, significant=check.pvalue < alpha)
 
 

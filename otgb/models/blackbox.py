@@ -44,8 +44,9 @@ class BlackBoxMap(nn.Module, ABC):
             return theta.new_zeros(len(theta), 0)
         return self.encoder(torch.cat([theta, z], dim=1))
 
-    def forward(self, x: Tensor, initial_state: Tensor, theta: Tensor, z: Tensor) -> Tensor:
-        """y = x + g(x, theta, z), (B, T, *obs); ``initial_state`` is not used (x holds it)."""
+    def forward(self, x: Tensor, initial_state: Tensor, theta: Tensor, z: Tensor, signals: Tensor | None = None) -> Tensor:
+        """y = x + g(x, theta, z), (B, T, *obs); ``initial_state`` and the input ``signals`` are not used (x, simulated
+        with them, holds them)."""
         if tuple(x.shape[1:]) != self.trajectory_shape:
             raise ValueError(f"{type(self).__name__}: source trajectories {tuple(x.shape[1:])}, expected {self.trajectory_shape}")
         y = x + self.residual(x, self.code(theta, z))

@@ -24,7 +24,7 @@ class IdentityMap(nn.Module):
     def __init__(self, physics: PhysicsModel, z_dim: int) -> None:
         super().__init__()
 
-    def forward(self, x: Tensor, initial_state: Tensor, theta: Tensor, z: Tensor) -> Tensor:
+    def forward(self, x: Tensor, initial_state: Tensor, theta: Tensor, z: Tensor, signals: Tensor | None = None) -> Tensor:
         return x
 
 
@@ -47,8 +47,8 @@ class CompletePhysicsMap(nn.Module):
         self.seed = seed
         self._generator: torch.Generator | None = None
 
-    def forward(self, x: Tensor, initial_state: Tensor, theta: Tensor, z: Tensor) -> Tensor:
+    def forward(self, x: Tensor, initial_state: Tensor, theta: Tensor, z: Tensor, signals: Tensor | None = None) -> Tensor:
         if self._generator is None:
             self._generator = torch.Generator().manual_seed(self.seed)
         effect = self.dgp.sample_effect_params(len(theta), self._generator).to(theta)
-        return self.dgp.simulate(initial_state, theta, effect)
+        return self.dgp.simulate(initial_state, theta, effect, signals)

@@ -6,6 +6,7 @@ from otgb.physics.base import FieldModel, PhysicsModel, SimulationDiverged, Term
 from otgb.physics.pendulum import Pendulum
 from otgb.physics.priors import Choice, Constant, Normal, Prior, Uniform
 from otgb.physics.reaction_diffusion import ReactionDiffusion
+from otgb.physics.signals import InputProcess, Recorded, SumOfSines
 from otgb.physics.solvers import SOLVERS, set_solver
 from otgb.physics.terms import Advection, ConstantDrain, FitzHughNagumoReaction, FormTerm, LibraryTerm, ViscousFriction
 
@@ -17,9 +18,12 @@ __all__ = [
     "FieldModel",
     "FitzHughNagumoReaction",
     "FormTerm",
+    "InputProcess",
     "LibraryTerm",
     "Normal",
     "ReactionDiffusion",
+    "Recorded",
+    "SumOfSines",
     "SOLVERS",
     "set_solver",
     "Choice",

@@ -65,7 +65,7 @@ class Augmented(PhysicsModel):
                 f"Augmented: the term names {clash} repeat a name of the base model (a state, parameter or grid "
                 "coordinate) or of another term"
             )
-        for attr in ("state_names", "observed", "angle_names", "velocity_names", "units"):
+        for attr in ("state_names", "observed", "input_names", "angle_names", "velocity_names", "units"):
             object.__setattr__(self, attr, getattr(base, attr))
         object.__setattr__(self, "theta_names", (*base.theta_names, *names))
         super().__init__(base.dt, base.n_obs, base.include_initial, base.step_size, base.method)
@@ -111,9 +111,25 @@ class Augmented(PhysicsModel):
     def rows_from(self, first: int) -> AbstractContextManager[None]:
         return self.base.rows_from(first)
 
-    def field(self, state: Tensor, theta: Tensor) -> Tensor:
+    @property
+    def is_driven(self) -> bool:
+        return self.base.is_driven
+
+    def signal_times(self) -> Tensor:
+        return self.base.signal_times()
+
+    def sample_signals(self, n: int, generator: torch.Generator) -> Tensor | None:
+        return self.base.sample_signals(n, generator)
+
+    def driven_by(self, recorded: object) -> Augmented:
+        """The base model driven by ``recorded`` (:meth:`PhysicsModel.driven_by`), the same terms added."""
+        model = Augmented(self.base.driven_by(recorded), copy.deepcopy(list(self.added)))
+        model._read_times = self._read_times
+        return model
+
+    def field(self, state: Tensor, theta: Tensor, inputs: Tensor | None = None) -> Tensor:
         base_theta = theta[:, : self.base.theta_dim]
-        dstate = self.base.field(state, base_theta)
+        dstate = self.base.known_field(state, base_theta, inputs)
         if not len(self.added):
             return dstate
         rates, powers = list(dstate.unbind(1)), {}  # per component; each factor's value computed once

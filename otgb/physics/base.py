@@ -4,7 +4,9 @@ A :class:`PhysicsModel` is a vector field f(t, state, theta) observed on a fixed
 and integrated with torchdiffeq's fixed-step solvers. A system declares the names of its
 state components (``state_names``), which of them are observed (``observed``) and the names
 of its parameters (``theta_names``); its constructor takes one :class:`Prior` per parameter
-(and, for an ODE, per state component), from which theta and the initial state are drawn.
+(and, for an ODE, per state component), from which theta and the initial state are drawn. A
+system driven by inputs recorded beside its states names them in ``input_names``
+(:mod:`otgb.physics.signals`).
 :class:`FieldModel` is the base of fields on a uniform grid (PDEs by the method of lines).
 
 The data-generating process is the same model with named :class:`Term` objects added to the
@@ -32,6 +34,7 @@ from otgb.errors import InputError
 from otgb.physics.arguments import RecordsInitArgs, invalid
 from otgb.physics.priors import Prior, check_prior, sample_joint
 from otgb.physics.reading import read_between_steps, steps_to_cover
+from otgb.physics.signals import Recorded, SignalSource, check_signals, check_source, value_at
 from otgb.physics.solvers import integrate
 from otgb.physics.stencils import central_difference, laplacian, second_difference
 
@@ -50,7 +53,7 @@ def _check_declarations(cls: type[PhysicsModel]) -> None:
         cls._observed_by_default = False
     elif getattr(cls, "_observed_by_default", True):  # no class declared it: all of this class's states
         cls.observed, cls._observed_by_default = cls.state_names, True
-    for attr in ("state_names", "observed", "theta_names"):
+    for attr in ("state_names", "observed", "theta_names", "input_names"):
         names = getattr(cls, attr, None)
         if names is None:
             raise TypeError(f"{cls.__name__} declares state_names but no {attr}")
@@ -69,16 +72,19 @@ def _check_declarations(cls: type[PhysicsModel]) -> None:
     units = cls.units
     if not isinstance(units, dict) or not all(isinstance(k, str) and isinstance(v, str) and v for k, v in units.items()):
         raise TypeError(f"{cls.__name__}.units must map names (str) to units (non-empty str), got {units!r}")
-    stray = [name for name in units if name not in ("t", *cls.state_names, *cls.theta_names)]
+    stray = [name for name in units if name not in ("t", *cls.state_names, *cls.theta_names, *cls.input_names)]
     if stray:
-        raise TypeError(f"{cls.__name__}.units names {stray}, which are neither 't' nor in state_names or theta_names")
+        raise TypeError(
+            f"{cls.__name__}.units names {stray}, which are neither 't' nor in state_names, theta_names or input_names"
+        )
     for attr in ("angle_names", "velocity_names"):
         stray = [name for name in getattr(cls, attr) if name not in cls.state_names]
         if stray:
             raise TypeError(f"{cls.__name__}.{attr} names {stray}, which are not in state_names {cls.state_names}")
-    shared = sorted(set(cls.theta_names) & set(cls.state_names))
+    names = [*cls.theta_names, *cls.state_names, *cls.input_names]
+    shared = sorted({name for name in names if names.count(name) > 1})
     if shared:
-        raise TypeError(f"{cls.__name__}: {shared} named both in theta_names and in state_names; each name must be unique")
+        raise TypeError(f"{cls.__name__}: {shared} named twice among theta_names, state_names and input_names")
 
 
 def _is_number(value: object) -> bool:
@@ -99,7 +105,11 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
     A subclass declares ``state_names``, ``observed`` (default: all of ``state_names``) and
     ``theta_names``, takes a :class:`Prior` argument named after each entry of ``theta_names``
     and ``state_names`` (or overrides :meth:`sample_theta` / :meth:`sample_initial_state`),
-    and writes :meth:`field`, the known physics f_p. Its constructor's arguments are recorded
+    and writes :meth:`field`, the known physics f_p. A system driven by recorded inputs declares their names in
+    ``input_names``, takes an argument named after each (an input process such as
+    :class:`otgb.physics.SumOfSines` that a generated DGP draws its signals from, or None) and writes
+    ``field(state, theta, inputs)``, ``inputs`` (B, I) the inputs' values at the solve's time or None where it is
+    not driven (zero inputs). Its constructor's arguments are recorded
     and make its ``repr``, the key of cached data sets. It may also name which states are
     angles (``angle_names``) and velocities (``velocity_names``): the missing-effect library
     (:mod:`otgb.discovery.library`) then offers sin/cos of the angles and drag-like terms of
@@ -119,10 +129,12 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
     _measurement_noise: tuple[float, int] | None = None  # (sd, seed) while measured_with_noise is in force
     _first_row = 0  # the index of the observations' first trajectory in the set they are part of (rows_from)
     _read_times: Tensor | None = None  # the times it is observed at where they are not its own grid (read_at)
+    _recorded: Recorded | None = None  # the recorded input signals its simulations draw (driven_by)
 
     state_names: ClassVar[tuple[str, ...]]
     observed: ClassVar[tuple[str, ...]]
     theta_names: ClassVar[tuple[str, ...]]
+    input_names: ClassVar[tuple[str, ...]] = ()
     angle_names: ClassVar[tuple[str, ...]] = ()
     velocity_names: ClassVar[tuple[str, ...]] = ()
     units: ClassVar[dict[str, str]] = {}
@@ -154,11 +166,13 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
         self.method = method
         self.terms = nn.ModuleList(self._checked_terms(hidden_effect))
         self._check_priors()
+        for name in self.input_names:
+            check_source(self, name, self.init_args.get(name))
 
     # --- to be defined by each system -------------------------------------------------
     @abstractmethod
     def field(self, state: Tensor, theta: Tensor) -> Tensor:
-        """The known physics f_p(state, theta), shape of ``state``."""
+        """The known physics f_p(state, theta), shape of ``state`` (a driven system's takes ``inputs`` too)."""
 
     # --- declared, with defaults --------------------------------------------------------
     @property
@@ -225,6 +239,43 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
     def sample_initial_state(self, n: int, generator: torch.Generator) -> Tensor:
         """Initial states (n, S) from the priors named in ``state_names`` (one joint uniform draw)."""
         return sample_joint([self.priors[name] for name in self.state_names], n, generator)
+
+    # --- recorded inputs ----------------------------------------------------------------
+    @property
+    def is_driven(self) -> bool:
+        """Whether its simulations have input signals: recorded ones (:meth:`driven_by`) or an input process's."""
+        return self._recorded is not None or any(source is not None for source in self._processes())
+
+    def _processes(self) -> list[SignalSource | None]:
+        return [self.init_args.get(name) for name in self.input_names]
+
+    def signal_times(self) -> Tensor:
+        """The times (T_u,) its input signals are sampled at: the recorded ones, or its processes' grid to the end of
+        the solve."""
+        if self._recorded is not None:
+            return self._recorded.times
+        source = next(source for source in self._processes() if source is not None)
+        return source.signal_times(float(self.observation_times()[-1]) + self.step_size, self.step_size)
+
+    def sample_signals(self, n: int, generator: torch.Generator) -> Tensor | None:
+        """Input signals (n, T_u, I) for n simulations: recorded rows, or new draws of each input's process (zero for
+        an input without one); None where it is not driven. Drawn after x0 and theta, from the same generator."""
+        if not self.is_driven:
+            return None
+        if self._recorded is not None:
+            return self._recorded.sample(n, self._recorded.times, generator)
+        times = self.signal_times()
+        parts = [p.sample(n, times, generator) if p is not None else torch.zeros(n, len(times), 1) for p in self._processes()]
+        return torch.cat(parts, dim=-1)
+
+    def driven_by(self, recorded: Recorded) -> PhysicsModel:
+        """A copy of this model whose simulations draw their input signals from ``recorded`` (a file's recorded inputs,
+        :class:`otgb.physics.signals.Recorded`), in place of its input processes."""
+        if not self.input_names:
+            raise InputError(f"{type(self).__name__} has no recorded inputs (its input_names are empty)")
+        model = copy.deepcopy(self)
+        model._recorded = recorded
+        return model
 
     # --- the learned correction's slot ------------------------------------------------
     @property
@@ -352,20 +403,46 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
         parts = [term.sample_params(n, generator) for term in self.terms]
         return torch.cat(parts, dim=-1) if parts else torch.zeros(n, 0)
 
-    def vector_field(self, state: Tensor, theta: Tensor, effect_params: Tensor | None = None) -> Tensor:
+    def known_field(self, state: Tensor, theta: Tensor, inputs: Tensor | None = None) -> Tensor:
+        """f_p(state, theta), with the inputs' values ``inputs`` (B, I) where the system is driven."""
+        return self.field(state, theta, inputs) if self.input_names else self.field(state, theta)
+
+    def vector_field(
+        self, state: Tensor, theta: Tensor, effect_params: Tensor | None = None, inputs: Tensor | None = None
+    ) -> Tensor:
         """f_p(state, theta) + sum over terms of term(state, theta'_term)."""
-        dstate = self.field(state, theta)
+        dstate = self.known_field(state, theta, inputs)
         offset = 0
         for term in self.terms:
             dstate = dstate + term(state, effect_params[:, offset : offset + term.n_params], self, theta)
             offset += term.n_params
         return dstate
 
-    def solve(self, field: VectorField, initial_state: Tensor, *args: Tensor) -> Tensor:
+    def solve(self, field: VectorField, initial_state: Tensor, *args: Tensor, signals: Tensor | None = None) -> Tensor:
         """Integrate d(state)/dt = field(state, *args) and read it at the observation times: (B, T, *state_shape).
 
+        With input ``signals`` (B, T_u, I) at :meth:`signal_times`, ``field`` takes their values at the solve's time
+        as the keyword ``inputs`` (B, I): the solve carries that time as one more state, the clock dt/dt = 1,
+        which every Runge-Kutta method integrates exactly, so each stage reads the signals at its own time.
         The path (compiled, eager or torchdiffeq's) is :mod:`otgb.physics.solvers`'s setting.
         """
+        if signals is None:
+            return self._solve(field, initial_state, args)
+        times = self.signal_times().to(initial_state.device)
+        check_signals(f"{type(self).__name__}.solve", signals, len(initial_state), times, len(self.input_names))
+        shape = initial_state.shape[1:]
+
+        def clocked(y: Tensor, *arguments: Tensor) -> Tensor:
+            *rest, values = arguments
+            rate = field(y[:, :-1].unflatten(1, shape), *rest, inputs=value_at(times, values, y[:, -1]))
+            return torch.cat([rate.flatten(1), torch.ones_like(y[:, -1:])], dim=1)
+
+        clocked.eager_only = True
+        start = torch.cat([initial_state.flatten(1), initial_state.new_zeros(len(initial_state), 1)], dim=1)
+        states = self._solve(clocked, start, (*args, signals.to(initial_state)))
+        return states[:, :, :-1].unflatten(2, shape)
+
+    def _solve(self, field: VectorField, initial_state: Tensor, args: Sequence[Tensor]) -> Tensor:
         if self._read_times is not None:
             steps = steps_to_cover(self._read_times, self.step_size)
             states = integrate(field, initial_state, args, self.method, self.step_size, self.step_size, steps + 1)
@@ -374,10 +451,12 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
         states = integrate(field, initial_state, args, self.method, self.step_size, self.dt, n_times)
         return states if self.include_initial else states[:, 1:]
 
-    def simulate(self, initial_state: Tensor, theta: Tensor, effect_params: Tensor | None = None) -> Tensor:
-        """Observed trajectories (B, T, *obs_shape) of the full model (f_p plus its terms)."""
+    def simulate(
+        self, initial_state: Tensor, theta: Tensor, effect_params: Tensor | None = None, signals: Tensor | None = None
+    ) -> Tensor:
+        """Observed trajectories (B, T, *obs_shape) of the full model (f_p plus its terms), driven by ``signals``."""
         self.check_inputs(initial_state, theta, effect_params)
-        states = self.solve(self.vector_field, initial_state, *self._field_args(theta, effect_params))
+        states = self.solve(self.vector_field, initial_state, *self._field_args(theta, effect_params), signals=signals)
         trajectories = self.observe(states)
         raise_if_diverged(trajectories, type(self).__name__, theta)
         return trajectories

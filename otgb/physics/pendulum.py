@@ -1,8 +1,9 @@
 """The pendulum (paper, Damped Pendulum): f_p is the frictionless pendulum.
 
-State (angle, angular velocity); d angle/dt = velocity, d velocity/dt = -omega^2 sin(angle).
-Only the angle is observed. theta = (omega,). The grey-box correction acts on the
-acceleration only.
+State (angle, angular velocity); d angle/dt = velocity, d velocity/dt = -omega^2 sin(angle) + drive.
+Only the angle is observed. theta = (omega,). ``drive`` is a recorded input, an angular
+acceleration (a torque per unit inertia): zero unless a file records it or a process draws it.
+The grey-box correction acts on the acceleration only.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from torch import Tensor
 
 from otgb.physics.base import PhysicsModel, Term
 from otgb.physics.priors import Constant, Prior, Uniform, default_prior
+from otgb.physics.signals import InputProcess
 
 
 class Pendulum(PhysicsModel):
@@ -23,6 +25,8 @@ class Pendulum(PhysicsModel):
         omega: prior of the natural frequency omega (rad/s), drawn once per trajectory.
         angle: prior of the initial angle (rad).
         velocity: prior of the initial angular velocity (rad/s); at rest by default.
+        drive: the process a generated DGP draws the drive (rad/s^2) from, e.g. ``otgb.physics.SumOfSines``; None:
+            no drive, unless the measured file records a ``drive`` column.
         dt: time between two observations.
         n_obs: number of observations, the first at t = 0.
         step_size: solver step, a divisor of dt; defaults to dt.
@@ -33,15 +37,17 @@ class Pendulum(PhysicsModel):
     state_names = ("angle", "velocity")
     observed = ("angle",)
     theta_names = ("omega",)
+    input_names = ("drive",)
     angle_names = ("angle",)
     velocity_names = ("velocity",)
-    units = {"t": "s", "angle": "rad", "velocity": "rad/s", "omega": "rad/s"}
+    units = {"t": "s", "angle": "rad", "velocity": "rad/s", "omega": "rad/s", "drive": "rad/s^2"}
 
     def __init__(
         self,
         omega: Prior = default_prior(Uniform, low=0.785, high=3.14),
         angle: Prior = default_prior(Uniform, low=-1.57, high=1.57),
         velocity: Prior = default_prior(Constant, value=0.0),
+        drive: InputProcess | None = None,
         dt: float = 0.1,
         n_obs: int = 50,
         step_size: float | None = None,
@@ -50,10 +56,11 @@ class Pendulum(PhysicsModel):
     ) -> None:
         super().__init__(dt, n_obs, True, step_size, method, hidden_effect)
 
-    def field(self, state: Tensor, theta: Tensor) -> Tensor:
+    def field(self, state: Tensor, theta: Tensor, inputs: Tensor | None = None) -> Tensor:
         angle, velocity = state[:, 0], state[:, 1]
         omega = theta[:, 0]
-        return torch.stack([velocity, -(omega**2) * torch.sin(angle)], dim=1)
+        acceleration = -(omega**2) * torch.sin(angle)
+        return torch.stack([velocity, acceleration if inputs is None else acceleration + inputs[:, 0]], dim=1)
 
     @property
     def correction_shape(self) -> tuple[int, ...]:

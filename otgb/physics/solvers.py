@@ -198,6 +198,8 @@ def integrate(
         states = odeint(lambda _, s: field(s, *args), initial_state, t, method=method, options={"step_size": step_size})
         return states.movedim(0, 1)
     substeps = round(dt / step_size)
+    if getattr(field, "eager_only", False):  # a field made for one solve (a driven model's clocked field): nothing to reuse
+        return stepwise_solve(field, initial_state, args, method, step_size, substeps, n_times - 1)
     key = (method, getattr(field, "__func__", field), torch.is_grad_enabled())
     compiled = _compiles(solver, key, getattr(field, "__self__", field))
     arguments = (initial_state, args, method, step_size, substeps, n_times - 1)
