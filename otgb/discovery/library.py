@@ -9,6 +9,9 @@ correction acts on:
 - for fields: first spatial derivatives and the Laplacian of each channel, and the advective
   products ``w*d_s(u)``; optionally (``position_degree``) the grid's coordinates and their products
   and powers up to that degree (``s``, ``s^2``, ``x*y``), for a source or sink fixed in space;
+- for a model driven by recorded inputs (:mod:`otgb.physics.signals`): each input, and each input
+  times each state and each sin/cos of an angle (``drive``, ``drive*velocity``, ``drive*cos(angle)``),
+  for an input that f_p mis-scales or that acts through the state;
 - optionally (``theta_products``) each of those times each physics parameter, for an effect
   whose strength depends on theta.
 
@@ -64,9 +67,18 @@ def feature_names(model: PhysicsModel, theta_products: bool = False, position_de
     features += [f"{f}({a})" for a in model.angle_names for f in ("sin", "cos")]
     features += [f"{v}*|{v}|" for v in model.velocity_names] + [f"sign({v})" for v in model.velocity_names]
     features += spatial_features(model)
+    features += input_features(model)
     if theta_products:
         features += scaled_by_theta(list(features), model.theta_names)
     return features
+
+
+def input_features(model: PhysicsModel) -> list[str]:
+    """A driven model's inputs, and each times each state and each sin/cos of an angle; none where it is not driven."""
+    if not model.is_driven:
+        return []
+    angles = [f"{f}({a})" for a in model.angle_names for f in ("sin", "cos")]
+    return [*model.input_names, *(f"{u}*{s}" for u in model.input_names for s in (*model.state_names, *angles))]
 
 
 def scaled_by_theta(features: list[str], theta_names: list[str], powers: tuple[int, ...] = (1,)) -> list[str]:
@@ -134,6 +146,12 @@ def _named(feature: str, own: str, coefficient: float, model: PhysicsModel) -> s
     field = bool(getattr(model, "spatial_dims", 0))
     if feature == "1":
         return ("constant drain" if coefficient < 0 else "constant source") if field else "constant forcing"
+    if feature in model.input_names:
+        return f"{feature} acting on d{own}/dt beyond f_p's (a mis-scaled or missing input gain)"
+    inputs = [f for f in feature.split("*") if f in model.input_names]
+    if inputs and len(inputs) < len(feature.split("*")):
+        rest = "*".join(f for f in feature.split("*") if f not in model.input_names)
+        return f"{', '.join(inputs)} acting through {rest}"
     if fixed_in_space(feature, model):
         return "forcing fixed in space"
     if feature == own:

@@ -52,7 +52,8 @@ def name_step(module: Any, settings: DiscoverySettings, seeds: Seeds) -> Naming:
     for component in acting_components(physics):
         index = physics.state_names.index(component)
         candidates = build_library(physics, [component], library.theta_products, library.position_degree)
-        design = design_matrix(physics, candidates, draws["states"], draws["theta"], draws["correction"][:, :, index], seeds.root)
+        target = draws["correction"][:, :, index]
+        design = design_matrix(physics, candidates, draws["states"], draws["theta"], target, seeds.root, draws.get("inputs"))
         selections.append(regress(design, component, library.n_bootstrap, seeds.root))
         designs[component] = design
     share = float(draws["correction"].pow(2).mean().sqrt() / draws["physics"].pow(2).mean().sqrt().clamp_min(1e-12))

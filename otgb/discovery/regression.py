@@ -87,9 +87,11 @@ class Selection:
 
 
 def design_matrix(
-    model: PhysicsModel, candidates: list[Candidate], states: Tensor, theta: Tensor, target: Tensor, seed: int = 0
-) -> Design:
-    """Evaluate the candidates of one component at states (N, T, *state) with theta (N, P).
+    model: PhysicsModel, candidates: list[Candidate], states: Tensor, theta: Tensor, target: Tensor, seed: int = 0,
+    inputs: Tensor | None = None,
+) -> Design:  # fmt: skip
+    """Evaluate the candidates of one component at states (N, T, *state) with theta (N, P) and a driven model's input
+    values along them (N, T, I).
 
     ``target`` (N, T, *grid) is the correction on that component. Rows are the (trajectory,
     time, cell) triples, subsampled at random to at most ``MAX_ROWS``.
@@ -98,8 +100,9 @@ def design_matrix(
     flat = states.flatten(0, 1).double()
     theta_rows = theta.double().repeat_interleave(steps, dim=0)
     powers = {}  # each factor (u^2, lap(v)) computed once for all candidates
+    input_rows = None if inputs is None else inputs.double().flatten(0, 1)
     columns = [
-        evaluate_feature(parse_feature(c.feature, model), flat, theta_rows, model, powers).reshape(len(flat), -1)
+        evaluate_feature(parse_feature(c.feature, model), flat, theta_rows, model, powers, input_rows).reshape(len(flat), -1)
         for c in candidates
     ]
     X = torch.stack(columns, dim=-1).reshape(-1, len(candidates))

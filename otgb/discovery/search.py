@@ -87,8 +87,11 @@ class Unsupported:
 
 
 @torch.no_grad()
-def fitted_correction(physics: PhysicsModel, dense: FittedTerms, n: int, seed: int) -> tuple[Tensor, Tensor, Tensor]:
-    """States (n, T, *state), theta and the fitted terms' correction (n, T, *state) along n trajectories of the fitted model."""
+def fitted_correction(
+    physics: PhysicsModel, dense: FittedTerms, n: int, seed: int
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:  # fmt: skip
+    """States (n, T, *state), theta, the fitted terms' correction (n, T, *state) along n trajectories of the fitted model,
+    and a driven model's input values along them (n, T, I; None: not driven)."""
     model = dense.model(physics)
     g = stream(seed, FITTED_CORRECTION)
     x0, theta, signals = physics.sample_initial_state(n, g), physics.sample_theta(n, g), physics.sample_signals(n, g)
@@ -96,19 +99,22 @@ def fitted_correction(physics: PhysicsModel, dense: FittedTerms, n: int, seed: i
     states = model.solve(model.vector_field, x0, torch.cat([theta, coefficients], 1), signals=signals)
     steps = states.shape[1]
     flat, theta_rows = states.flatten(0, 1), theta.repeat_interleave(steps, 0)
-    with_terms = model.vector_field(flat, torch.cat([theta_rows, coefficients[:1].expand(len(flat), -1)], 1))
-    correction = (with_terms - physics.vector_field(flat, theta_rows)).reshape(states.shape)
-    return states, theta, correction
+    inputs = None if signals is None else physics.inputs_along(signals)
+    flat_inputs = None if inputs is None else inputs.flatten(0, 1)
+    with_terms = model.vector_field(flat, torch.cat([theta_rows, coefficients[:1].expand(len(flat), -1)], 1), inputs=flat_inputs)
+    correction = (with_terms - physics.vector_field(flat, theta_rows, inputs=flat_inputs)).reshape(states.shape)
+    return states, theta, correction, inputs
 
 
 def stacked_design(
-    physics: PhysicsModel, candidates: list[Candidate], states: Tensor, theta: Tensor, correction: Tensor, seed: int
-) -> tuple[np.ndarray, np.ndarray]:
+    physics: PhysicsModel, candidates: list[Candidate], states: Tensor, theta: Tensor, correction: Tensor, seed: int,
+    inputs: Tensor | None = None,
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """Rows of every acting component stacked: a candidate's column is zero on the other components' rows."""
     blocks, targets = [], []
     for component in dict.fromkeys(c.component for c in candidates):
         index = physics.state_names.index(component)
-        design = design_matrix(physics, candidates, states, theta, correction[:, :, index], seed)
+        design = design_matrix(physics, candidates, states, theta, correction[:, :, index], seed, inputs)
         mask = np.array([c.component == component for c in candidates], dtype=float)
         blocks.append(design.X * mask)
         targets.append(design.y)
@@ -176,8 +182,8 @@ def search(
     report(f"search: {len(local)} local candidates fitted together, held-out energy {dense.heldout_energy:.4g}")
     if not dense.heldout.finite:
         return None, [], []
-    states, theta, correction = fitted_correction(physics, dense, TRAJECTORIES, seed)
-    X, y = stacked_design(physics, local, states, theta, correction, seed)
+    states, theta, correction, inputs = fitted_correction(physics, dense, TRAJECTORIES, seed)
+    X, y = stacked_design(physics, local, states, theta, correction, seed, inputs)
     alone = fitting.alone()  # f_p itself, size 0
     report(f"search: f_p alone, held-out energy {alone.mean:.4g}")
     path: list[SearchStep] = []

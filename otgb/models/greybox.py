@@ -16,7 +16,6 @@ import torch
 from torch import Tensor, nn
 
 from otgb.physics.base import PhysicsModel, raise_if_diverged
-from otgb.physics.signals import value_at
 
 CorrectionFactory = Callable[[tuple, tuple, int], nn.Module]
 
@@ -98,7 +97,7 @@ class GreyBoxODE(nn.Module):
         flat = states.flatten(0, 1)
         repeat = lambda v: v.repeat_interleave(steps, dim=0)  # noqa: E731
         theta_r, cond_r = repeat(theta), repeat(torch.cat([theta, z], dim=1))
-        inputs = None if signals is None else inputs_along(self.physics, signals, steps)
+        inputs = None if signals is None else self.physics.inputs_along(signals)
         flat_inputs = None if inputs is None else inputs.flatten(0, 1)
         physics = self.physics.vector_field(flat, theta_r, inputs=flat_inputs).reshape(batch, steps, *self.physics.state_shape)
         correction = self.correction(self.with_inputs(flat, flat_inputs), cond_r)
@@ -108,10 +107,3 @@ class GreyBoxODE(nn.Module):
             "correction": correction.reshape(batch, steps, *self.physics.correction_shape),
         }
         return out if inputs is None else {**out, "inputs": inputs}
-
-
-def inputs_along(physics: PhysicsModel, signals: Tensor, steps: int) -> Tensor:
-    """The input signals (B, T_u, I) read at the model's ``steps`` observation times: (B, T, I)."""
-    times, signal_times = physics.observation_times(signals.device), physics.signal_times().to(signals.device)
-    rows = signals.repeat_interleave(steps, dim=0)
-    return value_at(signal_times, rows, times.repeat(len(signals))).reshape(len(signals), steps, -1)

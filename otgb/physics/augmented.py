@@ -136,7 +136,8 @@ class Augmented(PhysicsModel):
         column = self.base.theta_dim
         for term in self.added:
             index, width = self.base.state_names.index(term.component), term.n_params
-            rates[index] = rates[index] + term.rate(state, theta[:, column : column + width], self.base, base_theta, powers)
+            rate = term.rate(state, theta[:, column : column + width], self.base, base_theta, powers, inputs)
+            rates[index] = rates[index] + rate
             column += width
         return torch.stack(rates, dim=1)
 

@@ -268,6 +268,13 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
         parts = [p.sample(n, times, generator) if p is not None else torch.zeros(n, len(times), 1) for p in self._processes()]
         return torch.cat(parts, dim=-1)
 
+    def inputs_along(self, signals: Tensor) -> Tensor:
+        """Input signals (B, T_u, I) read at the observation times: (B, T, I), the inputs beside each observed state."""
+        times, signal_times = self.observation_times(signals.device), self.signal_times().to(signals.device)
+        steps = len(times)
+        rows = signals.repeat_interleave(steps, dim=0)
+        return value_at(signal_times, rows, times.repeat(len(signals))).reshape(len(signals), steps, -1)
+
     def driven_by(self, recorded: Recorded) -> PhysicsModel:
         """A copy of this model whose simulations draw their input signals from ``recorded`` (a file's recorded inputs,
         :class:`otgb.physics.signals.Recorded`), in place of its input processes."""
@@ -414,7 +421,9 @@ class PhysicsModel(RecordsInitArgs, nn.Module, ABC):
         dstate = self.known_field(state, theta, inputs)
         offset = 0
         for term in self.terms:
-            dstate = dstate + term(state, effect_params[:, offset : offset + term.n_params], self, theta)
+            params = effect_params[:, offset : offset + term.n_params]
+            extra = {"inputs": inputs} if term.takes_inputs else {}
+            dstate = dstate + term(state, params, self, theta, **extra)
             offset += term.n_params
         return dstate
 
@@ -581,6 +590,7 @@ class Term(RecordsInitArgs, nn.Module, ABC):
     """
 
     model_type: ClassVar[type[PhysicsModel]] = PhysicsModel
+    takes_inputs: ClassVar[bool] = False  # whether forward takes the keyword ``inputs``, a driven model's input values
 
     def __init__(self, priors: dict[str, Prior]) -> None:
         super().__init__()

@@ -3,7 +3,7 @@
 A feature is a product of factors separated by ``*``; each factor is an atom, optionally
 raised to an integer power with ``^``:
 
-- ``1`` (the constant), a state name (``angle``, ``u``);
+- ``1`` (the constant), a state name (``angle``, ``u``), a recorded input of a driven model (``drive``);
 - on a field (a :class:`FieldModel`), a coordinate of its grid: ``s`` on a 1-D grid, ``x`` and ``y`` on a
   2-D one (``s^2`` on ``T`` is a source fixed in space), unless a state or parameter has that name;
 - ``sin(x)``, ``cos(x)``, ``sign(x)``, ``|x|`` of a state name;
@@ -111,7 +111,8 @@ def form_factor(feature: str) -> Factor | None:
 
 
 def _checked_name(name: str, feature: str, model: object, states_only: bool = False) -> str:
-    names = tuple(model.state_names) + (() if states_only else (*model.theta_names, *_coordinate_names(model)))
+    names = (*model.state_names, *getattr(model, "input_names", ()))
+    names += () if states_only else (*model.theta_names, *_coordinate_names(model))
     if name not in names:
         raise InputError(f"feature {feature!r}: {name!r} is not a name of {type(model).__name__}; expected one of {names}")
     return name
@@ -130,15 +131,21 @@ def _grammar_hint(model: object) -> str:
     spatial = ", ".join(f"{op}(u)" for op in [*_spatial_ops(model), "lap"]) if getattr(model, "spatial_dims", 0) else "none"
     return (
         f"expected factors joined by '*' among 1, a name of "
-        f"{(*model.state_names, *model.theta_names, *_coordinate_names(model))}, "
+        f"{(*model.state_names, *getattr(model, 'input_names', ()), *model.theta_names, *_coordinate_names(model))}, "
         f"sin(x), cos(x), sign(x), |x|, each optionally '^k'; spatial operators: {spatial}"
     )
 
 
 def evaluate_feature(
-    factors: tuple[Factor, ...], state: Tensor, theta: Tensor, model: object, powers: dict[tuple, Tensor] | None = None
+    factors: tuple[Factor, ...],
+    state: Tensor,
+    theta: Tensor,
+    model: object,
+    powers: dict[tuple, Tensor] | None = None,
+    inputs: Tensor | None = None,
 ) -> Tensor:
-    """The feature on states (B, *state_shape) with parameters theta (B, P): shape (B, *grid_shape).
+    """The feature on states (B, *state_shape) with parameters theta (B, P) and a driven model's input values ``inputs``
+    (B, I; None: zero): shape (B, *grid_shape).
 
     ``powers``: the factors' values already computed on this state and theta (filled in here), so that
     features evaluated together (an augmented model's terms) compute each ``u^2`` or ``lap(v)`` once.
@@ -149,26 +156,32 @@ def evaluate_feature(
         if factor.op == "one":
             return torch.ones_like(state[:, 0])
         if factor not in powers:
-            powers[factor] = _atom(factor, state, theta, model) ** factor.power
+            powers[factor] = _atom(factor, state, theta, model, inputs) ** factor.power
         value = powers[factor] if value is None else value * powers[factor]
     return value
 
 
-def variable_values(name: str, state: Tensor, theta: Tensor | None, model: object) -> Tensor:
-    """A state component, a grid coordinate or a physics parameter of ``model`` as (B, *grid)."""
+def variable_values(name: str, state: Tensor, theta: Tensor | None, model: object, inputs: Tensor | None = None) -> Tensor:
+    """A state component, a recorded input (its value ``inputs`` (B, I), zero where None), a grid coordinate or a
+    physics parameter of ``model`` as (B, *grid)."""
     if name in model.state_names:
         return state[:, model.state_names.index(name)]
+    if name in getattr(model, "input_names", ()):
+        if inputs is None:
+            return torch.zeros_like(state[:, 0])
+        value = inputs[:, model.input_names.index(name)].to(state.dtype)
+        return value.reshape(-1, *([1] * (state.dim() - 2))).expand_as(state[:, 0])
     if name in _coordinate_names(model):
         return model.coordinate(name, state.device, state.dtype).expand_as(state[:, 0])
     return theta[:, model.theta_names.index(name)].reshape(-1, *([1] * (state.dim() - 2))).expand_as(state[:, 0])
 
 
-def _atom(factor: Factor, state: Tensor, theta: Tensor, model: object) -> Tensor:
+def _atom(factor: Factor, state: Tensor, theta: Tensor, model: object, inputs: Tensor | None) -> Tensor:
     if factor.op == "form":
-        inputs = [variable_values(name, state, theta, model) for name in factor.args]
+        arguments = [variable_values(name, state, theta, model, inputs) for name in factor.args]
         values = [torch.tensor(v, dtype=state.dtype, device=state.device) for v in factor.values]
-        return form_named(factor.name).shape(inputs, values)
-    u = variable_values(factor.name, state, theta, model)
+        return form_named(factor.name).shape(arguments, values)
+    u = variable_values(factor.name, state, theta, model, inputs)
     if factor.op == "var":
         return u
     if factor.op == "abs":

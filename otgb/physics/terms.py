@@ -150,20 +150,25 @@ class LibraryTerm(Term):
             )
         self._factors = parse_feature(self.feature, model)
 
-    def forward(self, state: Tensor, params: Tensor, model: PhysicsModel, theta: Tensor | None = None) -> Tensor:
-        value = self.rate(state, params, model, theta)
+    takes_inputs = True
+
+    def forward(
+        self, state: Tensor, params: Tensor, model: PhysicsModel, theta: Tensor | None = None, inputs: Tensor | None = None
+    ) -> Tensor:
+        value = self.rate(state, params, model, theta, inputs=inputs)
         index = model.state_names.index(self.component)
         parts = [value if i == index else torch.zeros_like(value) for i in range(state.shape[1])]
         return torch.stack(parts, dim=1)
 
     def rate(
-        self, state: Tensor, params: Tensor, model: PhysicsModel, theta: Tensor | None, powers: dict | None = None
-    ) -> Tensor:
-        """What the term adds to d(component)/dt: (B, *grid); ``powers`` as in
+        self, state: Tensor, params: Tensor, model: PhysicsModel, theta: Tensor | None, powers: dict | None = None,
+        inputs: Tensor | None = None,
+    ) -> Tensor:  # fmt: skip
+        """What the term adds to d(component)/dt: (B, *grid); ``powers`` and ``inputs`` as in
         :func:`otgb.physics.features.evaluate_feature`."""
         if self._factors is None:
             self.check_model(model)
-        return _column(params, state[:, 0]) * evaluate_feature(self._factors, state, theta, model, powers)
+        return _column(params, state[:, 0]) * evaluate_feature(self._factors, state, theta, model, powers, inputs)
 
 
 def coefficient_name(feature: str, component: str) -> str:
@@ -205,7 +210,7 @@ class FormTerm(Term):
 
     def check_model(self, model: PhysicsModel) -> None:
         super().check_model(model)
-        known = (*model.state_names, *getattr(model, "coordinate_names", ()))
+        known = (*model.state_names, *model.input_names, *getattr(model, "coordinate_names", ()))
         wrong = [n for n in self.variables if n not in known]
         wrong += [] if self.component in model.state_names else [self.component]
         if wrong:
@@ -214,15 +219,20 @@ class FormTerm(Term):
                 f"{model.state_names} and the variables among {known}"
             )
 
-    def forward(self, state: Tensor, params: Tensor, model: PhysicsModel, theta: Tensor | None = None) -> Tensor:
-        value = self.rate(state, params, model, theta)
+    takes_inputs = True
+
+    def forward(
+        self, state: Tensor, params: Tensor, model: PhysicsModel, theta: Tensor | None = None, inputs: Tensor | None = None
+    ) -> Tensor:
+        value = self.rate(state, params, model, theta, inputs=inputs)
         index = model.state_names.index(self.component)
         return torch.stack([value if i == index else torch.zeros_like(value) for i in range(state.shape[1])], dim=1)
 
     def rate(
-        self, state: Tensor, params: Tensor, model: PhysicsModel, theta: Tensor | None, powers: dict | None = None
-    ) -> Tensor:
-        """What the term adds to d(component)/dt: (B, *grid)."""
+        self, state: Tensor, params: Tensor, model: PhysicsModel, theta: Tensor | None, powers: dict | None = None,
+        inputs: Tensor | None = None,
+    ) -> Tensor:  # fmt: skip
+        """What the term adds to d(component)/dt: (B, *grid), of the inputs' values ``inputs`` where it reads them."""
         columns = [params[:, k].reshape(-1, *([1] * (state.dim() - 2))) for k in range(params.shape[1])]
-        inputs = [variable_values(name, state, theta, model) for name in self.variables]
-        return columns[0] * self.form.shape(inputs, columns[1:])
+        variables = [variable_values(name, state, theta, model, inputs) for name in self.variables]
+        return columns[0] * self.form.shape(variables, columns[1:])
