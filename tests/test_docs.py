@@ -18,7 +18,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+import torch
 import yaml
 
 ROOT = Path(__file__).parents[1]
@@ -206,18 +208,23 @@ def _filmed(tmp_path: Path) -> list[str]:
     assert len(lengths) == 200 and len(set(lengths.values())) > 40, "each run stops at its own time"
     empty = sum(row["angle"] == "" for row in rows) / len(rows)
     assert 0.05 < empty < 0.15 and len(rows) < 0.95 * sum(round(t * 30) + 1 for t in lengths.values()), "lost frames"
+    drives = [float(row["drive"]) for row in rows]
+    assert all(math.isfinite(d) for d in drives) and np.std(drives) > 0.2, "every logged row records the drive"
     return commands
 
 
 def test_lab_data_walkthrough_fits_as_written(tmp_path):
-    """docs/lab-data.md: the SciPy script's file of runs at their own times with lost frames, fitted as written (at the
-    tests' size); the file is left as it was."""
+    """docs/lab-data.md: the SciPy script's file of driven runs at their own times with lost frames, fitted as written (at
+    the tests' size): its drive reaches f_phi; the file is left as it was."""
     commands = _filmed(tmp_path)
     before = (tmp_path / "lab.csv").read_bytes()
     fit = _run(commands[1], tmp_path)
     assert fit.returncode == 0, fit.stderr[-3000:]
     energies = [float(r["val/energy"]) for r in _rows(tmp_path / "runs" / "pendulum" / "version_0") if r.get("val/energy")]
     assert energies and all(math.isfinite(e) for e in energies)
+    state = torch.load(tmp_path / "runs" / "pendulum" / "version_0" / "checkpoints" / "last.ckpt", weights_only=False)
+    first = state["state_dict"]["transport_map.correction.hidden.0.weight"]
+    assert first.shape[1] == 3 + 16, "f_phi sees angle, velocity and the recorded drive"
     assert (tmp_path / "lab.csv").read_bytes() == before
 
 

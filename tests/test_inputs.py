@@ -21,7 +21,17 @@ from otgb.discovery.regression import design_matrix
 from otgb.errors import InputError
 from otgb.models import ConditionalMLP
 from otgb.models.greybox import GreyBoxODE
-from otgb.physics import Augmented, Constant, LibraryTerm, Pendulum, Recorded, SumOfSines, Uniform, ViscousFriction
+from otgb.physics import (
+    AdvectionDiffusion,
+    Augmented,
+    Constant,
+    LibraryTerm,
+    Pendulum,
+    Recorded,
+    SumOfSines,
+    Uniform,
+    ViscousFriction,
+)
 from otgb.physics.signals import filled, value_at
 
 ROOT = Path(__file__).parents[1]
@@ -50,8 +60,8 @@ def test_a_driven_solve_matches_scipy_and_keeps_the_solvers_order():
         for i in range(6):
             omega = float(theta[i, 0])
             solved = solve_ivp(
-                lambda t, s: [s[1], -(omega**2) * np.sin(s[0]) + sine_drive(t)], (0, 4.9), x0[i].double().numpy(),
-                t_eval=np.arange(50) * 0.1, rtol=1e-11, atol=1e-12, method="DOP853",
+                lambda t, s, w: [s[1], -(w**2) * np.sin(s[0]) + sine_drive(t)], (0, 4.9), x0[i].double().numpy(),
+                t_eval=np.arange(50) * 0.1, args=(omega,), rtol=1e-11, atol=1e-12, method="DOP853",
             )  # fmt: skip
             worst = max(worst, float(np.abs(solved.y[0] - y[i, :, 0].numpy()).max()))
         errors.append(worst)
@@ -185,3 +195,15 @@ def test_a_fit_on_a_driven_lab_file(tmp_path):
     first = next(v for k, v in weights.items() if k.startswith("transport_map.correction.hidden.0.weight"))
     assert first.shape[1] == 3 + 16, "f_phi takes angle, velocity and the drive beside the condition's code"
     assert lab.read_bytes() == before, "the user's file is untouched"
+
+
+def test_the_rods_heater_power_warms_every_point_alike():
+    rod = AdvectionDiffusion(power=SumOfSines(Uniform(0.5, 1.0), Uniform(0.5, 1.0)))
+    g = torch.Generator().manual_seed(0)
+    x0, theta = rod.sample_initial_state(4, g), rod.sample_theta(4, g)
+    signals = rod.sample_signals(4, g)
+    assert signals.shape == (4, len(rod.signal_times()), 1)
+    heated, cold = rod.simulate(x0, theta, signals=signals), rod.simulate(x0, theta)
+    state = torch.randn(4, 1, 20)
+    assert torch.allclose(rod.field(state, theta, torch.ones(4, 1)) - rod.field(state, theta), torch.ones(4, 1, 20))
+    assert (heated - cold).abs().max() > 1e-3 and rod.is_driven

@@ -1,11 +1,13 @@
 """Advection-diffusion (paper, Advection-Diffusion): f_p is the heat equation on a 1-D grid.
 
-    dT/dt = alpha d^2T/ds^2            (f_p; the DGP adds -beta dT/ds, :class:`Advection`)
+    dT/dt = alpha d^2T/ds^2 + P(t)     (f_p; the DGP adds -beta dT/ds, :class:`Advection`)
 
 on ``n_grid`` points s_i = i dx (i = 1..n_grid) with zero Dirichlet values at s = 0 and
 s = (n_grid + 1) dx, second-order central differences, RK4. The initial profile is
 T(0, s) = c sin(pi s / 2) with c drawn per trajectory; theta = (alpha,). The state and the
-observation are the whole field, shape (1, n_grid): one channel over space.
+observation are the whole field, shape (1, n_grid): one channel over space. P(t) is a recorded
+input, the power of a heater that warms the whole rod alike (per unit heat capacity): zero unless
+a file records it (``u``, named ``power``) or a process draws it.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from torch import Tensor
 from otgb.physics.arguments import invalid
 from otgb.physics.base import FieldModel, Term
 from otgb.physics.priors import Prior, Uniform, check_prior, default_prior, sample_joint
+from otgb.physics.signals import InputProcess
 
 
 class AdvectionDiffusion(FieldModel):
@@ -27,6 +30,8 @@ class AdvectionDiffusion(FieldModel):
     Args:
         alpha: prior of the diffusion coefficient alpha, drawn once per trajectory.
         amplitude: prior of the amplitude c of the initial profile c sin(pi s / 2).
+        power: the process a generated DGP draws the heater's power P(t) from (e.g. ``otgb.physics.SumOfSines``);
+            None: no heater, unless the measured file records its ``power``.
         n_grid: number of grid points, at least 3.
         dx: grid spacing; the zero Dirichlet ends lie at s = 0 and s = (n_grid + 1) dx.
         dt: time between two frames.
@@ -38,11 +43,13 @@ class AdvectionDiffusion(FieldModel):
 
     state_names = ("T",)
     theta_names = ("alpha",)
+    input_names = ("power",)
 
     def __init__(
         self,
         alpha: Prior = default_prior(Uniform, low=0.01, high=0.1),
         amplitude: Prior = default_prior(Uniform, low=0.5, high=1.5),
+        power: InputProcess | None = None,
         n_grid: int = 20,
         dx: float = 0.1,
         dt: float = 0.02,
@@ -62,9 +69,10 @@ class AdvectionDiffusion(FieldModel):
         """Positions s_i of the grid points, (n_grid,)."""
         return self.coordinates()[0]
 
-    def field(self, state: Tensor, theta: Tensor) -> Tensor:
+    def field(self, state: Tensor, theta: Tensor, inputs: Tensor | None = None) -> Tensor:
         alpha = theta[:, :1, None]
-        return alpha * self.laplacian(state)
+        diffusion = alpha * self.laplacian(state)
+        return diffusion if inputs is None else diffusion + inputs[:, :1, None]
 
     def sample_initial_state(self, n: int, generator: torch.Generator) -> Tensor:
         amplitude = sample_joint([self.amplitude], n, generator)
