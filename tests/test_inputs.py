@@ -207,3 +207,13 @@ def test_the_rods_heater_power_warms_every_point_alike():
     state = torch.randn(4, 1, 20)
     assert torch.allclose(rod.field(state, theta, torch.ones(4, 1)) - rod.field(state, theta), torch.ones(4, 1, 20))
     assert (heated - cold).abs().max() > 1e-3 and rod.is_driven
+
+
+def test_the_next_round_of_a_driven_dgp_reads_its_drive_from_the_file(tmp_path):
+    source = GeneratedMeasurements(Pendulum(drive=SINES), [ViscousFriction(Constant(0.8))], 40, 1, 0, str(tmp_path))
+    (tmp_path / "round").mkdir()
+    path = source.as_file(tmp_path / "round", source.measured_set())
+    again = FileMeasurements(Pendulum(), path, 0.25, 0.25, seed=0)
+    assert again.physics.is_driven and again.file.u.shape == (40, 50, 1)
+    exact = source.dgp.inputs_along(source._generated()["signals"])
+    assert torch.allclose(again.file.u, exact)

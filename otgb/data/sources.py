@@ -170,8 +170,11 @@ class GeneratedMeasurements(MeasurementSource):
         return cache_key(repr(self.dgp))
 
     def measured_set(self) -> Tensor:
+        return self._generated()["y"]
+
+    def _generated(self) -> dict[str, Tensor]:
         key = self._key("measured", self.n_measured)
-        return cached(self.cache_dir, "measured", key, lambda: generate_measured(self.dgp, self.n_measured, self.seed))["y"]
+        return cached(self.cache_dir, "measured", key, lambda: generate_measured(self.dgp, self.n_measured, self.seed))
 
     def evaluation_set(self, split: str, n: int) -> dict[str, Tensor]:
         key = self._key(split, n, self._draws)
@@ -211,9 +214,12 @@ class GeneratedMeasurements(MeasurementSource):
 
     def as_file(self, folder: Path, trajectories: Tensor) -> str:
         """The generated trajectories written to ``folder/measured.npz``: the next round must see them, not the DGP
-        (which would add the named terms twice)."""
+        (which would add the named terms twice); a driven DGP's input signals go with them as ``u``, read at the
+        observation times."""
         path = folder / "measured.npz"
-        np.savez(path, y=trajectories.numpy())
+        signals = self._generated().get("signals")
+        inputs = {} if signals is None else {"u": self.dgp.inputs_along(signals).numpy()}
+        np.savez(path, y=trajectories.numpy(), **inputs)
         return str(path.resolve())
 
 
