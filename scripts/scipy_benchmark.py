@@ -2,6 +2,7 @@
 
     python scripts/scipy_benchmark.py --out results/scipy                                # every case, seed 0
     python scripts/scipy_benchmark.py --out results/scipy --cases rational --seeds 0 1 2
+    python scripts/scipy_benchmark.py --out results/scipy --cases weaker_20 weaker_40 --folds 5
     python scripts/scipy_benchmark.py --out results/scipy --table docs/discovery.md      # gather only
 
 Each case is a pendulum file of 1000 trajectories written by ``scripts/scipy_pendulum.py`` (theta and x0 not
@@ -9,7 +10,8 @@ recorded, the angle with white noise of sd 0.02), given to README's discover com
 must be named as one, its coefficient and speed within 20 %, the gap closed; a viscous friction, and viscous plus
 Coulomb friction, must not be named as a form; a restoring force 20 % or 40 % weaker than f_p's must be a
 recalibration of omega's prior, both bounds within 5 %, no term named. "right" is "alike" where another form was
-named and the verdict says that the validation part cannot tell the law's form from it.
+named and the verdict says that the validation part cannot tell the law's form from it. ``--folds K`` runs the
+cases with ``--discover.folds K`` (cross-fitted evidence), in folders of their own (``<case>-seed<s>-K<K>``).
 
 Finished runs (a ``summary.json``, with the run's report.json and report.md beside it) are skipped, so an
 interrupted benchmark resumes; ``--table`` writes the gathered runs between the markers of the page given.
@@ -18,7 +20,6 @@ interrupted benchmark resumes; ``--table`` writes the gathered runs between the 
 from __future__ import annotations
 
 import json
-from functools import partial
 from pathlib import Path
 
 from discover_file import case_parser, run_once
@@ -45,10 +46,12 @@ TRUTH = {  # the coefficient and parameters a named form should have, or the bou
 }
 
 
-def run_case(case: str, seed: int, out: Path) -> dict:
+def run_case(case: str, seed: int, out: Path, folds: int = 1) -> dict:
     law, c, v0, ratio, restoring, _ = CASES[case]
     write_measured = lambda folder: write(folder / "measured.csv", law, c, v0, ratio, 1000, seed, 0.02, restoring)  # noqa: E731
-    return run_once(out / f"{case}-seed{seed}", write_measured, "pendulum.yaml", DISCOVER, seed, partial(summarise, case))
+    summary = lambda report: summarise(case, report) | {"folds": folds}  # noqa: E731
+    folder = out / (f"{case}-seed{seed}" + (f"-K{folds}" if folds > 1 else ""))
+    return run_once(folder, write_measured, "pendulum.yaml", [*DISCOVER, f"--discover.folds={folds}"], seed, summary)
 
 
 def summarise(case: str, report: dict | None) -> dict:
@@ -86,8 +89,8 @@ def within(found: dict, truth: dict, tolerance: float = 0.2) -> bool:
 
 
 def table(out: Path) -> str:
-    header = "| case | seed | named | form's parameters (95 % interval) | outcome | C2ST f_p / augmented / Reference |"
-    rows = [header + " right | min |", "|---|---|---|---|---|---|---|---|"]
+    header = "| case | seed | K | named | form's parameters (95 % interval) | outcome | C2ST f_p / augmented / Reference |"
+    rows = [header + " right | min |", "|---|---|---|---|---|---|---|---|---|"]
     for path in sorted(out.glob("*-seed*/summary.json")):
         s = json.loads(path.read_text())
         named = ", ".join(f"{t['name']} {t['coefficient']:.3g}" for t in s["terms"])
@@ -97,9 +100,11 @@ def table(out: Path) -> str:
             for t in s["terms"] for p in t["parameters"]
         ) or "-"  # fmt: skip
         c2st = " / ".join(f"{s['c2st'][k]:.2f}" if k in s.get("c2st", {}) else "-" for k in ("f_p", "augmented", "reference"))
-        seed = path.parent.name.rpartition("seed")[2]
-        right, minutes = s["right"], f"{s['seconds'] / 60:.1f}"
-        rows.append(f"| {s['case']} | {seed} | {named} | {parameters} | {s['outcome']} | {c2st} | {right} | {minutes} |")
+        seed = path.parent.name.rpartition("seed")[2].partition("-")[0]
+        right, minutes, folds = s["right"], f"{s['seconds'] / 60:.1f}", s.get("folds", 1)
+        rows.append(
+            f"| {s['case']} | {seed} | {folds} | {named} | {parameters} | {s['outcome']} | {c2st} | {right} | {minutes} |"
+        )
     return "\n".join(rows)
 
 
@@ -116,13 +121,14 @@ START, END = "<!-- table: scripts/scipy_benchmark.py --table -->", "<!-- end for
 
 def main() -> None:
     parser = case_parser(__doc__.split("\n\n")[0], CASES, [0])
+    parser.add_argument("--folds", type=int, default=1, help="discover.folds of the runs (cross-fitted evidence)")
     args = parser.parse_args()
     if args.table:
         write_between(args.table, START, END, table(args.out))
         return
     for seed in args.seeds:
         for case in args.cases:
-            run_case(case, seed, args.out)
+            run_case(case, seed, args.out, args.folds)
 
 
 if __name__ == "__main__":
