@@ -41,6 +41,7 @@ from otgb.discovery.markdown import grey_box_elsewhere
 from otgb.discovery.naming import family_step, fitting_for
 from otgb.discovery.paired import paired_check
 from otgb.discovery.prior_text import distribution, distribution_text
+from otgb.discovery.recalibration import Recalibrated, Recalibration
 from otgb.discovery.record import Discovery
 from otgb.discovery.refine import FAMILY_REPEATS, CoefficientPrior, FittedTerms, Fitting, fit
 from otgb.discovery.regression import SelectedTerm, Selection, design_matrix, regress
@@ -1242,6 +1243,18 @@ def test_a_restoring_force_weaker_than_f_ps_is_a_recalibration_of_omega_not_a_mi
     config = {"data": {"physics": {"class_path": "otgb.physics.Pendulum", "init_args": {}}}, "trainer": {}}
     base = augmented_config(config, f_p, result)["data"]["physics"]["init_args"]["base"]
     assert base["init_args"]["omega"] == {"class_path": "otgb.physics.Uniform", "init_args": omega.prior.init_args}
+
+
+def test_a_recalibration_says_which_held_out_part_decided_it():
+    """A recalibration scored on the validation part says so; one cross-fitted over folds says "the held-out folds"
+    in the verdict's parts that weigh it, as the log does."""
+    omega = Recalibrated("omega", Uniform(0.785, 3.14), Uniform(0.7, 2.8), None, None)
+    for folds, part in [(1, "the validation part"), (5, "the held-out folds")]:
+        scores = [Scores([1.0, 1.1], torch.tensor([1.0, 2.0, 3.0]), folds) for _ in range(3)]
+        recalibration = Recalibration([omega], Pendulum(), scores[0], scores[1], [])
+        assert f"fits {part} no better than f_p alone" in recalibration.unconfirmed()
+        other = "the validation part" if folds > 1 else "the held-out folds"
+        assert other not in recalibration.unconfirmed()
 
 
 @pytest.mark.slow

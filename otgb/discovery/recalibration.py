@@ -5,12 +5,13 @@ priors of theta are refitted, each in the family the config gave it, by the dist
 coefficients (:mod:`otgb.discovery.refine`): with theta_k = c_k + w_k s_k for fixed standard draws s_k (U(-1, 1) for
 a uniform prior U(c - w, c + w), N(0, 1) for a normal N(c, w^2); a constant is c), the centres and widths minimise
 the mean discrepancy of ``discover.spread_samples`` simulated samples to the training part (a
-prior's width is a spread, which one sample's noise hides). The fit is scored on the validation part, and its 95 %
+prior's width is a spread, which one sample's noise hides). The fit is scored on the validation part (with
+``discover.folds`` > 1, cross-fitted over the held-out folds), and its 95 %
 intervals are the sandwich of :mod:`otgb.discovery.intervals`. Priors of other kinds (a choice of values) are kept
 as they are and said so.
 
 f_p with the recalibrated priors is then weighed against f_p alone and against f_p plus the named terms on the
-validation part (:mod:`otgb.discovery.verdict` words it).
+same held-out part (:mod:`otgb.discovery.verdict` words it).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import torch
 from torch import Tensor
 
 from otgb.discovery.chunked import Simulate
-from otgb.discovery.crossfit import Folds, cross_fitted, refit_steps
+from otgb.discovery.crossfit import Folds, cross_fitted, heldout_part, refit_steps
 from otgb.discovery.discrepancy import Target
 from otgb.discovery.families import CONSTANT, NORMAL, UNIFORM, centre, prior, spread, standard_noise, varies
 from otgb.discovery.intervals import STEP, Z95, sandwich
@@ -96,8 +97,13 @@ class Recalibration:
         return difference(self.heldout, self.f_p_heldout)
 
     @property
+    def part(self) -> str:
+        """What its scores are on: the validation part, or the held-out folds where they are cross-fitted."""
+        return heldout_part(self.heldout.folds > 1)
+
+    @property
     def beats_f_p(self) -> bool:
-        """Whether the recalibrated f_p fits the validation part better than f_p alone by two standard errors."""
+        """Whether the recalibrated f_p fits the held-out part better than f_p alone by two standard errors."""
         return clears(*self.below_f_p)
 
     def answer_text(self) -> str:
@@ -117,11 +123,11 @@ class Recalibration:
         return "; ".join(part for part in (said, agree) if part)
 
     def unconfirmed(self) -> str:
-        """Where the recalibration was tried and is not the answer: by how much it fits the validation part better."""
+        """Where the recalibration was tried and is not the answer: by how much it fits the held-out part better."""
         below, error = self.below_f_p
         return (
             f"f_p with its priors refitted ({', '.join(f'{r.parameter} {prior_text(r.prior)}' for r in self.parameters)}) fits "
-            f"the validation part no better than f_p alone by two standard errors ({below:+.3g} +- {error:.2g})"
+            f"{self.part} no better than f_p alone by two standard errors ({below:+.3g} +- {error:.2g})"
         )
 
     def alike(self, terms: Scores) -> str | None:
@@ -132,7 +138,7 @@ class Recalibration:
             return None
         priors = ", ".join(f"{r.parameter} {prior_text(r.prior)}" for r in self.parameters)
         return (
-            f"the validation part cannot tell these terms from f_p with recalibrated priors ({priors}; "
+            f"{self.part} cannot tell these terms from f_p with recalibrated priors ({priors}; "
             f"{gap / error if error > 0 else 0:+.1f} standard errors): the model may lack physics, or its parameters' "
             "priors may be off"
         )
