@@ -1677,6 +1677,11 @@ def test_discover_from_python_as_the_tutorial_does_names_friction_with_its_inter
     assert result.found and result.outcome == report["outcome"] in OUTCOMES[:4], report["outcome"]
     assert report["closer"]["significant"] and report["closer"]["pvalue"] < 0.05, report["closer"]
     assert "the larger of a permutation test" in (run_dir / "report.md").read_text()
+    stages = json.loads((run_dir / "stages.json").read_text())
+    assert stages == result.stages and "## Where the time went" in (run_dir / "report.md").read_text()
+    timed = {row["stage"]: row for row in stages["stages"]}
+    assert {"grey-box training", "disagreement map", "f_phi regression", "intervals"} <= set(timed), sorted(timed)
+    assert abs(sum(row["seconds"] for row in stages["stages"]) - stages["total_seconds"]) < 1e-6 * stages["total_seconds"]
     [term] = result.terms
     assert (term.name, term.feature, term.component, term.distribution) == ("viscous friction", "velocity", "velocity", None)
     assert abs(term.coefficient + 1.2) < 0.12 and term.coefficient == report["terms"][0]["coefficient"]

@@ -22,6 +22,7 @@ from otgb.discovery.recalibration import Recalibration, recalibrate
 from otgb.discovery.refine import FittedTerms, Fitting, refit_on
 from otgb.discovery.scores import HELDOUT_REPEATS, Scores, beats, difference
 from otgb.discovery.settings import DiscoverySettings
+from otgb.discovery.stages import stage
 
 
 @dataclass(frozen=True)
@@ -51,6 +52,7 @@ def answer_step(fitting: Fitting, terms: FittedTerms | None, settings: Discovery
     return Answer(both[0], True, both[1].choice.fitted, both[1]) if both else Answer(recalibration, False, terms)
 
 
+@stage("terms and recalibration together")
 def both_step(
     fitting: Fitting, alone: Recalibration, terms: FittedTerms, families: tuple[str, ...], refit_x0: bool
 ) -> tuple[Recalibration, FamilyStep] | None:
@@ -106,6 +108,7 @@ def answers_instead(recalibration: Recalibration, terms: FittedTerms | None) -> 
     return recalibration.beats_f_p and (terms is None or beats(recalibration.heldout, terms.heldout))
 
 
+@stage("recalibration")
 def recalibrate_step(fitting: Fitting, refit_x0: bool) -> Recalibration | None:
     """f_p's theta priors (and x0's, with ``refit_x0``) refitted to the training part and scored on the validation part
     (:mod:`otgb.discovery.recalibration`)."""

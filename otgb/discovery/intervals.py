@@ -38,6 +38,7 @@ from otgb.discovery.families import centre, spread, varies
 from otgb.discovery.log import diverged
 from otgb.discovery.refine import FitSample, FittedTerms, Fitting
 from otgb.discovery.scores import term_names
+from otgb.discovery.stages import stage
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 from otgb.physics.priors import Constant
@@ -80,6 +81,7 @@ def sandwich_intervals(base: PhysicsModel, fitted: FittedTerms, measured: Tensor
     return Intervals(centre, width)
 
 
+@stage("intervals")
 def fitted_intervals(fitting: Fitting, fitted: FittedTerms) -> Intervals | None:
     """:func:`sandwich_intervals` of one of a discovery run's fits (on its training part, with its batch and seed), kept
     in the run's fit cache where it has one: a model asked about twice (the search's kept model is often the final one)

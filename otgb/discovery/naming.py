@@ -22,6 +22,7 @@ from otgb.discovery.regression import Selection, describe_terms, design_matrix, 
 from otgb.discovery.scores import beats, difference
 from otgb.discovery.seeds import Seeds
 from otgb.discovery.settings import Context, DiscoverySettings, Measurements
+from otgb.discovery.stages import stage
 from otgb.discovery.variation import FamilyChoice
 from otgb.discovery.variation import choose_prior as choose_family_of
 from otgb.physics.base import PhysicsModel
@@ -43,6 +44,7 @@ class Naming:
         return [(t.candidate, t.coefficient) for s in self.selections for t in s.terms]
 
 
+@stage("f_phi regression")
 def name_step(module: Any, settings: DiscoverySettings, seeds: Seeds) -> Naming:
     """Regress f_phi on the library, per component."""
     physics = module.physics
@@ -76,6 +78,7 @@ def strong_candidates(selections: list[Selection], designs: dict, k: int) -> lis
     return [(c, slopes[c]) for c in dict.fromkeys(chosen)]
 
 
+@stage("cross-check")
 def cross_check_step(strong: list[tuple], fitting: Fitting) -> list[dict]:
     """Each strong candidate alone added to f_p, its coefficient fitted: the share of f_p's held-out gap it closes,
     and how far below f_p alone's its held-out energy lies, with that difference's standard error."""
@@ -133,6 +136,7 @@ class Route:
     truncated: bool
 
 
+@stage("f_phi route fits")
 def add_step(selections: list[Selection], designs: dict, fitting: Fitting) -> Route:
     """Forward selection on held-out measurements, then the prior family.
 
@@ -179,6 +183,7 @@ class Weighed:
     added: list[dict]
 
 
+@stage("evidence")
 def evidence_step(
     kept: FittedTerms, selections: list[Selection], cross_check: list[dict], designs: dict, fitting: Fitting, per_term: int
 ) -> Weighed:  # fmt: skip
@@ -250,6 +255,7 @@ class FamilyStep:
     dropped: list[dict]
 
 
+@stage("prior family")
 def family_step(kept: FittedTerms, fitting: Fitting, families: tuple[str, ...]) -> FamilyStep:
     """The prior family of ``kept``'s terms (:func:`choose_prior`); when it varies, or when a family that varies
     scored best but its spread had no interval, the terms are pruned again in that family.
@@ -276,6 +282,7 @@ def family_step(kept: FittedTerms, fitting: Fitting, families: tuple[str, ...]) 
     return FamilyStep(choose_prior(constant, fitting, families), dropped)
 
 
+@stage("f_phi regression")
 def final_regression(
     selections: list[Selection], designs: dict, kept: list[Candidate], settings: DiscoverySettings, seeds: Seeds
 ) -> list:

@@ -24,6 +24,7 @@ from scipy.stats import chi2
 from torch import Tensor
 
 from otgb.data.measured import simulate_in_chunks
+from otgb.discovery.stages import stage
 from otgb.physics.base import PhysicsModel
 
 
@@ -70,6 +71,7 @@ class PairedCheck:
 
 
 @torch.no_grad()
+@stage("paired check")
 def paired_check(
     physics: PhysicsModel, measured: Tensor, x0: Tensor, theta: Tensor, noise: float, signals: Tensor | None = None,
     **names: str,

@@ -27,6 +27,7 @@ from otgb.discovery.refine import Fitting
 from otgb.discovery.result import DiscoveryResult
 from otgb.discovery.session import Session, stopped_by_signals
 from otgb.discovery.settings import Measurements
+from otgb.discovery.stages import Stopwatch, stage
 from otgb.discovery.verify import gap_step
 from otgb.discovery.workflow import locate_step, run, verify_answer
 from otgb.runs import load_weights
@@ -35,8 +36,19 @@ from otgb.runs import load_weights
 def discover(session: Session) -> DiscoveryResult:
     """Run discovery on the session's measurements: the nothing-detected branch where the disagreement map finds no
     difference, else the grey-box (trained, or loaded from ``session.ckpt_path``) and the later steps, with pointwise
-    errors where a DGP is known."""
+    errors where a DGP is known; each stage timed (:mod:`otgb.discovery.stages`)."""
     show_on_stderr()
+    with Stopwatch() as watch:
+        result, components, data = _discovered(session)
+    samples = {"measured": data.test, **{k: v for k, v in result.draws.items() if k != "greybox"}}
+    measured = torch.cat([data.train, data.val, data.test])
+    facts, source = facts_of(session), session.datamodule.source
+    return DiscoveryResult(result, session.physics, facts, samples, components, session.config, measured, source, watch.record())
+
+
+def _discovered(session: Session) -> tuple[Discovery, dict | None, Measurements]:
+    """:func:`discover`'s steps: the workflow's record, the grey-box's component analysis (None without a grey-box)
+    and the measurements."""
     datamodule, settings, physics, context = session.datamodule, session.settings, session.physics, session.context
     data = Measurements.from_datamodule(datamodule)
     Folds.of(data.train, data.val, settings.fits.folds, context.seeds.root)  # too many folds: said before any training
@@ -44,21 +56,18 @@ def discover(session: Session) -> DiscoveryResult:
     with context.as_measured(physics, data.noise):
         before = locate_step(physics, data.train, settings, context, paired=paired)
     progress(describe(before))
-    components = None
-    if before.any_significant:
-        trained = load_or_fit(session)
+    if not before.any_significant:
+        return nothing_detected(session, data, before), None, data
+    trained = load_or_fit(session)
+    with stage("component analysis"):
         components = component_analysis(session.module, datamodule, seed=context.seeds.root)
-        fitted_now = trained if session.ckpt_path is None else None  # a checkpoint trained by this run, kept on a stop
-        with context.as_measured(physics, data.noise), stopped_by_signals(context.cache, fitted_now):
-            result = run(session.module, data, settings, before, context)
-        result = with_pointwise_errors(result, session)
-    else:
-        result = nothing_detected(session, data, before)
-    samples = {"measured": data.test, **{k: v for k, v in result.draws.items() if k != "greybox"}}
-    measured = torch.cat([data.train, data.val, data.test])
-    return DiscoveryResult(result, physics, facts_of(session), samples, components, session.config, measured, datamodule.source)
+    fitted_now = trained if session.ckpt_path is None else None  # a checkpoint trained by this run, kept on a stop
+    with context.as_measured(physics, data.noise), stopped_by_signals(context.cache, fitted_now):
+        result = run(session.module, data, settings, before, context)
+    return with_pointwise_errors(result, session), components, data
 
 
+@stage("grey-box training")
 def load_or_fit(session: Session) -> str | None:
     """Load the grey-box's weights from ``session.ckpt_path``, or train it and load its best checkpoint; returns the
     checkpoint loaded (None: training kept none)."""

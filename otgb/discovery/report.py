@@ -17,6 +17,7 @@ from otgb.discovery.locate import DisagreementMap
 from otgb.discovery.markdown import markdown
 from otgb.discovery.prior_text import distribution, prior_dict
 from otgb.discovery.record import Discovery
+from otgb.discovery.stages import markdown_rows
 from otgb.discovery.verdict import confirmed, kept_terms, named_divergences, outcome, verdict
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
@@ -253,12 +254,15 @@ def disagreement_panels(result: Discovery) -> list[tuple[DisagreementMap, str]]:
 
 
 def write_report(
-    run_dir: Path, result: Discovery, physics: PhysicsModel, facts: dict[str, Any], samples: dict, components: dict | None = None
-) -> dict:
+    run_dir: Path, result: Discovery, physics: PhysicsModel, facts: dict[str, Any], samples: dict, components: dict | None = None,
+    stages: dict | None = None,
+) -> dict:  # fmt: skip
     """Write report.json, report.md and the figures into ``run_dir``; returns the report dict.
 
     ``components``: the grey-box's component analysis (:func:`otgb.analysis.components.component_analysis`),
-    written as ``components.json`` and ``figures/components.png`` and summarised in the report.
+    written as ``components.json`` and ``figures/components.png`` and summarised in the report. ``stages``: where the
+    run's time went (:mod:`otgb.discovery.stages`), written as ``stages.json`` and report.md's last section; not in
+    report.json, whose numbers a seed fixes.
     """
     figures = run_dir / "figures"
     figures.mkdir(parents=True, exist_ok=True)
@@ -275,7 +279,9 @@ def write_report(
     figure = distribution_figure(samples, physics.observation_times(), names, time_label=physics.axis_label("t"))
     save(figure, figures / "distributions.png")
     close(figure)
-    (run_dir / "report.md").write_text(markdown(report, facts))
+    (run_dir / "report.md").write_text(markdown(report, facts) + "\n".join(markdown_rows(stages)) + "\n" * bool(stages))
+    if stages is not None:
+        (run_dir / "stages.json").write_text(json.dumps(stages, indent=2) + "\n")
     return report
 
 

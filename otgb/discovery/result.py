@@ -75,6 +75,7 @@ class DiscoveryResult:
         config: The run's resolved config as YAML data, the base of ``augmented.yaml``.
         measured: Every measured trajectory (all parts), for a next round that needs them in a file.
         source: Where they came from (:mod:`otgb.data.sources`).
+        stages: Where the run's time went (:meth:`otgb.discovery.stages.Stopwatch.record`), or None (not timed).
     """
 
     discovery: Discovery
@@ -85,6 +86,7 @@ class DiscoveryResult:
     config: dict[str, Any]
     measured: Tensor
     source: MeasurementSource
+    stages: dict | None = None
 
     @cached_property
     def report(self) -> dict[str, Any]:
@@ -141,12 +143,13 @@ class DiscoveryResult:
         print(terminal_table(self), file=file or sys.stdout)
 
     def write(self, run_dir: str | Path) -> Path:
-        """Write ``report.md``, ``report.json``, ``figures/`` (and ``components.json``) into ``run_dir``, and
+        """Write ``report.md``, ``report.json``, ``figures/`` (and ``components.json``, and ``stages.json`` where the
+        run was timed) into ``run_dir``, and
         ``augmented.yaml`` where terms were named (with ``measured.npz``, the measurements, where no file of them is
         left: an array given to :meth:`MissingEffect.fit` without a run directory). Returns ``run_dir``."""
         run_dir = Path(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
-        write_report(run_dir, self.discovery, self.physics, self.facts, self.samples, self.components)
+        write_report(run_dir, self.discovery, self.physics, self.facts, self.samples, self.components, self.stages)
         if self.discovery.explained:
             config = copy.deepcopy(self.config)
             # the next round reads these measurements from a file (for generated ones, not the DGP: it would add the

@@ -29,6 +29,7 @@ from otgb.discovery.log import progress, short
 from otgb.discovery.refine import FittedTerms, Fitting
 from otgb.discovery.scores import Scores, beats, difference
 from otgb.discovery.search import SearchStep, Unsupported, search
+from otgb.discovery.stages import stage
 from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 from otgb.physics.features import is_local
@@ -56,6 +57,7 @@ def theta_candidates(physics: PhysicsModel, components: list[str]) -> list[Candi
     return [Candidate(f, c) for c in components for f in scaled_by_theta(local, physics.theta_names, (1, 2))]
 
 
+@stage("terms that scale with theta")
 def theta_step(
     fitting: Fitting, answer: Answer, components: list[str], disagrees: Callable[[PhysicsModel, Tensor], bool]
 ) -> ThetaSearch | None:

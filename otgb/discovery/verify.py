@@ -16,6 +16,7 @@ from otgb.discovery.paired import PairedCheck, paired_check
 from otgb.discovery.refine import FittedTerms
 from otgb.discovery.seeds import Seeds, stream
 from otgb.discovery.settings import DiscoverySettings, Measurements
+from otgb.discovery.stages import stage
 from otgb.metrics.c2st import c2st
 from otgb.metrics.energy import energy_distance
 from otgb.metrics.mmd import mmd_multiscale
@@ -23,6 +24,7 @@ from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 
 
+@stage("verification on the test part")
 def gap_step(sources: dict[str, Tensor], test: Tensor, settings: DiscoverySettings, seeds: Seeds) -> dict[str, dict[str, float]]:
     """MMD, C2ST and energy distance of each source's draws against the test measurements, and the Reference (one
     random half of the test part against the other). Where test values are missing (NaN), each source's draws take the
@@ -68,6 +70,7 @@ def closer_step(
         return None
 
 
+@stage("paired check")
 def paired_after(fitted: FittedTerms, physics: PhysicsModel, data: Measurements, alpha: float) -> PairedCheck | None:
     """The named terms' paired check on the test part at level ``alpha``, where it applies: recorded inputs, a given
     noise and constant coefficients (with a spread, a coefficient per trajectory is unknown and nothing pairs)."""

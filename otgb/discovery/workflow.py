@@ -56,6 +56,7 @@ from otgb.discovery.scores import beats, difference, sample_scores
 from otgb.discovery.search import SearchStep, Unsupported, search
 from otgb.discovery.seeds import Seeds
 from otgb.discovery.settings import Context, DiscoverySettings, Measurements
+from otgb.discovery.stages import stage
 from otgb.discovery.theta_terms import ThetaSearch, theta_step
 from otgb.discovery.verdict import undertrained_text
 from otgb.discovery.verify import closer_step, gap_step, paired_after
@@ -63,6 +64,7 @@ from otgb.physics.augmented import Augmented
 from otgb.physics.base import PhysicsModel
 
 
+@stage("disagreement map")
 def locate_step(
     physics: PhysicsModel, measured: Tensor, settings: DiscoverySettings, context: Context, model_name: str = "f_p",
     paired: PairedCheck | None = None,
@@ -158,6 +160,7 @@ def route_name(searched: Searched, theta: ThetaSearch | None) -> str:
     return "library search" if searched.replaced else "f_phi regression"
 
 
+@stage("parametric forms")
 def forms_step(weighed: Weighed, designs: dict, fitting: Fitting, settings: DiscoverySettings, context: Context) -> FormStep:
     """The parametric forms weighed against the kept linear terms (:mod:`otgb.discovery.forms`), a remainder
     checked by the disagreement map of the kept model on the validation part."""
@@ -190,6 +193,7 @@ def verify(
     return verify_answer(replace(named, **found), physics, data.test, settings, context, sources)
 
 
+@stage("verification on the test part")
 def verify_answer(
     named: Discovery, physics: PhysicsModel, test: Tensor, settings: DiscoverySettings, context: Context, sources: dict
 ) -> Discovery:  # fmt: skip
@@ -245,6 +249,7 @@ class Searched:
     unsupported: list[Unsupported] = field(default_factory=list)
 
 
+@stage("library search")
 def search_step(kept: FittedTerms | None, reason: str, designs: dict, fitting: Fitting) -> Searched:
     """The library search (:mod:`otgb.discovery.search`), run for ``reason``; its model replaces ``kept`` as
     :func:`replaces` says."""
